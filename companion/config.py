@@ -1,0 +1,153 @@
+"""The daemon's configuration: one YAML file mapped onto the dataclasses below.
+
+Every key is documented here (``meta(doc=...)``); ``companion config-reference`` prints the
+reference in docs/config.md from these definitions, and a test keeps the two identical.
+Relative paths in the file (missions, worlds, key files) are resolved against the directory
+of the config file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+from companion.schema import SchemaError, load_file, meta
+
+ConfigError = SchemaError
+
+
+@dataclass
+class VehicleConfig:
+    sysid: int = field(default=1, metadata=meta("MAVLink system id of this companion (normally the autopilot's).", (1, 255)))
+    compid: int = field(default=197, metadata=meta("MAVLink component id of this companion (197 = MAV_COMP_ID_VISUAL_INERTIAL_ODOMETRY).", (1, 255)))
+    autopilot_sysid: int = field(default=1, metadata=meta("System id of the autopilot to talk to.", (1, 255)))
+    autopilot_compid: int = field(default=1, metadata=meta("Component id of the autopilot (1 = MAV_COMP_ID_AUTOPILOT1).", (1, 255)))
+
+
+@dataclass
+class StreamRatesConfig:
+    """Rates (Hz) asked of the autopilot with SET_MESSAGE_INTERVAL; 0 leaves a stream alone."""
+
+    attitude: float = field(default=50.0, metadata=meta("ATTITUDE.", (0, 400)))
+    imu: float = field(default=50.0, metadata=meta("HIGHRES_IMU (ArduPilot and PX4) and SCALED_IMU.", (0, 400)))
+    local_position: float = field(default=10.0, metadata=meta("LOCAL_POSITION_NED.", (0, 100)))
+    gps_raw: float = field(default=5.0, metadata=meta("GPS_RAW_INT.", (0, 50)))
+    home_position: float = field(default=0.5, metadata=meta("HOME_POSITION.", (0, 10)))
+    estimator_status: float = field(default=2.0, metadata=meta("EKF_STATUS_REPORT (ArduPilot) / ESTIMATOR_STATUS (PX4).", (0, 50)))
+    sim_state: float = field(default=0.0, metadata=meta("SIM_STATE ground truth (simulators only; sim backends need it).", (0, 400)))
+
+
+@dataclass
+class MavlinkConfig:
+    url: str = field(default="udpin:127.0.0.1:14550", metadata=meta(
+        "Autopilot endpoint in pymavlink syntax: udpin:HOST:PORT, udpout:HOST:PORT, tcp:HOST:PORT, /dev/ttyAMA0,921600."))
+    heartbeat_hz: float = field(default=1.0, metadata=meta("HEARTBEAT rate (MAV_TYPE_ONBOARD_CONTROLLER).", (0.2, 10)))
+    estimate_rate_hz: float = field(default=30.0, metadata=meta(
+        "Maximum VISION_POSITION_ESTIMATE / VISION_SPEED_ESTIMATE rate. ArduPilot needs >= 4 Hz, PX4 30-50 Hz.", (4, 100)))
+    setpoint_rate_hz: float = field(default=10.0, metadata=meta("Setpoint keepalive rate while commanding.", (10, 100)))
+    link_timeout_s: float = field(default=3.0, metadata=meta("No autopilot HEARTBEAT for this long = link lost.", (0.5, 60)))
+    command_timeout_s: float = field(default=1.0, metadata=meta("Wait for COMMAND_ACK before a retry.", (0.05, 30)))
+    command_retries: int = field(default=3, metadata=meta("Attempts per command before it is reported failed.", (1, 20)))
+    signing_key_file: str | None = field(default=None, metadata=meta(
+        "MAVLink 2 signing: file holding the 32-byte secret key (raw, or 64 hex characters). null = unsigned."))
+    streams: StreamRatesConfig = field(default_factory=StreamRatesConfig, metadata=meta("Streams requested from the autopilot."))
+
+
+@dataclass
+class OriginConfig:
+    lat: float = field(metadata=meta("EKF origin latitude, degrees (WGS-84).", (-90, 90)))
+    lon: float = field(metadata=meta("EKF origin longitude, degrees.", (-180, 180)))
+    alt: float = field(metadata=meta("EKF origin altitude, metres AMSL.", (-500, 9000)))
+
+
+@dataclass
+class MountConfig:
+    """Sensor pose in the body FRD frame."""
+
+    position_m: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0), metadata=meta("Offset from the body origin (FRD), metres.", (-5, 5)))
+    rpy_deg: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0), metadata=meta("Roll, pitch, yaw of the sensor frame relative to body FRD, degrees.", (-360, 360)))
+
+
+@dataclass
+class SensorConfig:
+    kind: Literal["lidar", "camera", "imu", "gnss"] = field(metadata=meta("What the sensor measures."))
+    backend: Literal["real", "sim", "replay"] = field(metadata=meta("real device, simulated from ground truth, or replay of a recording."))
+    mount: MountConfig = field(default_factory=MountConfig, metadata=meta("Mount pose in the body frame."))
+    settings: dict[str, Any] = field(default_factory=dict, metadata=meta("Backend settings (port, model, file...), validated by the driver."))
+
+
+@dataclass
+class PipelinesConfig:
+    fix_rate_hz: float = field(default=10.0, metadata=meta("Nominal rate of sensor fixes (lidar, camera).", (1, 100)))
+    fusion_rate_hz: float = field(default=50.0, metadata=meta("Rate of the fused output loop (the nav loop).", (10, 400)))
+
+
+@dataclass
+class TelemetryConfig:
+    enabled: bool = field(default=True, metadata=meta("Publish telemetry on zenoh."))
+    mode: Literal["peer", "client"] = field(default="peer", metadata=meta("zenoh session mode."))
+    listen: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"], metadata=meta("zenoh listen endpoints."))
+    connect: list[str] = field(default_factory=list, metadata=meta("zenoh endpoints to connect to."))
+    multicast_scouting: bool = field(default=False, metadata=meta("zenoh multicast scouting (off: endpoints are explicit)."))
+    gossip_scouting: bool = field(default=False, metadata=meta("zenoh gossip scouting."))
+    queue_size: int = field(default=256, metadata=meta("Bounded publish queue; the oldest message is dropped when full.", (8, 100000)))
+    pose_hz: float = field(default=20.0, metadata=meta("Pose/velocity publish rate.", (1, 50)))
+    status_hz: float = field(default=1.0, metadata=meta("Health, link, autopilot, system and rates publish rate.", (0.2, 10)))
+
+
+@dataclass
+class LoggingConfig:
+    level: Literal["debug", "info", "warning", "error"] = field(default="info", metadata=meta("Log level (the CLI's --log-level overrides)."))
+
+
+@dataclass
+class MissionConfig:
+    file: str | None = field(default=None, metadata=meta("Mission YAML to fly at start (relative to this file). null = fly nothing."))
+    allow_arm: bool = field(default=False, metadata=meta("Whether the companion may arm the vehicle. Off for real vehicles unless you mean it."))
+
+
+@dataclass
+class SitlConfig:
+    """Used only by `companion sitl` (the harness), never by the daemon on a vehicle."""
+
+    world: str = field(default="worlds/arena.yaml", metadata=meta("World YAML (relative to this file)."))
+    vehicle_url: str = field(default="udpin:127.0.0.1:14555", metadata=meta(
+        "Where the simulated vehicle listens for the companion (the daemon gets the matching udpout URL)."))
+    gcs_urls: list[str] = field(default_factory=lambda: ["udpout:127.0.0.1:14550"], metadata=meta(
+        "Extra vehicle links for a ground station (QGroundControl, mavsdk)."))
+    gps: bool = field(default=True, metadata=meta("Simulate a GPS receiver (the indoor default does not fuse it)."))
+    position_source: Literal["extnav", "gps"] = field(default="gps", metadata=meta(
+        "What the simulated autopilot fuses for position (EK3_SRC1_POSXY): extnav = the companion's estimate."))
+    start: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0), metadata=meta("Start pose: north m, east m, yaw deg."))
+    wind_ned_mps: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0), metadata=meta("Mean wind, NED m/s.", (-20, 20)))
+    gust_mps: float = field(default=0.2, metadata=meta("Gust standard deviation, m/s.", (0, 10)))
+    tick_s: float = field(default=0.005, metadata=meta("Lockstep tick (simulation seconds per clock step).", (0.001, 0.05)))
+
+
+@dataclass
+class Config:
+    origin: OriginConfig = field(metadata=meta("EKF origin sent to the autopilot (SET_GPS_GLOBAL_ORIGIN + SET_HOME_POSITION)."))
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig, metadata=meta("MAVLink identities."))
+    mavlink: MavlinkConfig = field(default_factory=MavlinkConfig, metadata=meta("The autopilot link."))
+    sensors: dict[str, SensorConfig] = field(default_factory=dict, metadata=meta("Sensors by name."))
+    pipelines: PipelinesConfig = field(default_factory=PipelinesConfig, metadata=meta("Navigation pipelines."))
+    telemetry: TelemetryConfig = field(default_factory=TelemetryConfig, metadata=meta("zenoh telemetry."))
+    logging: LoggingConfig = field(default_factory=LoggingConfig, metadata=meta("Logging."))
+    mission: MissionConfig = field(default_factory=MissionConfig, metadata=meta("Mission to fly."))
+    sitl: SitlConfig = field(default_factory=SitlConfig, metadata=meta("Simulation harness settings."))
+    base_dir: Path = field(default=Path("."), init=False, repr=False)
+    source: str = field(default="<string>", init=False, repr=False)
+
+    def resolve(self, relative: str) -> Path:
+        """A path from the config file, resolved against the file's directory."""
+        p = Path(relative)
+        return p if p.is_absolute() else self.base_dir / p
+
+
+def load_config(path: str | Path) -> Config:
+    """Load and validate a config file; raises :class:`ConfigError` (file, key path, line)."""
+    cfg = load_file(path, Config)
+    cfg.base_dir = Path(path).resolve().parent
+    cfg.source = str(path)
+    return cfg

@@ -1,0 +1,100 @@
+"""The one frame convention used everywhere in this project.
+
+World frame: MAVLink LOCAL_NED at the autopilot's EKF origin (x north, y east, z down, metres).
+Body frame: FRD (x forward, y right, z down).
+Attitude: unit quaternion ``q = [w, x, y, z]`` (MAVLink order) rotating body vectors into NED,
+``v_ned = R(q) @ v_body``; Euler angles are aerospace ZYX (yaw about z, then pitch, then roll),
+radians, yaw measured from north towards east.
+
+Geodetic conversion uses a local tangent plane at the origin (flat earth); over an indoor
+arena or a few kilometres the error is far below a millimetre per metre.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+EARTH_RADIUS_M = 6_378_137.0  # WGS-84 equatorial radius
+GRAVITY_MPS2 = 9.80665
+
+
+def quat_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Quaternion [w, x, y, z] (body FRD -> NED) from ZYX Euler angles in radians."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return np.array(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ]
+    )
+
+
+def euler_from_quat(q: np.ndarray) -> tuple[float, float, float]:
+    """ZYX Euler angles (roll, pitch, yaw) in radians from a quaternion [w, x, y, z]."""
+    w, x, y, z = (float(v) for v in q)
+    roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
+    pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
+    yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+    return roll, pitch, yaw
+
+
+def rotation_from_quat(q: np.ndarray) -> np.ndarray:
+    """3x3 rotation matrix R (body FRD -> NED) of a quaternion [w, x, y, z]."""
+    w, x, y, z = (float(v) for v in q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def rotation_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """3x3 rotation matrix (body FRD -> NED) from ZYX Euler angles in radians."""
+    return rotation_from_quat(quat_from_euler(roll, pitch, yaw))
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a * b of two quaternions [w, x, y, z]."""
+    aw, ax, ay, az = a
+    bw, bx, by, bz = b
+    return np.array(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
+
+
+def wrap_pi(angle: float) -> float:
+    """Angle wrapped to [-pi, pi)."""
+    return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
+def ned_from_geodetic(
+    lat_deg: float, lon_deg: float, alt_m: float, origin: tuple[float, float, float]
+) -> np.ndarray:
+    """NED position (m) of a WGS-84 point relative to ``origin`` = (lat deg, lon deg, alt m AMSL)."""
+    lat0, lon0, alt0 = origin
+    north = math.radians(lat_deg - lat0) * EARTH_RADIUS_M
+    east = math.radians(lon_deg - lon0) * EARTH_RADIUS_M * math.cos(math.radians(lat0))
+    return np.array([north, east, alt0 - alt_m])
+
+
+def geodetic_from_ned(
+    ned: np.ndarray, origin: tuple[float, float, float]
+) -> tuple[float, float, float]:
+    """(lat deg, lon deg, alt m AMSL) of an NED position (m) relative to ``origin``."""
+    lat0, lon0, alt0 = origin
+    lat = lat0 + math.degrees(float(ned[0]) / EARTH_RADIUS_M)
+    lon = lon0 + math.degrees(float(ned[1]) / (EARTH_RADIUS_M * math.cos(math.radians(lat0))))
+    return lat, lon, alt0 - float(ned[2])

@@ -1,0 +1,285 @@
+"""Typed YAML loading: YAML text -> dataclass instances, with file/key/line in every error.
+
+A schema is a tree of dataclasses. Each field's type drives the conversion (int, float, bool,
+str, Literal, Optional, list, tuple, dict[str, X], nested dataclass); a field without a default
+is required. ``field(metadata=meta(doc=..., range=(lo, hi)))`` adds the one-line documentation
+used by the generated config reference and an inclusive numeric range.
+
+Errors raise :class:`SchemaError` naming the file, the dotted key path and the 1-based line of
+the offending node, e.g. ``config/sitl.yaml:12: mavlink.estimate_rate_hz: must be within
+[1, 100], got 500``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import types
+import typing
+from pathlib import Path
+from typing import Any, Literal, TypeVar, get_args, get_origin, get_type_hints
+
+import yaml
+
+T = TypeVar("T")
+
+
+class SchemaError(Exception):
+    """A document does not match its schema; ``str()`` is ``file:line: key.path: message``."""
+
+    def __init__(self, file: str, key_path: str, line: int | None, message: str) -> None:
+        self.file = file
+        self.key_path = key_path
+        self.line = line
+        self.message = message
+        where = f"{file}:{line}" if line is not None else file
+        super().__init__(f"{where}: {key_path or '<top>'}: {message}")
+
+
+def meta(doc: str, range: tuple[float, float] | None = None) -> dict[str, Any]:
+    """Field metadata: a one-line description and an optional inclusive numeric range."""
+    return {"doc": doc, "range": range}
+
+
+def load_file(path: str | Path, schema: type[T]) -> T:
+    """Parse the YAML file at ``path`` (safe loader) and build ``schema`` from it."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise SchemaError(str(path), "", None, f"cannot read file: {exc.strerror}") from exc
+    return load_text(text, schema, str(path))
+
+
+def load_text(text: str, schema: type[T], file: str = "<string>") -> T:
+    """Build ``schema`` from YAML ``text``; ``file`` is only used in error messages."""
+    try:
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = mark.line + 1 if mark is not None else None
+        problem = getattr(exc, "problem", None) or str(exc)
+        raise SchemaError(file, "", line, f"invalid YAML: {problem}") from exc
+    if node is None:
+        node = yaml.MappingNode(tag="tag:yaml.org,2002:map", value=[])
+    return _Builder(file).build(schema, node, "")
+
+
+def _line(node: yaml.Node) -> int:
+    return node.start_mark.line + 1
+
+
+class _Builder:
+    def __init__(self, file: str) -> None:
+        self.file = file
+
+    def error(self, node: yaml.Node, path: str, message: str) -> SchemaError:
+        return SchemaError(self.file, path, _line(node), message)
+
+    def build(self, tp: Any, node: yaml.Node, path: str) -> Any:
+        origin = get_origin(tp)
+        if dataclasses.is_dataclass(tp):
+            return self._dataclass(tp, node, path)
+        if origin in (typing.Union, types.UnionType):
+            return self._union(tp, node, path)
+        if origin is Literal:
+            value = self._scalar(node, path)
+            if value not in get_args(tp):
+                allowed = ", ".join(repr(a) for a in get_args(tp))
+                raise self.error(node, path, f"must be one of {allowed}, got {value!r}")
+            return value
+        if origin is list:
+            return [self.build(get_args(tp)[0], item, f"{path}[{i}]")
+                    for i, item in enumerate(self._sequence(node, path))]
+        if origin is tuple:
+            return self._tuple(tp, node, path)
+        if origin is dict:
+            key_tp, value_tp = get_args(tp)
+            return {k: self.build(value_tp, v, f"{path}.{k}" if path else k)
+                    for k, v in self._mapping(node, path, key_tp).items()}
+        if tp is Any:
+            return _plain(node)
+        if tp in (int, float, bool, str):
+            return self._primitive(tp, node, path)
+        raise TypeError(f"schema type {tp!r} at {path} is not supported")
+
+    def _dataclass(self, cls: Any, node: yaml.Node, path: str) -> Any:
+        items = self._mapping(node, path, str)
+        hints = get_type_hints(cls)
+        fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+        for key, value_node in items.items():
+            if key not in fields:
+                known = ", ".join(sorted(fields))
+                raise self.error(_key_node(node, key), _join(path, key),
+                                 f"unknown key (known keys: {known})")
+        kwargs: dict[str, Any] = {}
+        for name, f in fields.items():
+            sub = _join(path, name)
+            if name in items:
+                value = self.build(hints[name], items[name], sub)
+                self._check_range(f, value, items[name], sub)
+                kwargs[name] = value
+            elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
+                raise self.error(node, sub, "required key is missing")
+        instance = cls(**kwargs)
+        post = getattr(instance, "validate", None)
+        if post is not None:
+            problem = post()
+            if problem is not None:
+                key, message = problem
+                target = items.get(key, node)
+                raise self.error(target, _join(path, key), message)
+        return instance
+
+    def _check_range(self, f: dataclasses.Field, value: Any, node: yaml.Node, path: str) -> None:
+        bounds = f.metadata.get("range") if f.metadata else None
+        if bounds is None or value is None:
+            return
+        values = value if isinstance(value, (list, tuple)) else [value]
+        lo, hi = bounds
+        for v in values:
+            if not (lo <= v <= hi):
+                raise self.error(node, path, f"must be within [{lo:g}, {hi:g}], got {v!r}")
+
+    def _union(self, tp: Any, node: yaml.Node, path: str) -> Any:
+        args = get_args(tp)
+        if type(None) in args and _is_null(node):
+            return None
+        candidates = [a for a in args if a is not type(None)]
+        if len(candidates) == 1:
+            return self.build(candidates[0], node, path)
+        errors = []
+        for candidate in candidates:
+            try:
+                return self.build(candidate, node, path)
+            except SchemaError as exc:
+                errors.append(exc.message)
+        raise self.error(node, path, " or ".join(errors))
+
+    def _tuple(self, tp: Any, node: yaml.Node, path: str) -> tuple:
+        args = get_args(tp)
+        items = self._sequence(node, path)
+        if len(args) == 2 and args[1] is Ellipsis:
+            return tuple(self.build(args[0], it, f"{path}[{i}]") for i, it in enumerate(items))
+        if len(items) != len(args):
+            raise self.error(node, path, f"expected a list of {len(args)} values, got {len(items)}")
+        return tuple(self.build(a, it, f"{path}[{i}]") for i, (a, it) in enumerate(zip(args, items)))
+
+    def _mapping(self, node: yaml.Node, path: str, key_tp: Any) -> dict[str, yaml.Node]:
+        if not isinstance(node, yaml.MappingNode):
+            raise self.error(node, path, f"expected a mapping, got {_describe(node)}")
+        out: dict[str, yaml.Node] = {}
+        for key_node, value_node in node.value:
+            key = key_node.value if isinstance(key_node, yaml.ScalarNode) else None
+            if key_tp is str and not isinstance(key, str):
+                raise self.error(key_node, path, "mapping keys must be strings")
+            if key in out:
+                raise self.error(key_node, _join(path, key), "duplicate key")
+            out[key] = value_node
+        return out
+
+    def _sequence(self, node: yaml.Node, path: str) -> list[yaml.Node]:
+        if not isinstance(node, yaml.SequenceNode):
+            raise self.error(node, path, f"expected a list, got {_describe(node)}")
+        return list(node.value)
+
+    def _scalar(self, node: yaml.Node, path: str) -> Any:
+        if not isinstance(node, yaml.ScalarNode):
+            raise self.error(node, path, f"expected a single value, got {_describe(node)}")
+        return _plain(node)
+
+    def _primitive(self, tp: type, node: yaml.Node, path: str) -> Any:
+        value = self._scalar(node, path)
+        if tp is float and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if tp is float and isinstance(value, float) and not math.isfinite(value):
+            raise self.error(node, path, f"must be a finite number, got {value!r}")
+        if not isinstance(value, tp) or (tp is int and isinstance(value, bool)):
+            raise self.error(node, path, f"expected {_type_name(tp)}, got {_describe(node)}")
+        return value
+
+
+def _plain(node: yaml.Node) -> Any:
+    loader = yaml.SafeLoader("")
+    try:
+        return loader.construct_object(node, deep=True)
+    finally:
+        loader.dispose()
+
+
+def _is_null(node: yaml.Node) -> bool:
+    return isinstance(node, yaml.ScalarNode) and node.tag == "tag:yaml.org,2002:null"
+
+
+def _key_node(mapping: yaml.Node, key: str) -> yaml.Node:
+    for key_node, _ in mapping.value:
+        if getattr(key_node, "value", None) == key:
+            return key_node
+    return mapping
+
+
+def _join(path: str, key: str) -> str:
+    return f"{path}.{key}" if path else key
+
+
+def _type_name(tp: type) -> str:
+    return {int: "an integer", float: "a number", bool: "true or false", str: "a string"}[tp]
+
+
+def _describe(node: yaml.Node) -> str:
+    if isinstance(node, yaml.MappingNode):
+        return "a mapping"
+    if isinstance(node, yaml.SequenceNode):
+        return "a list"
+    value = _plain(node)
+    if value is None:
+        return "nothing (null)"
+    kind = {bool: "boolean", int: "integer", float: "number", str: "string"}.get(type(value), "value")
+    return f"{kind} {value!r}"
+
+
+def reference_rows(cls: Any, prefix: str = "") -> list[tuple[str, str, str, str]]:
+    """(key path, type, default, description) for every key of a schema, depth first.
+
+    Used to generate docs/config.md so the reference can never drift from the code.
+    """
+    rows: list[tuple[str, str, str, str]] = []
+    hints = get_type_hints(cls)
+    for f in dataclasses.fields(cls):
+        if not f.init:
+            continue
+        tp = hints[f.name]
+        path = _join(prefix, f.name)
+        doc = (f.metadata or {}).get("doc", "")
+        bounds = (f.metadata or {}).get("range")
+        if bounds is not None:
+            doc += f" Range [{bounds[0]:g}, {bounds[1]:g}]."
+        if f.default is not dataclasses.MISSING:
+            default = repr(f.default)
+        elif f.default_factory is not dataclasses.MISSING:
+            default_value = f.default_factory()
+            default = "(see below)" if dataclasses.is_dataclass(default_value) else repr(default_value)
+        else:
+            default = "required"
+        rows.append((path, _type_label(tp), default, doc.strip()))
+        if dataclasses.is_dataclass(tp):
+            rows.extend(reference_rows(tp, path))
+        elif get_origin(tp) is dict and dataclasses.is_dataclass(get_args(tp)[1]):
+            rows.extend(reference_rows(get_args(tp)[1], f"{path}.<name>"))
+    return rows
+
+
+def _type_label(tp: Any) -> str:
+    origin = get_origin(tp)
+    if origin is Literal:
+        return " \\| ".join(repr(a) for a in get_args(tp))
+    if origin in (typing.Union, types.UnionType):
+        return " \\| ".join(_type_label(a) for a in get_args(tp))
+    if origin in (list, tuple, dict):
+        inner = ", ".join("..." if a is Ellipsis else _type_label(a) for a in get_args(tp))
+        return f"{origin.__name__}[{inner}]"
+    if dataclasses.is_dataclass(tp):
+        return "mapping"
+    if tp is type(None):
+        return "null"
+    return getattr(tp, "__name__", str(tp))
