@@ -1,0 +1,42 @@
+"""The telemetry key space (the contract is docs/telemetry.md).
+
+Every stream is published on ``uav/<sysid>/<stream>``, where ``sysid`` is the vehicle's
+MAVLink system id (1..255). JSON payloads are objects carrying ``"v": SCHEMA_VERSION``,
+``"t"`` (the daemon's monotonic clock in seconds when the message was produced) and the
+stream's fields. ``SCHEMA_VERSION`` increases when a field is removed or changes meaning;
+adding a field, or a stream with another encoding, does not change it.
+"""
+
+from __future__ import annotations
+
+SCHEMA_VERSION = 1
+KEY_PREFIX = "uav"
+
+STREAMS: tuple[str, ...] = (
+    "pose",
+    "velocity",
+    "health",
+    "rates",
+    "link",
+    "autopilot",
+    "system",
+    "mission",
+    "setpoint",
+    "estimate_stats",
+    "alerts",
+)
+
+_STREAM_SET = frozenset(STREAMS)
+
+
+def key(sysid: int, stream: str) -> str:
+    """Key expression of one stream of one vehicle, e.g. ``key(1, "pose") == "uav/1/pose"``.
+
+    Raises:
+        ValueError: ``sysid`` outside 1..255 or ``stream`` not in :data:`STREAMS`.
+    """
+    if isinstance(sysid, bool) or not isinstance(sysid, int) or not 1 <= sysid <= 255:
+        raise ValueError(f"sysid must be an int in 1..255, got {sysid!r}")
+    if stream not in _STREAM_SET:
+        raise ValueError(f"unknown telemetry stream {stream!r}; known: {', '.join(STREAMS)}")
+    return f"{KEY_PREFIX}/{sysid}/{stream}"
