@@ -1,0 +1,116 @@
+"""`companion` command line: run, check-config, sitl, bench, config-reference."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+from pathlib import Path
+
+from companion.config import ConfigError, load_config
+from companion.logsetup import setup_logging
+
+EXIT_CONFIG_ERROR = 2
+
+
+def repo_config_dir() -> Path:
+    """The config/ directory shipped beside the packages (source checkout or install)."""
+    return Path(__file__).resolve().parent.parent / "config"
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from companion.clock import LockstepEventLoop
+    from companion.daemon import Daemon
+
+    try:
+        cfg = load_config(args.config)
+    except ConfigError as exc:
+        print(f"companion: {exc}", file=sys.stderr)
+        return EXIT_CONFIG_ERROR
+    setup_logging(args.log_level or cfg.logging.level)
+    daemon = Daemon(cfg, args.mavlink)
+    if args.lockstep:
+        loop = LockstepEventLoop()
+        try:
+            return loop.run_until_complete(daemon.run())
+        finally:
+            loop.close()
+    return asyncio.run(daemon.run())
+
+
+def _cmd_check_config(args: argparse.Namespace) -> int:
+    from companion.mission import load_mission
+
+    try:
+        cfg = load_config(args.config)
+        if cfg.mission.file:
+            load_mission(cfg.resolve(cfg.mission.file))
+    except ConfigError as exc:
+        print(f"companion: {exc}", file=sys.stderr)
+        return EXIT_CONFIG_ERROR
+    print(f"{args.config}: OK")
+    return 0
+
+
+def _cmd_sitl(args: argparse.Namespace) -> int:
+    from sitl.harness import run_harness
+
+    setup_logging(args.log_level or "info")
+    return run_harness(args)
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from companion.bench import run_bench
+
+    return run_bench(args.repeat)
+
+
+def _cmd_config_reference(args: argparse.Namespace) -> int:
+    from companion.config_reference import render
+
+    print(render(), end="")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="companion", description=__doc__)
+    parser.add_argument("--log-level", choices=["debug", "info", "warning", "error"], help="override the config's level")
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    run = sub.add_parser("run", help="run the daemon (what systemd starts)")
+    run.add_argument("-c", "--config", required=True, help="YAML config file")
+    run.add_argument("--mavlink", help="autopilot endpoint, pymavlink syntax (overrides mavlink.url)")
+    run.add_argument("--lockstep", action="store_true",
+                     help="clock driven by the SITL vehicle's TIMESYNC ticks (used by `companion sitl --lockstep`)")
+    run.set_defaults(func=_cmd_run)
+
+    check = sub.add_parser("check-config", help="validate a config file (exit 2 on error)")
+    check.add_argument("config")
+    check.set_defaults(func=_cmd_check_config)
+
+    sitl = sub.add_parser("sitl", help="simulated vehicle + daemon over loopback; optional scored report")
+    sitl.add_argument("-c", "--config", default=str(repo_config_dir() / "sitl.yaml"), help="daemon config (default: config/sitl.yaml)")
+    sitl.add_argument("--mission", help="mission name in config/missions/ (default: the config's)")
+    sitl.add_argument("--seconds", type=float, help="simulated seconds to run (default: until Ctrl-C)")
+    sitl.add_argument("--lockstep", action="store_true", help="deterministic simulated clock")
+    sitl.add_argument("--seed", type=int, default=0)
+    sitl.add_argument("--report", help="write the truth-scored flight report (JSON) here")
+    sitl.add_argument("--autopilot", help="use an external autopilot SITL at this pymavlink URL instead of the built-in vehicle")
+    sitl.set_defaults(func=_cmd_sitl)
+
+    bench = sub.add_parser("bench", help="per-stage timings (median, p99) of every pipeline present")
+    bench.add_argument("--repeat", type=int, default=2000)
+    bench.set_defaults(func=_cmd_bench)
+
+    ref = sub.add_parser("config-reference", help="print the config reference (docs/config.md)")
+    ref.set_defaults(func=_cmd_config_reference)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

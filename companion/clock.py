@@ -1,0 +1,115 @@
+"""The daemon's clock: real monotonic time, or simulation time in lockstep with the SITL vehicle.
+
+All daemon code reads time from ``asyncio.get_running_loop().time()`` (seconds, monotonic) and
+waits with ``asyncio.sleep``. In real operation that is CLOCK_MONOTONIC. In lockstep the
+daemon runs on :class:`LockstepEventLoop`, whose ``time()`` is the simulation time: nothing in
+the daemon needs a lockstep branch, and a run is deterministic for a given seed.
+
+Lockstep protocol (the vehicle side is sitl/vehicle.py):
+
+1. The vehicle sends TIMESYNC(tc1=0, ts1=t ns) after stepping its physics to ``t``.
+2. The daemon stops reading the link, advances its clock to ``t``, runs every timer due by
+   ``t`` and everything those wake, and, once the loop is idle, answers TIMESYNC(tc1=its
+   time, ts1=t). Everything the daemon sent for time ``t`` precedes the answer on the link.
+3. The vehicle waits for the answer, then sends the data sampled at ``t`` (which the daemon
+   reads with its clock at ``t``) and steps on.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import selectors
+import time
+from collections.abc import Callable
+
+
+class _IdleAwareSelector(selectors.BaseSelector):
+    """Wraps a selector; tells the loop when it is about to block, i.e. has nothing to run.
+
+    asyncio's ``_run_once`` passes timeout 0 whenever callbacks are ready or a timer is due,
+    so a non-zero (or None) timeout means the loop is idle at the current clock reading.
+    """
+
+    def __init__(self, inner: selectors.BaseSelector, on_idle: Callable[[], bool]) -> None:
+        self._inner = inner
+        self._on_idle = on_idle
+        self.released = False
+
+    def register(self, fileobj, events, data=None):  # type: ignore[no-untyped-def]
+        return self._inner.register(fileobj, events, data)
+
+    def unregister(self, fileobj):  # type: ignore[no-untyped-def]
+        return self._inner.unregister(fileobj)
+
+    def modify(self, fileobj, events, data=None):  # type: ignore[no-untyped-def]
+        return self._inner.modify(fileobj, events, data)
+
+    def select(self, timeout: float | None = None):  # type: ignore[no-untyped-def]
+        if not self.released and (timeout is None or timeout > 0):
+            if self._on_idle():
+                # Idle callbacks may have scheduled work: poll without blocking.
+                return self._inner.select(0)
+            # Simulation time does not pass while we block: wait for I/O only.
+            return self._inner.select(None)
+        return self._inner.select(timeout)
+
+    def close(self) -> None:
+        self._inner.close()
+
+    def get_key(self, fileobj):  # type: ignore[no-untyped-def]
+        return self._inner.get_key(fileobj)
+
+    def get_map(self):  # type: ignore[no-untyped-def]
+        return self._inner.get_map()
+
+
+class LockstepEventLoop(asyncio.SelectorEventLoop):
+    """An asyncio loop whose ``time()`` is simulation time, advanced only by :meth:`advance`."""
+
+    def __init__(self) -> None:
+        self._sim_time = 0.0
+        self._real_offset: float | None = None  # set by release()
+        self._idle_callbacks: list[Callable[[], None]] = []
+        self._lockstep_selector = _IdleAwareSelector(selectors.DefaultSelector(), self._run_idle_callbacks)
+        super().__init__(self._lockstep_selector)
+
+    def time(self) -> float:
+        if self._real_offset is not None:
+            return time.monotonic() - self._real_offset
+        return self._sim_time
+
+    def release(self) -> None:
+        """Leave lockstep: from now on the clock runs in real time from the current reading.
+
+        Used at shutdown, when the simulator has stopped ticking but timeouts must still expire.
+        """
+        if self._real_offset is None:
+            self._real_offset = time.monotonic() - self._sim_time
+            self._lockstep_selector.released = True
+
+    def advance(self, t: float) -> None:
+        """Move the clock forward to ``t`` seconds (never backwards; ignored once released)."""
+        if self._real_offset is None and t > self._sim_time:
+            self._sim_time = t
+
+    def call_when_idle(self, callback: Callable[[], None]) -> None:
+        """Run ``callback`` once, the next time the loop has nothing left to do at this time."""
+        self._idle_callbacks.append(callback)
+
+    def _run_idle_callbacks(self) -> bool:
+        if not self._idle_callbacks:
+            return False
+        callbacks, self._idle_callbacks = self._idle_callbacks, []
+        for callback in callbacks:
+            callback()
+        return True
+
+
+def is_lockstep() -> bool:
+    """True when the running loop is driven by the simulator's clock."""
+    return isinstance(asyncio.get_running_loop(), LockstepEventLoop)
+
+
+def now() -> float:
+    """The daemon's monotonic time in seconds (simulation time in lockstep)."""
+    return asyncio.get_running_loop().time()

@@ -1,0 +1,185 @@
+"""The companion daemon: wires the link, estimate output, setpoints, nav loop, telemetry and
+mission together under one supervisor, and shuts all of it down cleanly on SIGTERM/SIGINT.
+
+What systemd sees: READY=1 once the tasks run, STATUS= with the health summary, WATCHDOG=1
+only while the nav loop turns, STOPPING=1 on shutdown, exit 0 within 2 s of SIGTERM.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import resource
+import signal
+import threading
+import time
+from pathlib import Path
+
+from companion import clock
+from companion.config import Config
+from companion.health import ComponentHealth, Health, State
+from companion.mavlink.autopilot import AutopilotState
+from companion.mavlink.checklist import expected_parameters
+from companion.mavlink.commands import Commander
+from companion.mavlink.estimate import EstimateSender
+from companion.mavlink.link import MavlinkLink, load_signing_key, mavlink
+from companion.mavlink.origin import OriginSetter
+from companion.mavlink.setpoints import SetpointStream
+from companion.mission import MissionRunner, load_mission
+from companion.nav.loop import NavLoop
+from companion.sdnotify import Notifier, WatchdogGate, run_watchdog
+from companion.supervisor import Supervisor
+from companion.telemetry.publisher import TelemetryPublisher
+from companion.telemetry.session import open_session
+
+log = logging.getLogger("companion.daemon")
+
+SHUTDOWN_BUDGET_S = 1.5
+STATUSTEXT_SEVERITY = {State.OK: mavlink.MAV_SEVERITY_INFO, State.DEGRADED: mavlink.MAV_SEVERITY_WARNING,
+                       State.LOST: mavlink.MAV_SEVERITY_ERROR}
+
+
+class Daemon:
+    """One companion instance. ``await Daemon(cfg).run()`` returns the process exit code."""
+
+    def __init__(self, cfg: Config, mavlink_url: str | None = None) -> None:
+        self.cfg = cfg
+        self.url = mavlink_url or cfg.mavlink.url
+        self.health = Health(clock.now)
+        self.notifier = Notifier()
+        self.supervisor = Supervisor(self.health)
+        self.session = None
+        self.started_wall = time.monotonic()
+
+    async def run(self) -> int:
+        cfg = self.cfg
+        loop = asyncio.get_running_loop()
+        stop = asyncio.Event()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, stop.set)
+
+        key = load_signing_key(cfg.resolve(cfg.mavlink.signing_key_file)) if cfg.mavlink.signing_key_file else None
+        self.link = link = MavlinkLink(cfg.mavlink, cfg.vehicle, self.url, self.health, key)
+        self.state = state = AutopilotState(link)
+        self.commander = commander = Commander(link, state, cfg.mavlink)
+        self.origin = origin = OriginSetter(link, state, commander, cfg.origin, self.health)
+        self.telemetry = telemetry = self._open_telemetry()
+        self.estimate = EstimateSender(link, cfg.mavlink.estimate_rate_hz, self.health, clock.now,
+                                       on_alert=self.statustext)
+        self.setpoints = setpoints = SetpointStream(link, state, cfg.mavlink.setpoint_rate_hz)
+        gate = WatchdogGate(max_age=1.0, clock=clock.now)
+        self.nav = NavLoop([], self.estimate, telemetry, gate, cfg.pipelines.fusion_rate_hz, clock.now)
+        self.health.on_change(self._announce)
+        link.on_connect(self._on_autopilot_found)
+
+        sup = self.supervisor
+        sup.spawn("link", link.run)
+        sup.spawn("origin", origin.run)
+        sup.spawn("setpoints", setpoints.run)
+        sup.spawn("nav", self.nav.run)
+        sup.spawn("status", self._publish_status)
+        sup.spawn("watchdog", lambda: run_watchdog(self.notifier, gate, clock.now))
+        if cfg.mission.file:
+            mission = load_mission(cfg.resolve(cfg.mission.file))
+            self.mission = MissionRunner(mission, cfg.mission.allow_arm, state, commander, setpoints, origin,
+                                         lambda snap: telemetry.publish("mission", snap))
+            sup.spawn("mission", self.mission.run)
+        else:
+            self.mission = None
+        self.notifier.ready()
+        log.info("companion running: autopilot link %s, %d pipelines", self.url, len(self.nav.pipelines))
+        await stop.wait()
+        await self._shutdown()
+        return 0
+
+    def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_WARNING) -> None:
+        """Send a STATUSTEXT (<= 50 characters) to the autopilot, which forwards it to the GCS."""
+        self.link.send(mavlink.MAVLink_statustext_message(severity, text[:50].encode(), 0, 0))
+        self.telemetry.publish("alerts", {"severity": severity, "text": text})
+
+    # -- internals --------------------------------------------------------------------------
+
+    def _open_telemetry(self) -> TelemetryPublisher:
+        t = self.cfg.telemetry
+        if t.enabled:
+            try:
+                self.session = open_session(t.mode, t.listen, t.connect, t.multicast_scouting, t.gossip_scouting)
+            except Exception as exc:  # zenoh.ZError: bad endpoint, port in use
+                self.health.report("telemetry", State.DEGRADED, f"zenoh session failed: {exc}")
+        rates = {"pose": t.pose_hz, "velocity": t.pose_hz}
+        return TelemetryPublisher(self.session, self.cfg.vehicle.sysid, t.queue_size, rates, clock=clock.now)
+
+    def _on_autopilot_found(self) -> None:
+        asyncio.get_running_loop().create_task(self.commander.request_streams(), name="request-streams")
+        log.info("autopilot %s: the companion expects these parameters: %s", self.link.autopilot,
+                 "; ".join(f"{k}={v}" for k, v in expected_parameters(self.link.autopilot)))
+
+    def _announce(self, name: str, new: ComponentHealth, old: ComponentHealth | None) -> None:
+        if name == "link" or name.startswith("task:") or old is None:
+            return
+        self.statustext(f"companion: {name} {new.state.label}: {new.reason}", STATUSTEXT_SEVERITY[new.state])
+
+    async def _publish_status(self) -> None:
+        period = 1.0 / self.cfg.telemetry.status_hz
+        while True:
+            self.notifier.status(self.health.summary())
+            self._publish_snapshots()
+            await asyncio.sleep(period)
+
+    def _publish_snapshots(self) -> None:
+        t, link, state = self.telemetry, self.link, self.state
+        t.publish("health", {**self.health.snapshot(), "tasks": self.supervisor.snapshot()})
+        t.publish("link", {"connected": link.connected, "autopilot": link.autopilot, "url": self.url,
+                           "heartbeat_age_s": None if link.last_heartbeat is None else clock.now() - link.last_heartbeat,
+                           **vars(link.stats)})
+        t.publish("autopilot", {"mode": state.mode, "armed": state.armed, "origin_confirmed": self.origin.confirmed,
+                                "external_nav_in_use": state.external_nav_in_use, "ekf_flags": state.ekf_flags,
+                                "local_position_ned_m": state.local_position_ned})
+        t.publish("estimate_stats", {**vars(self.estimate.stats), "reset_counter": self.estimate.reset_counter,
+                                     "nonfinite_dropped_link": link.stats.nonfinite_dropped})
+        t.publish("system", {**process_usage(self.started_wall),
+                             "loop_jitter_ms": self.nav.jitter_ms.summary(),
+                             "stage_ms": {n: s.summary() for n, s in self.nav.stage_ms.items()},
+                             "setpoints_sent": self.setpoints.sent})
+        t.publish("rates", {"streams": t.stats()})
+        if self.mission is not None:
+            t.publish("mission", self.mission.snapshot())
+        if self.setpoints.current is not None:
+            sp = self.setpoints.current
+            t.publish("setpoint", {"type_mask": sp.type_mask, "position_ned_m": sp.position_ned,
+                                   "velocity_ned_mps": sp.velocity_ned, "acceleration_ned_mps2": sp.acceleration_ned})
+
+    async def _shutdown(self) -> None:
+        log.info("shutting down")
+        loop = asyncio.get_running_loop()
+        if isinstance(loop, clock.LockstepEventLoop):
+            loop.release()  # the simulator no longer ticks; shutdown timeouts must still expire
+        self.notifier.stopping()
+        self.setpoints.stop()
+        self.link.stop()
+        await self.supervisor.stop(timeout_s=0.5)
+        self.telemetry.close(timeout_s=0.4)
+        if self.session is not None:
+            closer = threading.Thread(target=self.session.close, daemon=True)
+            closer.start()
+            closer.join(timeout=0.4)
+        log.info("stopped")
+
+
+def process_usage(started_monotonic: float) -> dict[str, float]:
+    """CPU percent of one core since start, resident memory (MB) and uptime (s) of this process."""
+    usage = resource.getrusage(resource.RUSAGE_SELF)
+    uptime = max(time.monotonic() - started_monotonic, 1e-6)
+    return {"cpu_percent": 100.0 * (usage.ru_utime + usage.ru_stime) / uptime,
+            "rss_mb": _rss_bytes() / 1e6, "uptime_s": uptime}
+
+
+def _rss_bytes() -> int:
+    try:
+        for line in Path(f"/proc/{os.getpid()}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024

@@ -1,0 +1,135 @@
+"""Setpoint API: position / velocity / acceleration targets in LOCAL_NED, kept alive.
+
+While commanding, the current target is re-sent at ``setpoint_rate_hz`` (>= 10 Hz):
+ArduPilot stops after 3 s without a velocity or acceleration target, PX4 leaves OFFBOARD
+when setpoints stop. The moment the autopilot leaves GUIDED/OFFBOARD because of someone else
+(pilot, GCS, failsafe) the stream stops at once and ``on_takeover`` is called: the companion
+never fights the pilot.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion import clock
+from companion.mavlink.autopilot import COMMANDABLE_MODES, AutopilotState
+from companion.mavlink.link import MavlinkLink, mavlink
+
+log = logging.getLogger("companion.setpoints")
+
+IGNORE_POSITION = 0b0000_0000_0111  # x, y, z
+IGNORE_VELOCITY = 0b0000_0011_1000
+IGNORE_ACCELERATION = 0b0001_1100_0000
+IGNORE_YAW = 0b0100_0000_0000
+IGNORE_YAW_RATE = 0b1000_0000_0000
+
+
+@dataclass(frozen=True)
+class Setpoint:
+    """A LOCAL_NED target; unset parts are ignored by the autopilot (type_mask)."""
+
+    position_ned: np.ndarray | None = None  # m
+    velocity_ned: np.ndarray | None = None  # m/s
+    acceleration_ned: np.ndarray | None = None  # m/s^2
+    yaw_rad: float | None = None  # heading, radians from north
+    yaw_rate_rads: float | None = None
+
+    @property
+    def type_mask(self) -> int:
+        """POSITION_TARGET_TYPEMASK: e.g. position only 3576, velocity 3527, pos+vel+acc 3072."""
+        mask = IGNORE_YAW | IGNORE_YAW_RATE
+        if self.position_ned is None:
+            mask |= IGNORE_POSITION
+        if self.velocity_ned is None:
+            mask |= IGNORE_VELOCITY
+        if self.acceleration_ned is None:
+            mask |= IGNORE_ACCELERATION
+        if self.yaw_rad is not None:
+            mask &= ~IGNORE_YAW
+        if self.yaw_rate_rads is not None:
+            mask &= ~IGNORE_YAW_RATE
+        return mask
+
+
+def setpoint_message(sp: Setpoint, time_boot_ms: int, target: tuple[int, int]) -> mavlink.MAVLink_message:
+    """SET_POSITION_TARGET_LOCAL_NED for ``sp`` (ignored fields are sent as 0)."""
+    zero = np.zeros(3)
+    p = sp.position_ned if sp.position_ned is not None else zero
+    v = sp.velocity_ned if sp.velocity_ned is not None else zero
+    a = sp.acceleration_ned if sp.acceleration_ned is not None else zero
+    return mavlink.MAVLink_set_position_target_local_ned_message(
+        time_boot_ms, target[0], target[1], mavlink.MAV_FRAME_LOCAL_NED, sp.type_mask,
+        float(p[0]), float(p[1]), float(p[2]), float(v[0]), float(v[1]), float(v[2]),
+        float(a[0]), float(a[1]), float(a[2]),
+        float(sp.yaw_rad or 0.0), float(sp.yaw_rate_rads or 0.0))
+
+
+class SetpointStream:
+    """Holds the current target and streams it while commanding."""
+
+    def __init__(self, link: MavlinkLink, state: AutopilotState, rate_hz: float,
+                 on_takeover: Callable[[str], None] | None = None) -> None:
+        self.link = link
+        self.state = state
+        self.rate_hz = rate_hz
+        self.on_takeover = on_takeover or (lambda mode: None)
+        self.current: Setpoint | None = None
+        self.sent = 0
+        self._commanding = False
+        self._expected_mode: str | None = None
+        self._wake = asyncio.Event()
+        state.on_mode_change(self._on_mode_change)
+
+    @property
+    def commanding(self) -> bool:
+        return self._commanding
+
+    def expect_mode(self, mode: str) -> None:
+        """Note that the companion itself asked for ``mode`` (not a pilot takeover)."""
+        self._expected_mode = mode
+
+    def command(self, setpoint: Setpoint) -> None:
+        """Make ``setpoint`` the target and send it now; keep it alive until :meth:`stop`."""
+        self.current = setpoint
+        self._commanding = True
+        self._send()
+        self._wake.set()
+
+    def stop(self) -> None:
+        """Stop streaming (the autopilot falls back to its own behaviour: hold/brake)."""
+        if self._commanding:
+            log.info("setpoint stream stopped")
+        self._commanding = False
+        self.current = None
+
+    async def run(self) -> None:
+        """Keepalive task: re-sends the current target at ``rate_hz`` while commanding."""
+        period = 1.0 / self.rate_hz
+        while True:
+            if not self._commanding:
+                self._wake.clear()
+                await self._wake.wait()
+                continue
+            await asyncio.sleep(period)
+            if self._commanding:
+                self._send()
+
+    def _send(self) -> None:
+        if self.current is None:
+            return
+        boot_ms = int(clock.now() * 1000) & 0xFFFFFFFF
+        if self.link.send(setpoint_message(self.current, boot_ms, self.link.target())):
+            self.sent += 1
+
+    def _on_mode_change(self, old: str | None, new: str) -> None:
+        if new == self._expected_mode:
+            return
+        if self._commanding and old in COMMANDABLE_MODES and new not in COMMANDABLE_MODES:
+            log.warning("mode changed to %s by someone else: stop commanding", new)
+            self.stop()
+            self.on_takeover(new)

@@ -1,0 +1,208 @@
+"""Missions: YAML step lists (config/missions/*.yaml) and the runner that flies them.
+
+A mission file is ``name`` plus ``steps``; each step is a mapping with exactly one key:
+
+- ``wait_ready: {timeout_s}``: the origin is confirmed and the autopilot reports a position;
+- ``mode: NAME``: switch flight mode (GUIDED on ArduPilot, OFFBOARD on PX4);
+- ``arm: {}``: arm, only if the config's ``mission.allow_arm`` is true;
+- ``takeoff: {altitude_m, timeout_s}``: take off and wait until within 0.15 m of the altitude;
+- ``hold: {seconds}``: stream a position setpoint where the vehicle is, at the takeoff height;
+- ``land: {timeout_s}``: switch to LAND and wait for the autopilot to disarm.
+
+The runner stops commanding at once if the pilot changes mode (the mission is then
+``aborted``); a step that fails or times out ends the mission as ``failed`` with the reason.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from companion import clock
+from companion.mavlink.autopilot import AutopilotState
+from companion.mavlink.commands import CommandFailed, Commander
+from companion.mavlink.origin import OriginSetter
+from companion.mavlink.setpoints import Setpoint, SetpointStream
+from companion.schema import load_file, meta
+
+log = logging.getLogger("companion.mission")
+
+
+@dataclass
+class WaitReadyStep:
+    timeout_s: float = field(default=60.0, metadata=meta("Give up after this long.", (0.1, 3600)))
+
+
+@dataclass
+class ArmStep:
+    timeout_s: float = field(default=5.0, metadata=meta("Wait for the armed HEARTBEAT this long.", (0.1, 60)))
+
+
+@dataclass
+class TakeoffStep:
+    altitude_m: float = field(metadata=meta("Height above home.", (0.3, 100)))
+    timeout_s: float = field(default=20.0, metadata=meta("Give up after this long.", (1, 600)))
+
+
+@dataclass
+class HoldStep:
+    seconds: float = field(metadata=meta("How long to hold.", (0, 3600)))
+
+
+@dataclass
+class LandStep:
+    timeout_s: float = field(default=60.0, metadata=meta("Wait for disarm this long.", (1, 600)))
+
+
+@dataclass
+class MissionStep:
+    wait_ready: WaitReadyStep | None = None
+    mode: str | None = None
+    arm: ArmStep | None = None
+    takeoff: TakeoffStep | None = None
+    hold: HoldStep | None = None
+    land: LandStep | None = None
+
+    def validate(self) -> tuple[str, str] | None:
+        present = [name for name, value in vars(self).items() if value is not None]
+        if len(present) != 1:
+            return ("", f"a step has exactly one of {', '.join(vars(self))}; got {present or 'none'}")
+        return None
+
+    @property
+    def kind(self) -> str:
+        return next(name for name, value in vars(self).items() if value is not None)
+
+
+@dataclass
+class Mission:
+    name: str = field(metadata=meta("Mission name."))
+    steps: list[MissionStep] = field(metadata=meta("Steps, flown in order."))
+
+
+def load_mission(path: str | Path) -> Mission:
+    """Load a mission file; errors name file, key path and line."""
+    return load_file(path, Mission)
+
+
+class MissionFailed(Exception):
+    pass
+
+
+class MissionRunner:
+    """Flies one mission once; publishes its progress through ``publish``."""
+
+    def __init__(self, mission: Mission, allow_arm: bool, state: AutopilotState, commander: Commander,
+                 setpoints: SetpointStream, origin: OriginSetter, publish: Callable[[dict], None]) -> None:
+        self.mission = mission
+        self.allow_arm = allow_arm
+        self.state = state
+        self.commander = commander
+        self.setpoints = setpoints
+        self.origin = origin
+        self.publish = publish
+        self.status = "pending"
+        self.step_index = -1
+        self.reason = ""
+        self._takeoff_altitude = 1.0
+        self._takeover = asyncio.Event()
+        setpoints.on_takeover = self._on_takeover
+
+    def snapshot(self) -> dict:
+        step = self.mission.steps[self.step_index].kind if 0 <= self.step_index < len(self.mission.steps) else None
+        return {"name": self.mission.name, "state": self.status, "step": self.step_index,
+                "step_kind": step, "steps": len(self.mission.steps), "reason": self.reason}
+
+    async def run(self) -> None:
+        """Fly the mission (once; a restart after completion does nothing)."""
+        if self.status in ("completed", "failed", "aborted"):
+            await asyncio.Event().wait()
+        self._set("running")
+        try:
+            for index, step in enumerate(self.mission.steps):
+                self.step_index = index
+                self._set("running")
+                await self._run_step(step)
+        except MissionFailed as exc:
+            self.setpoints.stop()
+            self._set("aborted" if self._takeover.is_set() else "failed", str(exc))
+        else:
+            self._set("completed")
+        await asyncio.Event().wait()
+
+    def _set(self, status: str, reason: str = "") -> None:
+        self.status, self.reason = status, reason
+        if status in ("failed", "aborted"):
+            log.error("mission %s %s: %s", self.mission.name, status, reason)
+        else:
+            log.info("mission %s: %s step %d", self.mission.name, status, self.step_index)
+        self.publish(self.snapshot())
+
+    async def _run_step(self, step: MissionStep) -> None:
+        if self._takeover.is_set():
+            raise MissionFailed("pilot took over")
+        kind = step.kind
+        try:
+            await getattr(self, f"_{kind}")(getattr(step, kind))
+        except CommandFailed as exc:
+            raise MissionFailed(f"{kind}: {exc}") from exc
+
+    async def _wait_for(self, condition: Callable[[], bool], timeout_s: float, what: str) -> None:
+        deadline = clock.now() + timeout_s
+        while not condition():
+            if self._takeover.is_set():
+                raise MissionFailed("pilot took over")
+            if clock.now() > deadline:
+                raise MissionFailed(f"timed out after {timeout_s:g} s waiting for {what}")
+            await asyncio.sleep(0.05)
+
+    def _position_fresh(self) -> bool:
+        t = self.state.local_position_time
+        return t is not None and clock.now() - t < 1.0
+
+    async def _wait_ready(self, step: WaitReadyStep) -> None:
+        await self._wait_for(lambda: self.origin.confirmed and self._position_fresh(), step.timeout_s,
+                             "a confirmed origin and an autopilot position")
+
+    async def _mode(self, name: str) -> None:
+        self.setpoints.expect_mode(name)
+        await self.commander.set_mode(name)
+        await self._wait_for(lambda: self.state.mode == name, 3.0, f"mode {name}")
+
+    async def _arm(self, step: ArmStep) -> None:
+        if not self.allow_arm:
+            raise MissionFailed("arming is not allowed by the config (mission.allow_arm: false)")
+        await self.commander.arm()
+        await self._wait_for(lambda: self.state.armed, step.timeout_s, "the armed state")
+
+    async def _takeoff(self, step: TakeoffStep) -> None:
+        self._takeoff_altitude = step.altitude_m
+        await self.commander.takeoff(step.altitude_m)
+
+        def reached() -> bool:
+            p = self.state.local_position_ned
+            return p is not None and self._position_fresh() and abs(-p[2] - step.altitude_m) < 0.15
+        await self._wait_for(reached, step.timeout_s, f"{step.altitude_m:g} m altitude")
+
+    async def _hold(self, step: HoldStep) -> None:
+        p = self.state.local_position_ned
+        if p is None:
+            raise MissionFailed("hold: no autopilot position")
+        target = np.array([p[0], p[1], -self._takeoff_altitude])
+        self.setpoints.command(Setpoint(position_ned=target))
+        end = clock.now() + step.seconds
+        await self._wait_for(lambda: clock.now() >= end, step.seconds + 1.0, "the end of the hold")
+
+    async def _land(self, step: LandStep) -> None:
+        self.setpoints.stop()
+        self.setpoints.expect_mode("LAND")
+        await self.commander.land()
+        await self._wait_for(lambda: not self.state.armed, step.timeout_s, "touchdown and disarm")
+
+    def _on_takeover(self, mode: str) -> None:
+        self._takeover.set()
