@@ -119,7 +119,8 @@ class SitlConfig:
     gps: bool = field(default=True, metadata=meta("Simulate a GPS receiver (the indoor default does not fuse it)."))
     position_source: Literal["extnav", "gps"] = field(default="gps", metadata=meta(
         "What the simulated autopilot fuses for position (EK3_SRC1_POSXY): extnav = the companion's estimate."))
-    start: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0), metadata=meta("Start pose: north m, east m, yaw deg."))
+    start: tuple[float, float, float] | None = field(default=None, metadata=meta(
+        "Start pose: north m, east m, yaw deg. null = the world's `start`."))
     wind_ned_mps: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0), metadata=meta("Mean wind, NED m/s.", (-20, 20)))
     gust_mps: float = field(default=0.2, metadata=meta("Gust standard deviation, m/s.", (0, 10)))
     tick_s: float = field(default=0.005, metadata=meta("Lockstep tick (simulation seconds per clock step).", (0.001, 0.05)))

@@ -2,7 +2,8 @@
 
 A schema is a tree of dataclasses. Each field's type drives the conversion (int, float, bool,
 str, Literal, Optional, list, tuple, dict[str, X], nested dataclass); a field without a default
-is required. ``field(metadata=meta(doc=..., range=(lo, hi)))`` adds the one-line documentation
+is required. A dataclass may define ``validate(self) -> (relative key path, message) | None``
+for checks across fields; the path (e.g. ``walls[4].end``) locates the error's line. ``field(metadata=meta(doc=..., range=(lo, hi)))`` adds the one-line documentation
 used by the generated config reference and an inclusive numeric range.
 
 Errors raise :class:`SchemaError` naming the file, the dotted key path and the 1-based line of
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import types
 import typing
 from pathlib import Path
@@ -127,8 +129,7 @@ class _Builder:
             problem = post()
             if problem is not None:
                 key, message = problem
-                target = items.get(key, node)
-                raise self.error(target, _join(path, key), message)
+                raise self.error(_find_node(node, key), _join(path, key), message)
         return instance
 
     def _check_range(self, f: dataclasses.Field, value: Any, node: yaml.Node, path: str) -> None:
@@ -205,6 +206,29 @@ def _plain(node: yaml.Node) -> Any:
         return loader.construct_object(node, deep=True)
     finally:
         loader.dispose()
+
+
+_PATH_TOKEN = re.compile(r"\[(\d+)\]|([^.\[\]]+)")
+
+
+def _find_node(node: yaml.Node, relative_path: str) -> yaml.Node:
+    """The node a relative key path such as ``walls[4].end`` names (the deepest one found).
+
+    For a mapping key that ends the path, the key's own node is returned, so the error points
+    at the line where the key is written.
+    """
+    tokens = _PATH_TOKEN.findall(relative_path)
+    for n, (index, key) in enumerate(tokens):
+        if index and isinstance(node, yaml.SequenceNode) and int(index) < len(node.value):
+            node = node.value[int(index)]
+        elif key and isinstance(node, yaml.MappingNode):
+            pair = next(((k, v) for k, v in node.value if getattr(k, "value", None) == key), None)
+            if pair is None:
+                break
+            node = pair[0] if n == len(tokens) - 1 else pair[1]
+        else:
+            break
+    return node
 
 
 def _is_null(node: yaml.Node) -> bool:

@@ -1,0 +1,121 @@
+"""The simulated world: the default arena keeps its invariants, bad worlds are refused by line."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from companion.schema import SchemaError
+from sitl.world import World, load_world
+
+REPO = Path(__file__).resolve().parent.parent
+ARENA = REPO / "config" / "worlds" / "arena.yaml"
+
+# A valid 4 m x 4 m room; the cases below append to it from line 10 on.
+BASE = """\
+name: box
+wall_angle_deg: 45
+bounds: {min: [0, 0], max: [4, 4]}
+start: [1, 1, 0]
+walls:
+  - {start: [0, 0], end: [4, 0]}
+  - {start: [4, 0], end: [4, 4]}
+  - {start: [4, 4], end: [0, 4]}
+  - {start: [0, 4], end: [0, 0]}
+"""
+
+
+@pytest.fixture(scope="module")
+def arena() -> World:
+    return load_world(ARENA)
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "world.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_arena_has_the_features_the_pipelines_need(arena: World) -> None:
+    assert arena.wall_angle_deg == 45
+    assert any(math.isclose(w.direction_deg % 90, 45, abs_tol=0.1) for w in arena.walls)
+    kinds = {o.kind for o in arena.openings}
+    assert kinds == {"door", "window"}
+    window = next(o for o in arena.openings if o.kind == "window")
+    assert 0.5 <= window.bottom_m <= 1.0 and 1.4 <= window.top_m <= 2.0
+    table = next(o for o in arena.obstacles if o.name == "table")
+    sides = sorted(np.subtract(table.max, table.min))
+    assert np.allclose(sides, [0.8, 1.2]) and table.height_m == 0.75
+    assert len(arena.corners) >= 12
+    assert len({m.id for m in arena.floor_markers}) >= 4
+
+
+def test_arena_corners_are_exactly_the_wall_junctions(arena: World) -> None:
+    junctions = {p for w in arena.walls for p in (w.start, w.end) if arena.is_corner(*p)}
+    assert set(arena.corners) == junctions
+    diagonal = next(w for w in arena.walls if math.isclose(w.direction_deg % 90, 45, abs_tol=0.1))
+    assert {diagonal.start, diagonal.end} <= set(arena.corners)
+
+
+def test_arena_start_is_clear(arena: World) -> None:
+    x, y, _ = arena.start
+    assert arena.floor_height_at(x, y) == 0.0
+    assert min(w.locate((x, y))[0] for w in arena.walls) >= 0.5
+    assert all(math.dist((x, y), m.position) >= 0.5 for m in arena.floor_markers)
+
+
+def test_numpy_accessors(arena: World) -> None:
+    segments = arena.segments()
+    assert segments.shape == (len(arena.walls), 4) and segments.dtype == float
+    assert segments[2].tolist() == [*arena.walls[2].start, *arena.walls[2].end]
+    corners = arena.corner_array()
+    assert corners.shape == (len(arena.corners), 2)
+    assert corners[3].tolist() == list(arena.corners[3])
+
+
+def test_floor_height_is_the_table_over_the_table_and_zero_elsewhere(arena: World) -> None:
+    table = next(o for o in arena.obstacles if o.name == "table")
+    assert arena.floor_height_at(*np.add(table.min, table.max) / 2) == 0.75
+    for x in np.arange(0.05, 10.0, 0.1):
+        for y in np.arange(0.05, 10.0, 0.1):
+            over = table.min[0] <= x <= table.max[0] and table.min[1] <= y <= table.max[1]
+            assert arena.floor_height_at(x, y) == (0.75 if over else 0.0), (x, y)
+
+
+def test_the_base_world_is_valid(tmp_path: Path) -> None:
+    world = load_world(write(tmp_path, BASE))
+    assert world.corners == () and world.floor_height_at(2, 2) == 0.0
+
+
+@pytest.mark.parametrize("extra, line, key_path, words", [
+    ("  - {start: [1, 1], end: [1.866, 1.5]}\n", 10, "walls[4]", "not a multiple of wall_angle_deg = 45"),
+    ("  - {start: [1, 1], end: [2, 1]}\n  - start: [1, 1]\n    end: [1.866, 1.5]\n",
+     11, "walls[5]", "direction 30.00 deg"),
+    ("  - {start: [2, 2], end: [2, 2]}\n", 10, "walls[4].end", "zero length"),
+    ("corners:\n  - [0, 0]\n  - [2, 2]\n", 12, "corners[1]", "not a corner of the map"),
+    ("corners: [[0, 0], [2, 0]]\n", 10, "corners[1]", "not a corner of the map"),
+    ("ceiling_m: 3.0\n", 10, "ceiling_m", "unknown key"),
+    ("openings:\n  - {name: d, kind: door, center: [2, 2], width_m: 0.9, bottom_m: 0, top_m: 2}\n",
+     11, "openings[0].center", "not on any wall"),
+    ("openings:\n  - {name: d, kind: door, center: [0.3, 0], width_m: 0.9, bottom_m: 0, top_m: 2}\n",
+     11, "openings[0].width_m", "does not fit"),
+    ("openings:\n  - {name: w, kind: window, center: [2, 0], width_m: 1, bottom_m: 0, top_m: 1.5}\n",
+     11, "openings[0].bottom_m", "a window starts above the floor"),
+    ("obstacles:\n  - {name: crate, min: [3, 3], max: [5, 5], height_m: 1}\n",
+     11, "obstacles[0].max", "outside bounds"),
+    ("floor_markers:\n  - {id: 7, position: [3.95, 2], size_m: 0.3}\n",
+     11, "floor_markers[0].position", "does not lie inside bounds"),
+    ("obstacles:\n  - {name: table, min: [0.5, 0.5], max: [1.5, 1.5], height_m: 0.75}\n",
+     4, "start", "on obstacle 'table'"),
+])
+def test_bad_worlds_name_file_key_and_line(
+        tmp_path: Path, extra: str, line: int, key_path: str, words: str) -> None:
+    file = write(tmp_path, BASE + extra)
+    with pytest.raises(SchemaError) as err:
+        load_world(file)
+    assert (err.value.file, err.value.line, err.value.key_path) == (str(file), line, key_path)
+    assert words in err.value.message
+    assert str(err.value).startswith(f"{file}:{line}: {key_path}: ")
