@@ -8,9 +8,10 @@ the daemon needs a lockstep branch, and a run is deterministic for a given seed.
 Lockstep protocol (the vehicle side is sitl/vehicle.py):
 
 1. The vehicle sends TIMESYNC(tc1=0, ts1=t ns) after stepping its physics to ``t``.
-2. The daemon stops reading the link, advances its clock to ``t``, runs every timer due by
-   ``t`` and everything those wake, and, once the loop is idle, answers TIMESYNC(tc1=its
-   time, ts1=t). Everything the daemon sent for time ``t`` precedes the answer on the link.
+2. The daemon stops reading the link and lets everything the earlier messages woke finish
+   at its current time; once idle it advances its clock to ``t``, runs every timer due by
+   ``t`` and everything those wake, and, once idle again, answers TIMESYNC(tc1=its time,
+   ts1=t). Everything the daemon sent for time ``t`` precedes the answer on the link.
 3. The vehicle waits for the answer, then sends the data sampled at ``t`` (which the daemon
    reads with its clock at ``t``) and steps on.
 """
@@ -101,7 +102,10 @@ class LockstepEventLoop(asyncio.SelectorEventLoop):
             return False
         callbacks, self._idle_callbacks = self._idle_callbacks, []
         for callback in callbacks:
-            callback()
+            try:
+                callback()
+            except Exception as exc:  # never let a callback break the selector
+                self.call_exception_handler({"message": "lockstep idle callback failed", "exception": exc})
         return True
 
 

@@ -46,7 +46,7 @@ class Daemon:
     def __init__(self, cfg: Config, mavlink_url: str | None = None) -> None:
         self.cfg = cfg
         self.url = mavlink_url or cfg.mavlink.url
-        self.health = Health(clock.now)
+        self.health = Health(clock.now)  # called from the loop only
         self.notifier = Notifier()
         self.supervisor = Supervisor(self.health)
         self.session = None
@@ -79,7 +79,8 @@ class Daemon:
         sup.spawn("setpoints", setpoints.run)
         sup.spawn("nav", self.nav.run)
         sup.spawn("status", self._publish_status)
-        sup.spawn("watchdog", lambda: run_watchdog(self.notifier, gate, clock.now))
+        if self.notifier.watchdog_interval() is not None:
+            sup.spawn("watchdog", lambda: run_watchdog(self.notifier, gate, clock.now))
         if cfg.mission.file:
             mission = load_mission(cfg.resolve(cfg.mission.file))
             self.mission = MissionRunner(mission, cfg.mission.allow_arm, state, commander, setpoints, origin,
@@ -108,7 +109,9 @@ class Daemon:
             except Exception as exc:  # zenoh.ZError: bad endpoint, port in use
                 self.health.report("telemetry", State.DEGRADED, f"zenoh session failed: {exc}")
         rates = {"pose": t.pose_hz, "velocity": t.pose_hz}
-        return TelemetryPublisher(self.session, self.cfg.vehicle.sysid, t.queue_size, rates, clock=clock.now)
+        # loop.time (not clock.now): the publisher's worker thread reads the clock too.
+        return TelemetryPublisher(self.session, self.cfg.vehicle.sysid, t.queue_size, rates,
+                                  clock=asyncio.get_running_loop().time)
 
     def _on_autopilot_found(self) -> None:
         asyncio.get_running_loop().create_task(self.commander.request_streams(), name="request-streams")
@@ -157,8 +160,7 @@ class Daemon:
             loop.release()  # the simulator no longer ticks; shutdown timeouts must still expire
         self.notifier.stopping()
         self.setpoints.stop()
-        self.link.stop()
-        await self.supervisor.stop(timeout_s=0.5)
+        await self.supervisor.stop(timeout_s=0.5)  # cancelling the link task closes the port
         self.telemetry.close(timeout_s=0.4)
         if self.session is not None:
             closer = threading.Thread(target=self.session.close, daemon=True)

@@ -12,7 +12,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
 from companion.config import MavlinkConfig, VehicleConfig  # noqa: E402
-from companion.health import Health, State  # noqa: E402
+from companion.health import Health  # noqa: E402
 from companion.mavlink.estimate import EstimateSender, PoseEstimate  # noqa: E402
 from companion.mavlink.link import MavlinkLink  # noqa: E402
 from tests.conftest import free_port  # noqa: E402

@@ -94,7 +94,6 @@ class MavlinkLink:
         self._connected = False
         self._paused = False  # lockstep: reading stops at a tick until the loop is idle
         self._last_boot_ms: int | None = None
-        self._stop = asyncio.Event()
         self.health.report("link", State.LOST, "not connected yet")
         self.subscribe("HEARTBEAT", self._on_heartbeat)
         self.subscribe("TIMESYNC", self._on_timesync)
@@ -138,20 +137,16 @@ class MavlinkLink:
         """(target_system, target_component) of the autopilot."""
         return self.ids.autopilot_sysid, self.ids.autopilot_compid
 
-    def stop(self) -> None:
-        """Ask :meth:`run` to close the port and return."""
-        self._stop.set()
-
     async def run(self) -> None:
-        """Open the port (with backoff), then read, heartbeat and watch the link until stopped."""
+        """Open the port (with backoff), then read, heartbeat and watch the link until cancelled."""
         backoff = 0.5
-        while not self._stop.is_set():
+        while True:
             try:
                 self._open()
             except (OSError, ValueError) as exc:
                 self.health.report("link", State.LOST, f"cannot open {self.url}: {exc}")
                 log.warning("cannot open %s: %s; retrying in %.1f s", self.url, exc, backoff)
-                await self._sleep_or_stop(backoff)
+                await asyncio.sleep(backoff)
                 backoff = min(backoff * 2, 10.0)
                 continue
             backoff = 0.5
@@ -159,9 +154,8 @@ class MavlinkLink:
                 await self._serve()
             finally:
                 self._close()
-            if not self._stop.is_set():
-                self.stats.reconnects += 1
-                await self._sleep_or_stop(0.5)
+            self.stats.reconnects += 1
+            await asyncio.sleep(0.5)
 
     # -- connection lifecycle ---------------------------------------------------------------
 
@@ -191,11 +185,11 @@ class MavlinkLink:
         self._set_connected(False, "port closed")
 
     async def _serve(self) -> None:
-        """Heartbeat and link watch until the port fails or the link is stopped."""
+        """Heartbeat and link watch until the port fails (serial/TCP: or stays silent)."""
         period = 1.0 / self.cfg.heartbeat_hz
         reopen = not self.url.startswith(("udpin:", "udpout:", "udp:"))
         lost_since = clock.now()
-        while not self._stop.is_set() and self._conn is not None:
+        while self._conn is not None:
             self._send_heartbeat()
             now = clock.now()
             if self._connected and now - (self.last_heartbeat or 0.0) > self.cfg.link_timeout_s:
@@ -204,13 +198,7 @@ class MavlinkLink:
             if not self._connected and reopen and now - lost_since > 2 * self.cfg.link_timeout_s:
                 log.warning("no autopilot on %s; reopening the port", self.url)
                 return
-            await self._sleep_or_stop(period)
-
-    async def _sleep_or_stop(self, seconds: float) -> None:
-        try:
-            await asyncio.wait_for(self._stop.wait(), seconds)
-        except TimeoutError:
-            pass
+            await asyncio.sleep(period)
 
     def _send_heartbeat(self) -> None:
         self.send(mavlink.MAVLink_heartbeat_message(
@@ -272,15 +260,20 @@ class MavlinkLink:
             return
         loop = asyncio.get_running_loop()
         if isinstance(loop, clock.LockstepEventLoop):
-            loop.advance(msg.ts1 * 1e-9)
+            # Stop reading; let what earlier messages woke finish at the current time; only
+            # then advance the clock, run what is due, and answer once idle again.
             self._paused = True
-            loop.call_when_idle(lambda: self._answer_tick(msg.ts1))
+            loop.call_when_idle(lambda: self._advance_then_answer(loop, msg.ts1))
         else:
             self._answer_timesync(msg.ts1)
 
+    def _advance_then_answer(self, loop: clock.LockstepEventLoop, ts1: int) -> None:
+        loop.advance(ts1 * 1e-9)
+        loop.call_when_idle(lambda: self._answer_tick(ts1))
+
     def _answer_timesync(self, ts1: int) -> None:
-        self.send(mavlink.MAVLink_timesync_message(int(clock.now() * 1e9), ts1,
-                                                   *self.target()))
+        # tc1 = 0 would make the answer a request: at simulation time 0, say 1 ns.
+        self.send(mavlink.MAVLink_timesync_message(max(1, int(clock.now() * 1e9)), ts1))
 
     def _answer_tick(self, ts1: int) -> None:
         self._answer_timesync(ts1)

@@ -1,0 +1,83 @@
+"""`companion bench`: per-stage timings (median, p99) of the hot paths present in this build.
+
+Each stage runs ``repeat`` times on synthetic input and reports wall-clock milliseconds per
+call on this machine. Figures in the README come from this command.
+"""
+
+from __future__ import annotations
+
+import platform
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from companion.mavlink.estimate import PoseEstimate, is_finite, upper_triangle
+from companion.mavlink.link import mavlink, nonfinite_fields
+from companion.mavlink.setpoints import Setpoint, setpoint_message
+from companion.telemetry.publisher import encode_json
+
+
+def time_stage(fn: Callable[[], object], repeat: int) -> tuple[float, float]:
+    """(median ms, p99 ms) of ``fn`` over ``repeat`` calls after a short warm-up."""
+    for _ in range(min(50, repeat)):
+        fn()
+    samples = np.empty(repeat)
+    for i in range(repeat):
+        start = time.perf_counter()
+        fn()
+        samples[i] = time.perf_counter() - start
+    return float(np.median(samples) * 1e3), float(np.percentile(samples, 99) * 1e3)
+
+
+def _estimate_output_stage() -> Callable[[], object]:
+    encoder = mavlink.MAVLink(None, 1, 197)
+    cov = np.diag([0.01, 0.01, 0.02, 1e-3, 1e-3, 2e-3])
+    est = PoseEstimate(1.0, np.array([1.0, 2.0, -1.0]), (0.01, 0.02, 0.5), cov, np.zeros(3), np.eye(3) * 0.01)
+
+    def stage() -> bytes:
+        assert is_finite(est)
+        msg = mavlink.MAVLink_vision_position_estimate_message(
+            int(est.t_capture * 1e6), *map(float, est.position_ned), *est.euler_rad, upper_triangle(est.pose_covariance), 0)
+        assert not nonfinite_fields(msg)
+        return msg.pack(encoder)
+    return stage
+
+
+def _setpoint_stage() -> Callable[[], object]:
+    encoder = mavlink.MAVLink(None, 1, 197)
+    sp = Setpoint(position_ned=np.array([1.0, 2.0, -1.0]), velocity_ned=np.zeros(3), acceleration_ned=np.zeros(3))
+    return lambda: setpoint_message(sp, 1000, (1, 1)).pack(encoder)
+
+
+def _telemetry_stage() -> Callable[[], object]:
+    payload = {"position_ned_m": np.array([1.0, 2.0, -1.0]), "euler_rad": (0.0, 0.0, 0.5),
+               "velocity_ned_mps": np.zeros(3), "position_variance_m2": np.full(3, 0.01)}
+    return lambda: encode_json(1.0, payload)
+
+
+def _sitl_physics_stage() -> Callable[[], object]:
+    from sitl.copter import SimulatedCopter
+
+    copter = SimulatedCopter(seed=0, home=(1.2966, 103.7764, 10.0))
+    dt = 1.0 / SimulatedCopter.PHYSICS_HZ
+    return lambda: copter.step(dt)
+
+
+STAGES: dict[str, Callable[[], Callable[[], object]]] = {
+    "link.vision_position_estimate (check + encode)": _estimate_output_stage,
+    "link.setpoint (encode)": _setpoint_stage,
+    "telemetry.pose (JSON encode)": _telemetry_stage,
+    "sitl.copter step (1/400 s)": _sitl_physics_stage,
+}
+
+
+def run_bench(repeat: int) -> int:
+    print(f"companion bench: {repeat} calls per stage, Python {platform.python_version()}, "
+          f"numpy {np.__version__}, {platform.machine()}")
+    print(f"{'stage':<50} {'median ms':>10} {'p99 ms':>10}")
+    for name, make in STAGES.items():
+        median, p99 = time_stage(make(), repeat)
+        print(f"{name:<50} {median:>10.4f} {p99:>10.4f}")
+    print("navigation pipelines: none in this build yet (the lidar pipeline arrives with issue 3)")
+    return 0

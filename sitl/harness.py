@@ -1,0 +1,196 @@
+"""`companion sitl`: the simulated vehicle and the daemon as separate processes on loopback.
+
+The harness writes a run config derived from the given one (mission, absolute paths), starts
+``python -m sitl.vehicle`` (MAVLink on loopback UDP) and ``companion run`` (which publishes
+zenoh telemetry on loopback TCP), listens to that telemetry as a zenoh peer, and at the end
+scores the run against the vehicle's ground truth (sitl/report.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import yaml
+
+from companion.config import Config, ConfigError, load_config
+from companion.telemetry.keys import KEY_PREFIX
+from sitl.report import build_report
+from sitl.world import load_world
+
+log = logging.getLogger("companion.sitl")
+
+STOP_GRACE_S = 5.0
+
+
+class TelemetryListener:
+    """Keeps the last JSON payload of every stream of one vehicle (a zenoh peer)."""
+
+    def __init__(self, connect: list[str], sysid: int) -> None:
+        from companion.telemetry.session import open_session
+
+        self.latest: dict[str, dict] = {}
+        self._lock = threading.Lock()
+        self.session = open_session("peer", [], connect, False, False)
+        self.subscriber = self.session.declare_subscriber(f"{KEY_PREFIX}/{sysid}/*", self._on_sample)
+
+    def _on_sample(self, sample) -> None:  # type: ignore[no-untyped-def]
+        try:
+            payload = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            return
+        stream = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self._lock:
+            self.latest[stream] = payload
+
+    def snapshot(self) -> dict[str, dict]:
+        with self._lock:
+            return dict(self.latest)
+
+    def close(self) -> None:
+        self.subscriber.undeclare()
+        self.session.close()
+
+
+def companion_url_for(vehicle_url: str) -> str:
+    """The daemon's endpoint for a vehicle listening at ``udpin:HOST:PORT`` (or tcpin)."""
+    scheme, _, address = vehicle_url.partition(":")
+    return {"udpin": "udpout", "tcpin": "tcp"}.get(scheme, scheme) + ":" + address
+
+
+def write_run_config(cfg: Config, mission: str | None, out_dir: Path, autopilot_url: str | None) -> Path:
+    """A copy of the config with the mission chosen, absolute paths and the matching link URL."""
+    raw = yaml.safe_load(Path(cfg.source).read_text()) or {}
+    mission_file = cfg.resolve(f"missions/{mission}.yaml") if mission else (
+        cfg.resolve(cfg.mission.file) if cfg.mission.file else None)
+    raw.setdefault("mission", {})["file"] = str(mission_file) if mission_file else None
+    raw.setdefault("sitl", {})["world"] = str(cfg.resolve(cfg.sitl.world))
+    raw.setdefault("mavlink", {})["url"] = autopilot_url or companion_url_for(cfg.sitl.vehicle_url)
+    if cfg.mavlink.signing_key_file:
+        raw["mavlink"]["signing_key_file"] = str(cfg.resolve(cfg.mavlink.signing_key_file))
+    path = out_dir / "companion.yaml"
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    return path
+
+
+def vehicle_command(cfg: Config, args: argparse.Namespace, log_path: Path) -> list[str]:
+    s = cfg.sitl
+    start = s.start if s.start is not None else load_world(cfg.resolve(s.world)).start
+    cmd = [sys.executable, "-m", "sitl.vehicle", "--companion", s.vehicle_url,
+           "--seed", str(args.seed), "--log", str(log_path), "--tick", str(s.tick_s),
+           "--home", f"{cfg.origin.lat},{cfg.origin.lon},{cfg.origin.alt}",
+           "--position-source", s.position_source,
+           "--wind", ",".join(str(w) for w in s.wind_ned_mps), "--gust", str(s.gust_mps),
+           "--start", ",".join(str(v) for v in start), "--sysid", str(cfg.vehicle.autopilot_sysid)]
+    for url in s.gcs_urls:
+        cmd += ["--gcs", url]
+    if not s.gps:
+        cmd.append("--no-gps")
+    if args.lockstep:
+        cmd.append("--lockstep")
+    if args.seconds is not None:
+        cmd += ["--seconds", str(args.seconds)]
+    return cmd
+
+
+def process_cpu_rss(pid: int) -> tuple[float, float] | None:
+    """(CPU seconds used, peak resident MB) of a live process, from /proc."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        ticks = os.sysconf("SC_CLK_TCK")
+        cpu_s = (int(stat[11]) + int(stat[12])) / ticks
+        hwm_kb = next(int(line.split()[1]) for line in Path(f"/proc/{pid}/status").read_text().splitlines()
+                      if line.startswith("VmHWM:"))
+        return cpu_s, hwm_kb / 1024
+    except (OSError, StopIteration, IndexError, ValueError):
+        return None
+
+
+def _terminate(proc: subprocess.Popen, name: str) -> int:
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            return proc.wait(STOP_GRACE_S)
+        except subprocess.TimeoutExpired:
+            log.error("%s did not stop within %.0f s of SIGTERM; killing it", name, STOP_GRACE_S)
+            proc.kill()
+            return proc.wait()
+    return proc.returncode
+
+
+def run_harness(args: argparse.Namespace) -> int:
+    """Run one SITL session; returns the exit code (0 = ran and, if asked, reported)."""
+    try:
+        cfg = load_config(args.config)
+        if args.mission and not cfg.resolve(f"missions/{args.mission}.yaml").exists():
+            raise ConfigError(cfg.source, "mission", None, f"no mission {args.mission!r} in {cfg.resolve('missions')}")
+        load_world(cfg.resolve(cfg.sitl.world))
+    except ConfigError as exc:
+        print(f"companion: {exc}", file=sys.stderr)
+        return 2
+    work = Path(tempfile.mkdtemp(prefix="companion-sitl-"))
+    run_cfg = write_run_config(cfg, args.mission, work, args.autopilot)
+    vehicle_log = work / "vehicle-log.json"
+    vehicle = None
+    if args.autopilot is None:
+        vehicle = subprocess.Popen(vehicle_command(cfg, args, vehicle_log))
+    daemon_cmd = [sys.executable, "-m", "companion.cli", "run", "-c", str(run_cfg)]
+    if args.lockstep:
+        daemon_cmd.append("--lockstep")
+    daemon = subprocess.Popen(daemon_cmd)
+    started = time.monotonic()
+    listener = TelemetryListener(cfg.telemetry.listen, cfg.vehicle.sysid) if cfg.telemetry.enabled else None
+    mission_name = args.mission or (Path(cfg.mission.file).stem if cfg.mission.file else "none")
+    print(f"companion sitl: vehicle + daemon running (mission {mission_name}, "
+          f"{'lockstep' if args.lockstep else 'real time'}, seed {args.seed}); "
+          f"telemetry on zenoh {', '.join(cfg.telemetry.listen)}; GCS links {', '.join(cfg.sitl.gcs_urls)}",
+          flush=True)
+    usage = None
+    interrupted = False
+    try:
+        while True:
+            if vehicle is not None and vehicle.poll() is not None:
+                break
+            if daemon.poll() is not None:
+                log.error("the daemon exited with %s during the run", daemon.returncode)
+                break
+            if vehicle is None and args.seconds is not None and time.monotonic() - started > args.seconds:
+                break
+            usage = process_cpu_rss(daemon.pid) or usage
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        interrupted = True
+    wall = time.monotonic() - started
+    usage = process_cpu_rss(daemon.pid) or usage
+    telemetry = listener.snapshot() if listener else {}
+    daemon_rc = _terminate(daemon, "daemon")
+    vehicle_rc = _terminate(vehicle, "vehicle") if vehicle is not None else 0
+    if listener:
+        listener.close()
+    if interrupted:
+        print("companion sitl: stopped", flush=True)
+    if daemon_rc != 0 or vehicle_rc not in (0, None):
+        print(f"companion sitl: daemon exit {daemon_rc}, vehicle exit {vehicle_rc}", file=sys.stderr)
+    if args.report:
+        if vehicle is None or not vehicle_log.exists():
+            print("companion sitl: no vehicle flight log, cannot score a report "
+                  "(truth recording from an external autopilot SITL is not implemented)", file=sys.stderr)
+            return 1
+        sim_log = json.loads(vehicle_log.read_text())
+        report = build_report(
+            mission=mission_name, seconds=sim_log["sim_seconds"], lockstep=bool(args.lockstep), seed=args.seed,
+            log=sim_log, telemetry=telemetry, origin=(cfg.origin.lat, cfg.origin.lon, cfg.origin.alt),
+            cpu_percent=None if usage is None else 100.0 * usage[0] / max(wall, 1e-6),
+            rss_mb=None if usage is None else usage[1])
+        Path(args.report).write_text(json.dumps(report, indent=2) + "\n")
+        print(json.dumps(report, indent=2), flush=True)
+    return 0 if daemon_rc == 0 and vehicle_rc in (0, None) else 1

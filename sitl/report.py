@@ -1,0 +1,142 @@
+"""The flight report: the companion scored against simulator ground truth.
+
+Inputs are the vehicle's flight log (sitl/flight_log.py: truth, and every VISION_* and
+setpoint message the autopilot received) and the daemon's last telemetry snapshot. Nothing
+here trusts the estimator's own opinion of itself: estimate errors are the received
+VISION_POSITION_ESTIMATE positions minus the truth at their capture time. A field that no
+pipeline provides yet is ``None`` (JSON null), never invented.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+SCHEMA = 1
+ORIGIN_MATCH_M = 0.5
+LOST_GAP_S = 0.3  # ArduPilot calls an external-nav source unhealthy after 300 ms
+
+
+def _rms(x: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(x))))
+
+
+def _interp_rows(t: np.ndarray, ts: np.ndarray, values: np.ndarray) -> np.ndarray:
+    return np.column_stack([np.interp(t, ts, values[:, k]) for k in range(values.shape[1])])
+
+
+def capture_times(log: dict, usec: np.ndarray) -> np.ndarray:
+    """Companion capture stamps (usec, daemon monotonic clock) -> simulation seconds."""
+    t0 = log["clock"]["monotonic_at_sim_zero"]
+    return usec * 1e-6 - (t0 or 0.0)
+
+
+def _rate(times: list[float]) -> float | None:
+    if len(times) < 2:
+        return None
+    span = times[-1] - times[0]
+    return (len(times) - 1) / span if span > 0 else None
+
+
+def score_estimate(log: dict) -> dict[str, float | None]:
+    """Position/yaw/height error of the received vision estimates against truth."""
+    vp = log["vision_position"]
+    empty = dict.fromkeys(("position_rms_m", "position_max_m", "yaw_rms_deg", "height_rms_m",
+                           "fix_rate_hz", "lost_seconds"))
+    if not vp["usec"]:
+        return empty
+    truth = log["truth"]
+    tt = np.asarray(truth["t"])
+    tc = capture_times(log, np.asarray(vp["usec"], dtype=float))
+    inside = (tc >= tt[0]) & (tc <= tt[-1])
+    tc = tc[inside]
+    est = np.asarray(vp["pos_ned"])[inside]
+    true_pos = _interp_rows(tc, tt, np.asarray(truth["pos_ned"]))
+    true_yaw = np.unwrap(np.asarray(truth["euler_rad"])[:, 2])
+    yaw_err = np.angle(np.exp(1j * (np.asarray(vp["euler_rad"])[inside][:, 2] - np.interp(tc, tt, true_yaw))))
+    horizontal = np.linalg.norm(est[:, :2] - true_pos[:, :2], axis=1)
+    rx = np.asarray(vp["t_rx"])
+    gaps = np.diff(np.concatenate([rx, [log["sim_seconds"]]]))
+    return {
+        "position_rms_m": _rms(np.linalg.norm(est - true_pos, axis=1)),
+        "position_max_m": float(np.max(np.linalg.norm(est - true_pos, axis=1))),
+        "yaw_rms_deg": math.degrees(_rms(yaw_err)),
+        "height_rms_m": _rms(est[:, 2] - true_pos[:, 2]),
+        "fix_rate_hz": None,  # filled from the daemon's pipeline statistics by the harness
+        "lost_seconds": float(np.sum(gaps[gaps > LOST_GAP_S])),
+        "horizontal_rms_m": _rms(horizontal),
+    }
+
+
+def score_tracking(log: dict) -> tuple[float | None, float | None]:
+    """RMS and max distance (m) of the truth from the position setpoints being commanded."""
+    sp = log["setpoints"]
+    masks = np.asarray(sp["type_mask"], dtype=int)
+    if masks.size == 0:
+        return None, None
+    has_position = (masks & 0b111) == 0
+    if not has_position.any():
+        return None, None
+    t = np.asarray(sp["t_rx"])[has_position]
+    target = np.asarray(sp["pos"])[has_position]
+    truth = log["truth"]
+    true_pos = _interp_rows(t, np.asarray(truth["t"]), np.asarray(truth["pos_ned"]))
+    err = np.linalg.norm(true_pos - target, axis=1)
+    return _rms(err), float(err.max())
+
+
+def _origin_matches(log: dict, origin: tuple[float, float, float]) -> bool:
+    o = log["origin"]
+    if o.get("set_at") is None:
+        return False
+    from companion.frames import ned_from_geodetic
+    return float(np.linalg.norm(ned_from_geodetic(o["lat"], o["lon"], o["alt"], origin))) <= ORIGIN_MATCH_M
+
+
+def _stage(system: dict, name: str, key: str) -> float | None:
+    stage = (system.get("stage_ms") or {}).get(name)
+    return None if stage is None else stage.get(key)
+
+
+def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, log: dict,
+                 telemetry: dict[str, dict], origin: tuple[float, float, float],
+                 cpu_percent: float | None, rss_mb: float | None) -> dict[str, Any]:
+    """The report dict (schema 1) from a vehicle log and the daemon's last telemetry."""
+    estimate = score_estimate(log)
+    estimate.pop("horizontal_rms_m", None)
+    system = telemetry.get("system", {})
+    stats = telemetry.get("estimate_stats", {})
+    fix_counts = [s.get("count", 0) for s in (system.get("stage_ms") or {}).values()]
+    if fix_counts and estimate["position_rms_m"] is not None:
+        estimate["fix_rate_hz"] = max(fix_counts) / max(system.get("uptime_s", seconds), 1e-6)
+    tracking_rms, tracking_max = score_tracking(log)
+    mission_state = telemetry.get("mission", {}).get("state")
+    landed_disarmed = bool(log["modes"]) and not log["modes"][-1][2]
+    nonfinite = stats.get("nonfinite_dropped", 0) + stats.get("nonfinite_dropped_link", 0) if stats else None
+    return {
+        "schema": SCHEMA, "mission": mission, "seconds": seconds, "lockstep": lockstep, "seed": seed,
+        "estimate": estimate,
+        "autopilot": {
+            "origin_confirmed": _origin_matches(log, origin) and bool(telemetry.get("autopilot", {}).get("origin_confirmed")),
+            "external_nav_in_use": log["external_nav"]["first_in_use_at"] is not None,
+            "vision_position_estimate_hz": _rate(log["vision_position"]["t_rx"]),
+            "vision_speed_estimate_hz": _rate(log["vision_speed"]["t_rx"]),
+            "setpoint_hz": _rate(log["setpoints"]["t_rx"]),
+            "nonfinite_dropped": nonfinite,
+        },
+        "control": {
+            "mission_completed": mission_state == "completed" and landed_disarmed,
+            "tracking_rms_m": tracking_rms,
+            "tracking_max_m": tracking_max,
+        },
+        "timing": {
+            "lidar_ms_p50": _stage(system, "lidar", "p50"),
+            "lidar_ms_p99": _stage(system, "lidar", "p99"),
+            "fusion_ms_p50": _stage(system, "fusion", "p50"),
+            "loop_jitter_ms_p99": (system.get("loop_jitter_ms") or {}).get("p99"),
+            "cpu_percent": cpu_percent,
+            "rss_mb": rss_mb,
+        },
+    }
