@@ -27,7 +27,7 @@ from companion.mavlink.link import MavlinkLink, load_signing_key, mavlink
 from companion.mavlink.origin import OriginSetter
 from companion.mavlink.setpoints import SetpointStream
 from companion.mission import MissionRunner, load_mission
-from companion.nav.loop import NavLoop
+from companion.nav.loop import NavLoop, Pipeline
 from companion.sdnotify import Notifier, WatchdogGate, run_watchdog
 from companion.supervisor import Supervisor
 from companion.telemetry.publisher import TelemetryPublisher
@@ -69,7 +69,8 @@ class Daemon:
                                        on_alert=self.statustext)
         self.setpoints = setpoints = SetpointStream(link, state, cfg.mavlink.setpoint_rate_hz)
         gate = WatchdogGate(max_age=1.0, clock=clock.now)
-        self.nav = NavLoop([], self.estimate, telemetry, gate, cfg.pipelines.fusion_rate_hz, clock.now)
+        self.nav = NavLoop(self.build_pipelines(), self.estimate, telemetry, gate, cfg.pipelines.fusion_rate_hz,
+                           clock.now)
         self.health.on_change(self._announce)
         link.on_connect(self._on_autopilot_found)
 
@@ -93,6 +94,14 @@ class Daemon:
         await stop.wait()
         await self._shutdown()
         return 0
+
+    def build_pipelines(self) -> list[Pipeline]:
+        """The navigation pipelines of this config, built once the link exists.
+
+        No pipeline ships yet (the lidar pipeline is the next issue), so the list is empty and
+        the autopilot navigates on its own sources.
+        """
+        return []
 
     def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_WARNING) -> None:
         """Send a STATUSTEXT (<= 50 characters) to the autopilot, which forwards it to the GCS."""
