@@ -162,7 +162,8 @@ class MavlinkLink:
     def _open(self) -> None:
         conn = mavutil.mavlink_connection(
             self.url, source_system=self.ids.sysid, source_component=self.ids.compid,
-            dialect="ardupilotmega", autoreconnect=False, baud=921600)
+            dialect="ardupilotmega", autoreconnect=False, baud=921600,
+            retries=0)  # no blocking retry loop inside pymavlink: run() retries with backoff
         conn.mav.robust_parsing = True
         if self.signing_key is not None:
             conn.setup_signing(self.signing_key, sign_outgoing=True)
