@@ -8,10 +8,12 @@ the daemon needs a lockstep branch, and a run is deterministic for a given seed.
 Lockstep protocol (the vehicle side is sitl/vehicle.py):
 
 1. The vehicle sends TIMESYNC(tc1=0, ts1=t ns) after stepping its physics to ``t``.
-2. The daemon stops reading the link and lets everything the earlier messages woke finish
-   at its current time; once idle it advances its clock to ``t``, runs every timer due by
-   ``t`` and everything those wake, and, once idle again, answers TIMESYNC(tc1=its time,
-   ts1=t). Everything the daemon sent for time ``t`` precedes the answer on the link.
+2. The daemon dispatches everything received since the previous tick in one go, in order
+   (so no task runs between two messages of one tick, however the datagrams trickle in),
+   stops reading the link and lets everything those messages woke finish at its current
+   time; once idle it advances its clock to ``t``, runs every timer due by ``t`` and
+   everything those wake, and, once idle again, answers TIMESYNC(tc1=its time, ts1=t).
+   Everything the daemon sent for time ``t`` precedes the answer on the link.
 3. The vehicle waits for the answer, then sends the data sampled at ``t`` (which the daemon
    reads with its clock at ``t``) and steps on.
 """

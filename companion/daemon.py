@@ -51,13 +51,20 @@ class Daemon:
         self.supervisor = Supervisor(self.health)
         self.session = None
         self.started_wall = time.monotonic()
+        self._stop = asyncio.Event()
+
+    def request_stop(self) -> None:
+        """Make :meth:`run` shut down and return 0, as SIGTERM and SIGINT do.
+
+        Call it on the daemon's event loop (from another thread: ``loop.call_soon_threadsafe``).
+        """
+        self._stop.set()
 
     async def run(self) -> int:
         cfg = self.cfg
         loop = asyncio.get_running_loop()
-        stop = asyncio.Event()
         for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.add_signal_handler(sig, stop.set)
+            loop.add_signal_handler(sig, self.request_stop)
 
         key = load_signing_key(cfg.resolve(cfg.mavlink.signing_key_file)) if cfg.mavlink.signing_key_file else None
         self.link = link = MavlinkLink(cfg.mavlink, cfg.vehicle, self.url, self.health, key)
@@ -91,7 +98,7 @@ class Daemon:
             self.mission = None
         self.notifier.ready()
         log.info("companion running: autopilot link %s, %d pipelines", self.url, len(self.nav.pipelines))
-        await stop.wait()
+        await self._stop.wait()
         await self._shutdown()
         return 0
 
@@ -145,7 +152,8 @@ class Daemon:
         t.publish("link", {"connected": link.connected, "autopilot": link.autopilot, "url": self.url,
                            "heartbeat_age_s": None if link.last_heartbeat is None else clock.now() - link.last_heartbeat,
                            **vars(link.stats)})
-        t.publish("autopilot", {"mode": state.mode, "armed": state.armed, "origin_confirmed": self.origin.confirmed,
+        t.publish("autopilot", {"mode": state.mode, "armed": state.armed,
+                                "origin_confirmed": self.origin.confirmed and link.connected,
                                 "external_nav_in_use": state.external_nav_in_use, "ekf_flags": state.ekf_flags,
                                 "local_position_ned_m": state.local_position_ned})
         t.publish("estimate_stats", {**vars(self.estimate.stats), "reset_counter": self.estimate.reset_counter,

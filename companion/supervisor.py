@@ -19,7 +19,8 @@ log = logging.getLogger("companion.supervisor")
 
 MIN_BACKOFF_S = 0.5
 MAX_BACKOFF_S = 30.0
-STABLE_AFTER_S = 60.0
+STABLE_AFTER_S = 60.0  # clean running that resets the backoff
+RECOVERED_AFTER_S = 5.0  # clean running after a restart that turns the task's health back to ok
 
 
 @dataclass
@@ -48,6 +49,7 @@ class Supervisor:
         backoff = MIN_BACKOFF_S
         while True:
             started = loop.time()
+            recovered = loop.call_later(RECOVERED_AFTER_S, self._recovered, record) if record.restarts else None
             try:
                 await factory()
                 reason = "returned unexpectedly"
@@ -57,6 +59,9 @@ class Supervisor:
             except Exception as exc:
                 reason = f"crashed: {type(exc).__name__}: {exc}"
                 log.exception("task %s crashed; restarting in %.1f s", record.name, backoff)
+            finally:
+                if recovered is not None:
+                    recovered.cancel()
             if loop.time() - started > STABLE_AFTER_S:
                 backoff = MIN_BACKOFF_S
             record.restarts += 1
@@ -64,6 +69,10 @@ class Supervisor:
             self.health.report(f"task:{record.name}", State.DEGRADED, f"{reason} (restart {record.restarts})")
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, MAX_BACKOFF_S)
+
+    def _recovered(self, record: TaskRecord) -> None:
+        self.health.report(f"task:{record.name}", State.OK,
+                           f"running again after {record.restarts} restarts (last: {record.last_error})")
 
     def snapshot(self) -> dict:
         """{name: {restarts, last_error}} for telemetry."""

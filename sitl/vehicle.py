@@ -239,6 +239,7 @@ class Vehicle:
         self._companion_heard = False
         self._next_sample_us = 0
         self._last_home: tuple[float, float, float] | None = None
+        self._announced_mode = self.copter.mode  # a change is announced with a HEARTBEAT at once
         self._unix_at_zero_s = float(UNIX_EPOCH_LOCKSTEP_S)
         self._nonfinite = 0
         self._stale_or_future = 0
@@ -706,6 +707,14 @@ class Vehicle:
         for severity, text in texts:
             self._statustext(severity, text)
         self.log.add_mode(now, self.copter.mode_name, self.copter.armed)
+        if self.copter.mode != self._announced_mode:
+            # ArduPilot's set_mode() sends a HEARTBEAT on every link at once
+            # (gcs().send_message(MSG_HEARTBEAT)): a companion learns of a pilot takeover
+            # without waiting for the 1 Hz stream.
+            self._announced_mode = self.copter.mode
+            heartbeat = self._heartbeat()
+            for link in self.links:
+                link.send(heartbeat)
         origin = self.copter.origin
         if origin is not None:
             self.log.set_origin(now, *origin)

@@ -28,6 +28,10 @@ from companion.mavlink.link import MavlinkLink, mavlink
 
 log = logging.getLogger("companion.estimate")
 
+# After a non-finite estimate, estimate_output stays degraded until this long without another
+# one: a pipeline emitting the odd NaN must not flip health (and STATUSTEXT) at its own rate.
+NONFINITE_HOLD_S = 5.0
+
 
 @dataclass(frozen=True)
 class PoseEstimate:
@@ -91,6 +95,7 @@ class EstimateSender:
         self.reset_counter = 0
         self._next_due: float | None = None  # GCRA theoretical send time, daemon clock
         self._last_sent_capture = -float("inf")
+        self._last_nonfinite = -float("inf")  # daemon clock of the last non-finite estimate
         self._reset_pending = False
 
     def submit(self, estimate: PoseEstimate) -> bool:
@@ -99,6 +104,7 @@ class EstimateSender:
         self._reset_pending |= estimate.reset
         if not is_finite(estimate):
             self.stats.nonfinite_dropped += 1
+            self._last_nonfinite = self.clock()
             self.health.report("estimate_output", State.DEGRADED,
                                f"dropped {self.stats.nonfinite_dropped} non-finite estimates from {estimate.source}")
             if self.stats.nonfinite_dropped == 1:
@@ -117,7 +123,8 @@ class EstimateSender:
             self._reset_pending = False
         self._send(estimate)
         self._last_sent_capture = estimate.t_capture
-        self.health.report("estimate_output", State.OK, f"sending {estimate.source}")
+        if self.clock() - self._last_nonfinite >= NONFINITE_HOLD_S:
+            self.health.report("estimate_output", State.OK, f"sending {estimate.source}")
         return True
 
     def _slot_free(self) -> bool:

@@ -17,6 +17,7 @@ import asyncio
 import logging
 import math
 import os
+import time
 from collections import defaultdict
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -93,6 +94,8 @@ class MavlinkLink:
         self._on_connect: list[Callable[[], None]] = []
         self._connected = False
         self._paused = False  # lockstep: reading stops at a tick until the loop is idle
+        self._ticked = asyncio.Event()  # lockstep: the vehicle's first tick arrived
+        self._tick_batch: list[mavlink.MAVLink_message] = []  # lockstep: read, not yet dispatched
         self._last_boot_ms: int | None = None
         self.health.report("link", State.LOST, "not connected yet")
         self.subscribe("HEARTBEAT", self._on_heartbeat)
@@ -199,7 +202,28 @@ class MavlinkLink:
             if not self._connected and reopen and now - lost_since > 2 * self.cfg.link_timeout_s:
                 log.warning("no autopilot on %s; reopening the port", self.url)
                 return
-            await asyncio.sleep(period)
+            await self._until_next_heartbeat(period)
+
+    async def _until_next_heartbeat(self, period: float) -> None:
+        """Wait ``period`` seconds of daemon time between two HEARTBEATs.
+
+        In lockstep, before the vehicle's first tick, simulation time stands still until the
+        vehicle hears a HEARTBEAT, and the first one may have gone out before it listened (a
+        udpin vehicle cannot speak first): until that tick, repeat it every ``period`` of wall
+        time. From the first tick on the schedule is simulation time again.
+        """
+        loop = asyncio.get_running_loop()
+        if isinstance(loop, clock.LockstepEventLoop) and not self._ticked.is_set():
+            ticked = asyncio.ensure_future(self._ticked.wait())
+            wall = loop.run_in_executor(None, time.sleep, period)
+            try:
+                await asyncio.wait({ticked, wall}, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                ticked.cancel()
+                wall.cancel()
+            if not self._ticked.is_set():
+                return
+        await asyncio.sleep(period)
 
     def _send_heartbeat(self) -> None:
         self.send(mavlink.MAVLink_heartbeat_message(
@@ -219,7 +243,25 @@ class MavlinkLink:
                 return
             if msg is None:
                 return
-            self._dispatch(msg)
+            if isinstance(asyncio.get_running_loop(), clock.LockstepEventLoop):
+                self._batch_until_tick(msg)
+            else:
+                self._dispatch(msg)
+
+    def _batch_until_tick(self, msg: mavlink.MAVLink_message) -> None:
+        """Lockstep: hold messages until the vehicle's next tick request, then dispatch them all.
+
+        Everything the vehicle sends between two ticks is handled at the same daemon time, in
+        order and in one go: no task they wake runs between two of them, whatever the pace at
+        which the datagrams arrive (otherwise a task woken by a COMMAND_ACK could see or miss
+        the HEARTBEAT sent right after it, and two runs with the same seed would differ).
+        """
+        self._tick_batch.append(msg)
+        if (msg.get_type() == "TIMESYNC" and msg.tc1 == 0
+                and msg.get_srcSystem() == self.ids.autopilot_sysid):
+            batch, self._tick_batch = self._tick_batch, []
+            for m in batch:
+                self._dispatch(m)
 
     def _dispatch(self, msg: mavlink.MAVLink_message) -> None:
         msg_type = msg.get_type()
@@ -261,6 +303,7 @@ class MavlinkLink:
             return
         loop = asyncio.get_running_loop()
         if isinstance(loop, clock.LockstepEventLoop):
+            self._ticked.set()
             # Stop reading; let what earlier messages woke finish at the current time; only
             # then advance the clock, run what is due, and answer once idle again.
             self._paused = True

@@ -1,0 +1,107 @@
+"""`companion sitl --report`: the truth-scored flight report of a lockstep run, end to end.
+
+Each run is the real thing: ``python -m companion.cli sitl`` starts the SITL vehicle and the
+daemon as separate processes talking MAVLink over loopback UDP (free ports), in lockstep, and
+scores the flight against the vehicle's ground truth.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import shutil
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import REPO, free_port
+from tests.sitl_helpers import write_config
+
+SCHEMA_1 = {
+    "schema": None, "mission": None, "seconds": None, "lockstep": None, "seed": None,
+    "estimate": {"position_rms_m", "position_max_m", "yaw_rms_deg", "height_rms_m", "fix_rate_hz", "lost_seconds"},
+    "autopilot": {"origin_confirmed", "external_nav_in_use", "vision_position_estimate_hz",
+                  "vision_speed_estimate_hz", "setpoint_hz", "nonfinite_dropped"},
+    "control": {"mission_completed", "tracking_rms_m", "tracking_max_m"},
+    "timing": {"lidar_ms_p50", "lidar_ms_p99", "fusion_ms_p50", "loop_jitter_ms_p99", "cpu_percent", "rss_mb"},
+}
+MACHINE_DEPENDENT = ("cpu_percent", "rss_mb")  # measured on the wall clock of this machine
+
+
+@pytest.fixture(scope="module")
+def sitl_config(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A config on free ports, beside a copy of config/missions (``--mission NAME`` looks there)."""
+    directory = tmp_path_factory.mktemp("sitl-report")
+    shutil.copytree(REPO / "config" / "missions", directory / "missions")
+    return write_config(directory / "companion.yaml", vehicle_port=free_port(),
+                        zenoh_port=free_port(socket.SOCK_STREAM))
+
+
+def run_sitl(config: Path, seed: int, out: Path) -> dict:
+    """`companion sitl --mission hover --lockstep --seed S --seconds 30 --report`; the report."""
+    report = out / f"report-seed{seed}-{len(list(out.glob('report-*')))}.json"
+    proc = subprocess.run(
+        [sys.executable, "-m", "companion.cli", "sitl", "--mission", "hover", "--lockstep", "--seed", str(seed),
+         "--seconds", "30", "--report", str(report), "-c", str(config)],
+        cwd=REPO, capture_output=True, text=True, timeout=50)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return json.loads(report.read_text())
+
+
+@pytest.fixture(scope="module")
+def reports(sitl_config: Path) -> dict[str, dict]:
+    """Three runs: seed 1 twice and seed 2 once."""
+    out = sitl_config.parent
+    return {"first": run_sitl(sitl_config, 1, out), "again": run_sitl(sitl_config, 1, out),
+            "other_seed": run_sitl(sitl_config, 2, out)}
+
+
+def without_machine_figures(report: dict) -> dict:
+    report = copy.deepcopy(report)
+    for key in MACHINE_DEPENDENT:
+        report["timing"].pop(key)
+    return report
+
+
+def test_report_has_exactly_the_schema_1_keys(reports: dict[str, dict]) -> None:
+    report = reports["first"]
+    assert set(report) == set(SCHEMA_1)
+    for section, keys in SCHEMA_1.items():
+        if keys is not None:
+            assert set(report[section]) == keys, section
+    assert report["schema"] == 1
+    assert (report["mission"], report["seconds"], report["lockstep"], report["seed"]) == ("hover", 30.0, True, 1)
+
+
+def test_hover_mission_completes_with_confirmed_origin_and_setpoint_keepalive(reports: dict[str, dict]) -> None:
+    report = reports["first"]
+    assert report["control"]["mission_completed"] is True
+    assert report["autopilot"]["origin_confirmed"] is True
+    assert report["autopilot"]["setpoint_hz"] >= 10.0 * (1 - 1e-9)  # the >= 10 Hz keepalive
+    assert isinstance(report["control"]["tracking_rms_m"], float)
+    assert 0.0 < report["control"]["tracking_rms_m"] <= report["control"]["tracking_max_m"] < 2.0
+    assert report["autopilot"]["nonfinite_dropped"] == 0
+
+
+def test_estimate_figures_are_null_without_a_pipeline(reports: dict[str, dict]) -> None:
+    """No navigation pipeline yet: nothing is invented, every estimate figure is null."""
+    report = reports["first"]
+    assert all(value is None for value in report["estimate"].values()), report["estimate"]
+    assert report["autopilot"]["vision_position_estimate_hz"] is None
+    assert report["autopilot"]["vision_speed_estimate_hz"] is None
+    assert report["autopilot"]["external_nav_in_use"] is False  # the vehicle flew on its simulated GPS
+    assert report["timing"]["lidar_ms_p50"] is None and report["timing"]["fusion_ms_p50"] is None
+
+
+def test_same_seed_gives_the_identical_report(reports: dict[str, dict]) -> None:
+    assert without_machine_figures(reports["first"]) == without_machine_figures(reports["again"])
+
+
+def test_another_seed_gives_other_tracking_figures(reports: dict[str, dict]) -> None:
+    first, other = reports["first"]["control"], reports["other_seed"]["control"]
+    assert other["mission_completed"] is True
+    assert other["tracking_rms_m"] != first["tracking_rms_m"]
+    assert other["tracking_max_m"] != first["tracking_max_m"]
