@@ -110,12 +110,16 @@ class SetpointStream:
     async def run(self) -> None:
         """Keepalive task: re-sends the current target at ``rate_hz`` while commanding."""
         period = 1.0 / self.rate_hz
+        due = clock.now()
         while True:
             if not self._commanding:
                 self._wake.clear()
                 await self._wake.wait()
+                due = clock.now()  # command() has just sent one
                 continue
-            await asyncio.sleep(period)
+            # Absolute deadlines: sleeping `period` after each send would drift below rate_hz.
+            due = max(due + period, clock.now())
+            await asyncio.sleep(due - clock.now())
             if self._commanding:
                 self._send()
 
