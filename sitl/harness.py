@@ -9,6 +9,7 @@ scores the run against the vehicle's ground truth (sitl/report.py).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -18,6 +19,8 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import yaml
@@ -127,6 +130,70 @@ def _terminate(proc: subprocess.Popen, name: str) -> int:
     return proc.returncode
 
 
+@contextlib.contextmanager
+def _sigterm_as_ctrl_c() -> Iterator[None]:
+    """While inside, SIGTERM raises KeyboardInterrupt, so the children are stopped, not orphaned."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def interrupt(signum: int, frame: object) -> None:
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGTERM, interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+@dataclass
+class Session:
+    """The processes of one SITL run and what the harness learns about them."""
+
+    vehicle: subprocess.Popen | None = None
+    daemon: subprocess.Popen | None = None
+    listener: TelemetryListener | None = None
+    started: float = field(default_factory=time.monotonic)
+    usage: tuple[float, float] | None = None  # daemon (CPU s, peak RSS MB)
+
+    def wait(self, seconds: float | None) -> None:
+        """Until the vehicle ends the run (--seconds), the daemon dies, or (external autopilot) time is up."""
+        assert self.daemon is not None
+        while True:
+            if self.vehicle is not None and self.vehicle.poll() is not None:
+                return
+            if self.daemon.poll() is not None:
+                log.error("the daemon exited with %s during the run", self.daemon.returncode)
+                return
+            if self.vehicle is None and seconds is not None and time.monotonic() - self.started > seconds:
+                return
+            self.usage = process_cpu_rss(self.daemon.pid) or self.usage
+            time.sleep(0.2)
+
+    def stop(self) -> tuple[int, int, dict[str, dict]]:
+        """Stop everything; (daemon exit code, vehicle exit code, last telemetry)."""
+        if self.daemon is not None:
+            self.usage = process_cpu_rss(self.daemon.pid) or self.usage
+        telemetry = self.listener.snapshot() if self.listener else {}
+        daemon_rc = _terminate(self.daemon, "daemon") if self.daemon is not None else 0
+        vehicle_rc = _terminate(self.vehicle, "vehicle") if self.vehicle is not None else 0
+        if self.listener:
+            self.listener.close()
+        return daemon_rc, vehicle_rc, telemetry
+
+
+def _start(session: Session, cfg: Config, args: argparse.Namespace, run_cfg: Path, vehicle_log: Path) -> None:
+    if args.autopilot is None:
+        session.vehicle = subprocess.Popen(vehicle_command(cfg, args, vehicle_log))
+    daemon_cmd = [sys.executable, "-m", "companion.cli", "run", "-c", str(run_cfg)]
+    if args.lockstep:
+        daemon_cmd.append("--lockstep")
+    session.daemon = subprocess.Popen(daemon_cmd)
+    if cfg.telemetry.enabled:
+        session.listener = TelemetryListener(cfg.telemetry.listen, cfg.vehicle.sysid)
+
+
 def run_harness(args: argparse.Namespace) -> int:
     """Run one SITL session; returns the exit code (0 = ran and, if asked, reported)."""
     try:
@@ -140,52 +207,33 @@ def run_harness(args: argparse.Namespace) -> int:
     work = Path(tempfile.mkdtemp(prefix="companion-sitl-"))
     run_cfg = write_run_config(cfg, args.mission, work, args.autopilot)
     vehicle_log = work / "vehicle-log.json"
-    vehicle = None
-    if args.autopilot is None:
-        vehicle = subprocess.Popen(vehicle_command(cfg, args, vehicle_log))
-    daemon_cmd = [sys.executable, "-m", "companion.cli", "run", "-c", str(run_cfg)]
-    if args.lockstep:
-        daemon_cmd.append("--lockstep")
-    daemon = subprocess.Popen(daemon_cmd)
-    started = time.monotonic()
-    listener = TelemetryListener(cfg.telemetry.listen, cfg.vehicle.sysid) if cfg.telemetry.enabled else None
     mission_name = args.mission or (Path(cfg.mission.file).stem if cfg.mission.file else "none")
-    print(f"companion sitl: vehicle + daemon running (mission {mission_name}, "
-          f"{'lockstep' if args.lockstep else 'real time'}, seed {args.seed}); "
-          f"telemetry on zenoh {', '.join(cfg.telemetry.listen)}; GCS links {', '.join(cfg.sitl.gcs_urls)}",
-          flush=True)
-    usage = None
+    session = Session()
     interrupted = False
-    try:
-        while True:
-            if vehicle is not None and vehicle.poll() is not None:
-                break
-            if daemon.poll() is not None:
-                log.error("the daemon exited with %s during the run", daemon.returncode)
-                break
-            if vehicle is None and args.seconds is not None and time.monotonic() - started > args.seconds:
-                break
-            usage = process_cpu_rss(daemon.pid) or usage
-            time.sleep(0.2)
-    except KeyboardInterrupt:
-        interrupted = True
-    wall = time.monotonic() - started
-    usage = process_cpu_rss(daemon.pid) or usage
-    telemetry = listener.snapshot() if listener else {}
-    daemon_rc = _terminate(daemon, "daemon")
-    vehicle_rc = _terminate(vehicle, "vehicle") if vehicle is not None else 0
-    if listener:
-        listener.close()
+    with _sigterm_as_ctrl_c():
+        try:
+            _start(session, cfg, args, run_cfg, vehicle_log)
+            print(f"companion sitl: vehicle + daemon running (mission {mission_name}, "
+                  f"{'lockstep' if args.lockstep else 'real time'}, seed {args.seed}); "
+                  f"telemetry on zenoh {', '.join(cfg.telemetry.listen)}; GCS links {', '.join(cfg.sitl.gcs_urls)}",
+                  flush=True)
+            session.wait(args.seconds)
+        except KeyboardInterrupt:
+            interrupted = True
+        wall = time.monotonic() - session.started
+        daemon_rc, vehicle_rc, telemetry = session.stop()
     if interrupted:
         print("companion sitl: stopped", flush=True)
-    if daemon_rc != 0 or vehicle_rc not in (0, None):
+    ok = daemon_rc == 0 and vehicle_rc == 0
+    if not ok:
         print(f"companion sitl: daemon exit {daemon_rc}, vehicle exit {vehicle_rc}", file=sys.stderr)
     if args.report:
-        if vehicle is None or not vehicle_log.exists():
+        if session.vehicle is None or not vehicle_log.exists():
             print("companion sitl: no vehicle flight log, cannot score a report "
                   "(truth recording from an external autopilot SITL is not implemented)", file=sys.stderr)
             return 1
         sim_log = json.loads(vehicle_log.read_text())
+        usage = session.usage
         report = build_report(
             mission=mission_name, seconds=sim_log["sim_seconds"], lockstep=bool(args.lockstep), seed=args.seed,
             log=sim_log, telemetry=telemetry, origin=(cfg.origin.lat, cfg.origin.lon, cfg.origin.alt),
@@ -193,4 +241,4 @@ def run_harness(args: argparse.Namespace) -> int:
             rss_mb=None if usage is None else usage[1])
         Path(args.report).write_text(json.dumps(report, indent=2) + "\n")
         print(json.dumps(report, indent=2), flush=True)
-    return 0 if daemon_rc == 0 and vehicle_rc in (0, None) else 1
+    return 0 if ok else 1
