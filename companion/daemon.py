@@ -105,9 +105,13 @@ class Daemon:
     def build_pipelines(self) -> list[Pipeline]:
         """The navigation pipelines of this config, built once the link exists.
 
-        No pipeline ships yet (the lidar pipeline is the next issue), so the list is empty and
-        the autopilot navigates on its own sources.
+        No driver or pipeline ships yet (the lidar ones are the next issue): configured sensors
+        are reported lost, loudly, and the autopilot navigates on its own sources.
         """
+        for name, sensor in self.cfg.sensors.items():
+            reason = f"no {sensor.kind} driver with backend {sensor.backend!r} in this version"
+            log.error("sensor %s: %s; it is not read", name, reason)
+            self.health.report(f"sensor:{name}", State.LOST, reason)
         return []
 
     def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_WARNING) -> None:

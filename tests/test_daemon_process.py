@@ -68,3 +68,24 @@ def test_ready_and_watchdog_pings_reach_systemd(tmp_path: Path) -> None:
     assert received.count("WATCHDOG=1") >= 5  # pinged every 0.2 s while the nav loop runs
     assert any(m.startswith("STATUS=lost") for m in received)  # link lost: reported, not hidden
     assert "STOPPING=1" in received
+
+
+def test_a_configured_sensor_without_a_driver_is_reported_lost_not_ignored(tmp_path: Path) -> None:
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text(
+        "origin: {lat: 1.0, lon: 2.0, alt: 3.0}\n"
+        f"mavlink: {{url: 'udpout:127.0.0.1:{free_port()}'}}\n"
+        "telemetry: {enabled: false}\n"
+        "sensors:\n  lidar_h: {kind: lidar, backend: real, settings: {port: /dev/ttyACM0}}\n")
+    proc = subprocess.Popen([sys.executable, "-m", "companion.cli", "run", "-c", str(cfg)],
+                            cwd=REPO, stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(1.5)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=5) == 0
+    finally:
+        proc.kill()
+        proc.wait()
+    stderr = proc.stderr.read()
+    assert "sensor lidar_h: no lidar driver with backend 'real' in this version" in stderr
+    assert "sensor:lidar_h: lost" in stderr
