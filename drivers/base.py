@@ -1,0 +1,125 @@
+"""Sensor driver abstraction: one frontend, one backend per device kind (like ArduPilot's
+AP_RangeFinder: the frontend owns health, counters and recovery; a backend only talks to
+its device, its simulation or its recording).
+
+A backend implements :class:`ScanBackend`: ``open()``, ``read()`` returning the next
+:class:`~drivers.scan.Scan`, ``close()``. It signals trouble with exceptions:
+
+- :class:`CorruptFrame`: one frame was bad (checksum, truncated block, error status). The
+  frontend counts it and reads on; nothing else is lost.
+- ``OSError`` (including pyserial's SerialException, ConnectionError, EOF as
+  :class:`DeviceLost`): the device is gone. The frontend closes it, reports the sensor lost
+  and reopens with backoff (0.5 s doubling to 10 s) until it comes back.
+- :class:`EndOfData`: a replay has no more scans (the frontend stops, health says why).
+
+:class:`LidarDriver` is the frontend; it hands every good scan to ``on_scan`` (the pipeline)
+and is run by the daemon's supervisor as one task per sensor.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from companion.health import Health, State
+from drivers.scan import Scan
+
+log = logging.getLogger("companion.drivers")
+
+MIN_BACKOFF_S = 0.5
+MAX_BACKOFF_S = 10.0
+
+
+class CorruptFrame(Exception):
+    """One frame could not be decoded; the next one may be fine."""
+
+
+class DeviceLost(OSError):
+    """The device stopped answering or closed the connection."""
+
+
+class EndOfData(Exception):
+    """A replay has delivered its last scan."""
+
+
+class ScanBackend(ABC):
+    """A source of scans: a device, a simulation or a recording."""
+
+    description: str = "scanner"
+
+    @abstractmethod
+    async def open(self) -> None:
+        """Connect and start streaming; raise OSError if the device is not there."""
+
+    @abstractmethod
+    async def read(self) -> Scan:
+        """The next scan; raise CorruptFrame, OSError/DeviceLost or EndOfData."""
+
+    @abstractmethod
+    async def close(self) -> None:
+        """Stop streaming and release the device; never raises."""
+
+
+@dataclass
+class DriverStats:
+    scans: int = 0
+    corrupt_frames: int = 0
+    reconnects: int = 0
+    last_error: str | None = None
+
+
+class LidarDriver:
+    """Frontend for one scanner: recovery, counters and health around a backend."""
+
+    def __init__(self, name: str, backend: ScanBackend, health: Health, on_scan: Callable[[Scan], None]) -> None:
+        self.name = name
+        self.backend = backend
+        self.health = health
+        self.on_scan = on_scan
+        self.stats = DriverStats()
+        self._component = f"sensor:{name}"
+
+    async def run(self) -> None:
+        """Read forever (until cancelled or a replay ends), reopening the device when it drops."""
+        backoff = MIN_BACKOFF_S
+        while True:
+            try:
+                await self.backend.open()
+            except OSError as exc:
+                self._lost(f"cannot open {self.backend.description}: {exc}", backoff)
+                await asyncio.sleep(backoff)
+                backoff = min(2 * backoff, MAX_BACKOFF_S)
+                continue
+            backoff = MIN_BACKOFF_S
+            self.health.report(self._component, State.OK, f"{self.backend.description} streaming")
+            try:
+                await self._read_until_lost()
+            except EndOfData:
+                self.health.report(self._component, State.LOST, "replay finished")
+                await asyncio.Event().wait()  # done; stay quiet until cancelled
+            finally:
+                await self.backend.close()
+            self.stats.reconnects += 1
+
+    async def _read_until_lost(self) -> None:
+        while True:
+            try:
+                scan = await self.backend.read()
+            except CorruptFrame as exc:
+                self.stats.corrupt_frames += 1
+                self.stats.last_error = str(exc)
+                log.debug("%s: corrupt frame skipped: %s", self.name, exc)
+                continue
+            except OSError as exc:
+                self._lost(f"{self.backend.description} lost: {exc}", MIN_BACKOFF_S)
+                return
+            self.stats.scans += 1
+            self.on_scan(scan)
+
+    def _lost(self, reason: str, retry_s: float) -> None:
+        self.stats.last_error = reason
+        self.health.report(self._component, State.LOST, reason)
+        log.warning("%s: %s; retrying in %.1f s", self.name, reason, retry_s)
