@@ -7,6 +7,9 @@ A mission file is ``name`` plus ``steps``; each step is a mapping with exactly o
 - ``arm: {}``: arm, only if the config's ``mission.allow_arm`` is true;
 - ``takeoff: {altitude_m, timeout_s}``: take off and wait until within 0.15 m of the altitude;
 - ``hold: {seconds}``: stream a position setpoint where the vehicle is, at the takeoff height;
+- ``goto: {position, speed_mps, tolerance_m, hold_s, timeout_s}``: fly a straight line to a
+  LOCAL_NED position at a constant speed (a moving position + velocity setpoint), wait until
+  the autopilot is within the tolerance, then hold there (smooth trajectories: issue 4);
 - ``land: {timeout_s}``: switch to LAND and wait for the autopilot to disarm.
 
 The runner stops commanding at once if the pilot changes mode (the mission is then
@@ -55,6 +58,15 @@ class HoldStep:
 
 
 @dataclass
+class GotoStep:
+    position: tuple[float, float, float] = field(metadata=meta("Target, LOCAL_NED metres (z negative = up)."))
+    speed_mps: float = field(default=0.5, metadata=meta("Speed along the straight line.", (0.05, 5)))
+    tolerance_m: float = field(default=0.15, metadata=meta("Arrived when the autopilot position is this close.", (0.02, 5)))
+    hold_s: float = field(default=0.0, metadata=meta("Hold at the target after arriving.", (0, 3600)))
+    timeout_s: float = field(default=120.0, metadata=meta("Give up after this long.", (1, 3600)))
+
+
+@dataclass
 class LandStep:
     timeout_s: float = field(default=60.0, metadata=meta("Wait for disarm this long.", (1, 600)))
 
@@ -66,6 +78,7 @@ class MissionStep:
     arm: ArmStep | None = None
     takeoff: TakeoffStep | None = None
     hold: HoldStep | None = None
+    goto: GotoStep | None = None
     land: LandStep | None = None
 
     def validate(self) -> tuple[str, str] | None:
@@ -197,6 +210,39 @@ class MissionRunner:
         self.setpoints.command(Setpoint(position_ned=target))
         end = clock.now() + step.seconds
         await self._wait_for(lambda: clock.now() >= end, step.seconds + 1.0, "the end of the hold")
+
+    async def _goto(self, step: GotoStep) -> None:
+        current = self.setpoints.current
+        if current is not None and current.position_ned is not None:
+            start = np.asarray(current.position_ned, dtype=float)
+        elif self.state.local_position_ned is not None:
+            start = np.asarray(self.state.local_position_ned, dtype=float)
+        else:
+            raise MissionFailed("goto: no autopilot position")
+        goal = np.asarray(step.position, dtype=float)
+        distance = float(np.linalg.norm(goal - start))
+        direction = (goal - start) / distance if distance > 0 else np.zeros(3)
+        began = clock.now()
+        deadline = began + step.timeout_s
+        while True:  # a target moving along the line at speed_mps, with velocity feed-forward
+            if self._takeover.is_set():
+                raise MissionFailed("pilot took over")
+            if clock.now() > deadline:
+                raise MissionFailed(f"goto: timed out after {step.timeout_s:g} s")
+            travelled = step.speed_mps * (clock.now() - began)
+            if travelled >= distance:
+                break
+            self.setpoints.command(Setpoint(position_ned=start + direction * travelled,
+                                            velocity_ned=direction * step.speed_mps))
+            await asyncio.sleep(0.05)
+        self.setpoints.command(Setpoint(position_ned=goal))
+
+        def arrived() -> bool:
+            p = self.state.local_position_ned
+            return p is not None and self._position_fresh() and float(np.linalg.norm(p - goal)) <= step.tolerance_m
+        await self._wait_for(arrived, max(1.0, deadline - clock.now()), f"arrival within {step.tolerance_m:g} m of {list(goal)}")
+        end = clock.now() + step.hold_s
+        await self._wait_for(lambda: clock.now() >= end, step.hold_s + 1.0, "the end of the hold")
 
     async def _land(self, step: LandStep) -> None:
         self.setpoints.stop()

@@ -80,6 +80,7 @@ class SetpointStream:
         self.on_takeover = on_takeover or (lambda mode: None)
         self.current: Setpoint | None = None
         self.sent = 0
+        self._last_sent = -float("inf")  # daemon clock of the last send
         self._commanding = False
         self._expected_mode: str | None = None
         self._wake = asyncio.Event()
@@ -108,26 +109,26 @@ class SetpointStream:
         self.current = None
 
     async def run(self) -> None:
-        """Keepalive task: re-sends the current target at ``rate_hz`` while commanding."""
+        """Keepalive task: re-sends the current target whenever ``1 / rate_hz`` passed without a send."""
         period = 1.0 / self.rate_hz
-        due = clock.now()
         while True:
             if not self._commanding:
                 self._wake.clear()
                 await self._wake.wait()
-                due = clock.now()  # command() has just sent one
                 continue
-            # Absolute deadlines: sleeping `period` after each send would drift below rate_hz.
-            due = max(due + period, clock.now())
-            await asyncio.sleep(due - clock.now())
-            if self._commanding:
-                self._send()
+            due = self._last_sent + period
+            await asyncio.sleep(max(0.0, due - clock.now()))
+            now = clock.now()
+            if self._commanding and now >= self._last_sent + period:
+                # Count from the deadline, not the (slightly late) wake-up: no drift below rate_hz.
+                self._send(sent_at=due if now - due < period else now)
 
-    def _send(self) -> None:
+    def _send(self, sent_at: float | None = None) -> None:
         if self.current is None:
             return
-        boot_ms = int(clock.now() * 1000) & 0xFFFFFFFF
-        if self.link.send(setpoint_message(self.current, boot_ms, self.link.target())):
+        now = clock.now()
+        self._last_sent = now if sent_at is None else sent_at
+        if self.link.send(setpoint_message(self.current, int(now * 1000) & 0xFFFFFFFF, self.link.target())):
             self.sent += 1
 
     def _on_mode_change(self, old: str | None, new: str) -> None:
