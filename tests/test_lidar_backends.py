@@ -1,0 +1,329 @@
+"""Lidar models, mounts, the simulated backend and the replay backend (drivers/lidar_*.py, drivers/mount.py).
+
+The real-data tests read ../shared/data/real/urg04lx-corridor-exp2.dat (outside the repository,
+see its README) and are skipped when it is absent.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from companion.config import MountConfig
+from companion.frames import quat_from_euler
+from companion.health import Health, State
+from companion.schema import SchemaError, load_text
+from drivers.base import EndOfData, LidarDriver
+from drivers.lidar_models import MODELS, URG_04LX, UTM_30LX
+from drivers.lidar_replay import (ReplayLidar, ReplayLidarSettings, breezyslam_angles, read_breezyslam,
+                                  record_npz)
+from drivers.lidar_sim import SimLidarSettings, SimulatedLidar
+from drivers.mount import Mount
+from drivers.scan import Scan
+from sitl.world import World, load_world
+from tests.conftest import REPO
+
+REAL_FILE = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "urg04lx-corridor-exp2.dat"
+needs_real_file = pytest.mark.skipif(not REAL_FILE.exists(), reason=f"real URG-04LX recording not found at {REAL_FILE}")
+
+
+@dataclass(frozen=True)
+class Pose:
+    position_ned: np.ndarray
+    quat: np.ndarray
+
+
+class FakeTruth:
+    """TruthSource-like: a fixed pose, known from daemon time ``available_from`` on."""
+
+    def __init__(self, position: tuple[float, float, float], yaw_deg: float = 0.0,
+                 available_from: float = -math.inf) -> None:
+        self.pose = Pose(np.array(position, dtype=float), quat_from_euler(0.0, 0.0, math.radians(yaw_deg)))
+        self.available_from = available_from
+
+    def at(self, t: float) -> Pose | None:
+        return self.pose if t >= self.available_from else None
+
+
+@pytest.fixture(scope="module")
+def arena() -> World:
+    return load_world(REPO / "config" / "worlds" / "arena.yaml")
+
+
+def make_sim(world: World, *, model: str = "UTM-30LX", rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0),
+             truth: FakeTruth | None = None, **settings: object) -> SimulatedLidar:
+    mount = Mount.from_config(MountConfig(rpy_deg=rpy_deg))
+    return SimulatedLidar("lidar", SimLidarSettings(model=model, **settings), mount, world,
+                          truth or FakeTruth((2.0, 1.0, -1.0)))
+
+
+def beam_at(model_angles: np.ndarray, degrees: float) -> int:
+    """Index of the beam closest to ``degrees`` (sensor frame, positive to the right)."""
+    return int(np.argmin(np.abs(model_angles - math.radians(degrees))))
+
+
+def render(sim: SimulatedLidar, position: tuple[float, float, float], yaw_deg: float = 0.0) -> Scan:
+    return sim.render(0.0, np.array(position), quat_from_euler(0.0, 0.0, math.radians(yaw_deg)))
+
+
+# -- models and mounts ------------------------------------------------------------------------
+
+
+def test_models_follow_scip() -> None:
+    assert (UTM_30LX.beams, URG_04LX.beams) == (1081, 682)
+    utm = UTM_30LX.angles_rad()
+    assert utm[540] == 0.0  # step AFRT is the front
+    assert (utm[0], utm[-1]) == pytest.approx((math.radians(135), math.radians(-135)))  # first step on the right
+    assert np.diff(utm) == pytest.approx(-math.radians(0.25))  # step order runs right to left
+    urg = URG_04LX.angles_rad()
+    assert urg[340] == 0.0 and math.degrees(urg[0] - urg[-1]) == pytest.approx(681 * 360 / 1024)
+    assert UTM_30LX.sweep_s == pytest.approx(0.025 * 1080 / 1440)
+    assert MODELS["URG-04LX"] is URG_04LX and SimLidarSettings(model="URG-04LX").lidar_model is URG_04LX
+    np.testing.assert_allclose(URG_04LX.accuracy_bound_m(np.array([0.5, 3.0])), [0.01, 0.03])
+    np.testing.assert_allclose(UTM_30LX.range_sigma_m(np.array([5.0, 20.0])), [0.01, 0.05 / 3])
+
+
+def test_mount_rotations() -> None:
+    yawed = Mount.from_config(MountConfig(position_m=(0.1, 0.0, -0.2), rpy_deg=(0, 0, 90)))
+    np.testing.assert_allclose(yawed.to_body(np.array([[1.0, 0.0]])), [[0.1, 1.0, -0.2]], atol=1e-12)  # front -> right
+    vertical = Mount.from_config(MountConfig(rpy_deg=(90, 0, 0)))
+    np.testing.assert_allclose(vertical.to_body(np.array([[1.0, 0.0], [0.0, 1.0]])), [[1, 0, 0], [0, 0, 1]], atol=1e-12)
+    # Vehicle at (1, 2, -3) facing east: body front = east, so the yawed sensor's front = south.
+    world = yawed.to_world(np.array([[2.0, 0.0, 0.0]]), np.array([1.0, 2.0, -3.0]), quat_from_euler(0, 0, math.pi / 2))
+    np.testing.assert_allclose(world, [[1.0 - 2.0, 2.0 + 0.1, -3.2]], atol=1e-12)
+
+
+# -- simulated backend: geometry ----------------------------------------------------------------
+
+
+def test_sim_scan_sees_the_room(arena: World) -> None:
+    sim = make_sim(arena, noise_scale=0.0)
+    scan = render(sim, (2.0, 1.0, -1.0))  # SW room: walls 2 m behind, 3 m ahead, 1 m left, 4 m right
+    angles = scan.angles_rad
+    assert len(angles) == len(scan.ranges_m) == 1081 and scan.valid.all()
+    assert scan.ranges_m[beam_at(angles, 0)] == pytest.approx(3.0, abs=1e-5)  # north, wall x = 5
+    assert scan.ranges_m[beam_at(angles, 90)] == pytest.approx(4.0, abs=1e-5)  # right = east, wall y = 5
+    assert scan.ranges_m[beam_at(angles, -90)] == pytest.approx(1.0, abs=1e-5)  # left = west, wall y = 0
+    # Facing east, the scanner's front sees the east wall.
+    assert render(sim, (2.0, 1.0, -1.0), yaw_deg=90).ranges_m[beam_at(angles, 0)] == pytest.approx(4.0, abs=1e-5)
+
+
+def test_mount_yawed_90_sees_the_right_wall_ahead(arena: World) -> None:
+    sim = make_sim(arena, rpy_deg=(0, 0, 90), noise_scale=0.0)
+    scan = render(sim, (2.0, 1.0, -1.0))
+    assert scan.ranges_m[beam_at(scan.angles_rad, 0)] == pytest.approx(4.0, abs=1e-5)  # the body's right wall
+    assert scan.ranges_m[beam_at(scan.angles_rad, -90)] == pytest.approx(3.0, abs=1e-5)  # the body's front wall
+
+
+def test_vertical_scanner_sees_floor_and_table(arena: World) -> None:
+    sim = make_sim(arena, model="URG-04LX", rpy_deg=(90, 0, 0))
+    down = beam_at(sim.model.angles_rad(), 90)  # exactly +90 deg: step 128
+    assert sim.model.angles_rad()[down] == pytest.approx(math.pi / 2)
+    beside = render(sim, (6.5, 1.6, -1.0))
+    over = render(sim, (7.4, 1.6, -1.0))
+    assert beside.ranges_m[down] == pytest.approx(1.0, abs=0.01)  # the floor, +/-10 mm up to 1 m
+    assert over.ranges_m[down] == pytest.approx(0.25, abs=0.01)  # the 0.75 m table top
+    assert beside.ranges_m[beam_at(beside.angles_rad, -90)] == pytest.approx(2.0, abs=0.02)  # ceiling at 3 m
+
+
+def test_noise_within_spec_and_seeded(arena: World) -> None:
+    exact = render(make_sim(arena, noise_scale=0.0), (2.5, 2.5, -1.0))
+    noisy = [render(make_sim(arena, seed=7), (2.5, 2.5, -1.0)), render(make_sim(arena, seed=7), (2.5, 2.5, -1.0))]
+    np.testing.assert_array_equal(noisy[0].ranges_m, noisy[1].ranges_m)  # same seed, same scan
+    error = noisy[0].ranges_m - exact.ranges_m
+    assert np.abs(error).max() <= 0.030 + 1e-9  # UTM-30LX: +/-30 mm up to 10 m (all ranges here are)
+    assert 0.008 < error.std() < 0.012  # sigma = bound / 3 = 10 mm
+    other = render(make_sim(arena, seed=8), (2.5, 2.5, -1.0))
+    assert not np.array_equal(other.ranges_m, noisy[0].ranges_m)
+
+
+def test_beyond_max_range_and_dropouts_are_invalid(arena: World) -> None:
+    # URG-04LX (5.6 m): from (2.5, 2.5) the beam north flies through the door to x = 10, 7.5 m away.
+    scan = render(make_sim(arena, model="URG-04LX"), (2.5, 2.5, -1.0))
+    ahead = beam_at(scan.angles_rad, 0)
+    assert not scan.valid[ahead] and scan.ranges_m[ahead] == 0.0
+    assert scan.valid[beam_at(scan.angles_rad, 90)]  # 2.5 m to the wall y = 5
+    dropped = render(make_sim(arena, noise_scale=0.0, dropout_prob=0.3), (2.0, 1.0, -1.0))
+    assert 0.25 < 1 - dropped.valid.mean() < 0.35
+    assert (dropped.ranges_m[~dropped.valid] == 0).all()
+
+
+def test_settings_are_schema_dataclasses() -> None:
+    """The config loads the settings dicts through companion.schema (drivers/registry.py)."""
+    sim = load_text(yaml.safe_dump({"model": "URG-04LX", "rate_hz": 20, "seed": 4}), SimLidarSettings)
+    assert sim == SimLidarSettings(model="URG-04LX", rate_hz=20.0, seed=4)
+    for bad in ({"port": "/dev/ttyACM0"}, {"model": "LMS-111"}, {"dropout_prob": 1.5}, {"seed": 1.5},
+                {"noise_scale": -1}, {"rate_hz": 0}):
+        with pytest.raises(SchemaError):
+            load_text(yaml.safe_dump(bad), SimLidarSettings)
+    assert load_text("file: a.dat\nformat: breezyslam\n", ReplayLidarSettings).rate_scale == 1.0
+    for bad in ({}, {"file": "x", "format": "csv"}, {"file": "x", "rate_scale": 0}, {"file": "x", "loop": "yes"}):
+        with pytest.raises(SchemaError):
+            load_text(yaml.safe_dump(bad), ReplayLidarSettings)
+
+
+# -- simulated backend: timing ------------------------------------------------------------------
+
+
+def test_sim_paces_scans_and_waits_for_truth(arena: World) -> None:
+    async def run() -> tuple[list[Scan], list[float], float]:
+        loop = asyncio.get_running_loop()
+        truth = FakeTruth((2.0, 1.0, -1.0), available_from=loop.time() + 0.12)
+        sim = make_sim(arena, truth=truth, rate_hz=20)
+        await sim.open()
+        scans, delivered = [], []
+        for _ in range(4):
+            scans.append(await sim.read())
+            delivered.append(loop.time())
+        await sim.close()
+        return scans, delivered, truth.available_from
+
+    scans, delivered, available_from = asyncio.run(run())
+    sweep = UTM_30LX.sweep_s
+    assert scans[0].t_capture >= available_from and scans[0].sequence >= 3  # no scan invented before truth
+    assert [s.sequence for s in scans] == list(range(scans[0].sequence, scans[0].sequence + 4))
+    assert np.diff([s.t_capture for s in scans]) == pytest.approx(0.05)
+    assert all(d >= s.t_capture + sweep - 1e-6 for s, d in zip(scans, delivered))  # delivered after the sweep
+    assert all(s.sweep_s == 0.0 and len(s.ranges_m) == 1081 for s in scans)
+
+
+# -- replay backend -----------------------------------------------------------------------------
+
+
+@needs_real_file
+def test_read_breezyslam_real_file() -> None:
+    stamps, ranges, odometry = read_breezyslam(REAL_FILE)
+    assert stamps.shape == (641,) and ranges.shape == (641, 682) and odometry.shape == (641, 2)
+    assert (np.diff(stamps) > 0).all() and np.median(np.diff(stamps)) == pytest.approx(0.1, abs=0.005)
+    assert ranges.min() == 0.0 and ranges.max() <= URG_04LX.max_range_m
+    assert odometry[-1, 0] > odometry[0, 0] and odometry[-1, 1] > odometry[0, 1]  # both wheels drove forward
+
+
+@needs_real_file
+def test_breezyslam_sweep_direction_matches_odometry() -> None:
+    """Scans a few apart, placed with the wheel odometry, overlap with the driver's beam angles and
+    not with the mirrored ones (see drivers/lidar_replay.py)."""
+    stamps, ranges, ticks = read_breezyslam(REAL_FILE)
+    wheel_rad = np.radians(ticks * 180.0 / 2000.0)
+    heading = np.cumsum(np.r_[0.0, 0.077 / 0.165 * np.diff(wheel_rad[:, 1] - wheel_rad[:, 0])])  # CCW, rad
+    distance = np.r_[0.0, 0.077 * np.diff(wheel_rad.sum(axis=1)) / 2]
+    mid = heading - np.r_[0.0, np.diff(heading)] / 2
+    position = np.column_stack((np.cumsum(distance * np.cos(mid)), np.cumsum(distance * np.sin(mid))))  # x fwd, y left
+
+    def points(k: int, ccw_angles: np.ndarray) -> np.ndarray:
+        ok = (ranges[k] > 0.02) & (ranges[k] < 4.0)
+        r, a = ranges[k][ok], ccw_angles[ok]
+        x, y = r * np.cos(a) + 0.145, r * np.sin(a)  # laser 145 mm ahead of the axle
+        c, s = math.cos(heading[k]), math.sin(heading[k])
+        return position[k] + np.column_stack((c * x - s * y, s * x + c * y))
+
+    def misfit(k: int, ccw_angles: np.ndarray) -> float:
+        p, q = points(k, ccw_angles), points(k + 3, ccw_angles)
+        return float(np.median(np.sqrt(((q[:, None] - p[None]) ** 2).sum(-1)).min(axis=1)))
+
+    driver_ccw = -breezyslam_angles()  # the driver's angles are positive to the right; odometry's are CCW
+    turning = [k for k in range(0, len(stamps) - 3, 7) if abs(heading[k + 3] - heading[k]) > math.radians(10)]
+    wins = [misfit(k, driver_ccw) < misfit(k, -driver_ccw) for k in turning]
+    assert len(turning) >= 15 and sum(wins) >= 0.8 * len(wins)
+
+
+def breezyslam_excerpt(tmp_path: Path, lines: int, corrupt_at: int | None = None) -> Path:
+    text = REAL_FILE.read_text().splitlines()[:lines]
+    if corrupt_at is not None:
+        text.insert(corrupt_at, " ".join(text[corrupt_at].split()[:300]))  # a truncated line
+    path = tmp_path / "excerpt.dat"
+    path.write_text("\n".join(text) + "\n")
+    return path
+
+
+@needs_real_file
+def test_replay_through_the_driver_frontend(tmp_path: Path) -> None:
+    path = breezyslam_excerpt(tmp_path, 10, corrupt_at=4)
+    stamps, ranges, _ = read_breezyslam(REAL_FILE)
+
+    async def run() -> tuple[LidarDriver, list[Scan], list[float], float, Health]:
+        loop = asyncio.get_running_loop()
+        health = Health(loop.time)
+        scans: list[Scan] = []
+        delivered: list[float] = []
+        backend = ReplayLidar("vertical", ReplayLidarSettings(file=str(path), format="breezyslam", rate_scale=20.0))
+        driver = LidarDriver("vertical", backend, health, lambda s: (scans.append(s), delivered.append(loop.time())))
+        started = loop.time()
+        task = asyncio.create_task(driver.run())
+        while (h := health.get("sensor:vertical")) is None or h.state != State.LOST:
+            await asyncio.sleep(0.01)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+        return driver, scans, delivered, started, health
+
+    driver, scans, delivered, started, health = asyncio.run(run())
+    assert driver.stats.corrupt_frames == 1 and driver.stats.scans == 10 and len(scans) == 10
+    assert "line 5" in (driver.stats.last_error or "")
+    assert health.get("sensor:vertical").reason == "replay finished"
+    offsets = np.array([s.t_capture for s in scans]) - scans[0].t_capture
+    np.testing.assert_allclose(offsets, (stamps[:10] - stamps[0]) / 20.0, atol=1e-9)
+    assert scans[0].t_capture == pytest.approx(started, abs=0.05)
+    assert all(d >= s.t_capture + s.sweep_s - 1e-6 for s, d in zip(scans, delivered))
+    assert scans[0].sweep_s == pytest.approx(URG_04LX.sweep_s / 20.0)
+    assert [s.sequence for s in scans] == [0, 1, 2, 3, 5, 6, 7, 8, 9, 10]  # the corrupt line is a gap
+    expected_valid = (ranges[:10] >= 0.02) & (ranges[:10] <= 5.6)
+    np.testing.assert_array_equal(np.stack([s.valid for s in scans]), expected_valid)
+    np.testing.assert_allclose(np.stack([s.ranges_m for s in scans]), np.where(expected_valid, ranges[:10], 0.0))
+
+
+@needs_real_file
+def test_replay_end_and_loop(tmp_path: Path) -> None:
+    path = breezyslam_excerpt(tmp_path, 3)
+
+    async def run(loop_replay: bool) -> list[Scan]:
+        backend = ReplayLidar("v", ReplayLidarSettings(file=str(path), format="breezyslam", rate_scale=50.0,
+                                                       loop=loop_replay))
+        await backend.open()
+        scans = [await backend.read() for _ in range(3 if not loop_replay else 7)]
+        if not loop_replay:
+            with pytest.raises(EndOfData):
+                await backend.read()
+        await backend.close()
+        return scans
+
+    assert len(asyncio.run(run(False))) == 3
+    looped = asyncio.run(run(True))
+    assert [s.sequence for s in looped] == list(range(7))
+    assert (np.diff([s.t_capture for s in looped]) > 0).all()
+    np.testing.assert_array_equal(looped[3].ranges_m, looped[0].ranges_m)
+
+
+def test_npz_record_and_replay(tmp_path: Path, arena: World) -> None:
+    sim = make_sim(arena, model="URG-04LX", seed=3)
+    recorded = [sim.render(10.0 + 0.1 * k, np.array([2.0, 1.0 + 0.1 * k, -1.0]), quat_from_euler(0, 0, 0), k)
+                for k in range(4)]
+    path = tmp_path / "scans.npz"
+    record_npz(path, recorded)
+
+    async def run() -> list[Scan]:
+        backend = ReplayLidar("lidar", ReplayLidarSettings(file=path.name, format="npz", rate_scale=10.0),
+                              base_dir=tmp_path)
+        await backend.open()
+        scans = [await backend.read() for _ in range(4)]
+        with pytest.raises(EndOfData):
+            await backend.read()
+        return scans
+
+    replayed = asyncio.run(run())
+    for a, b in zip(recorded, replayed):
+        np.testing.assert_array_equal(a.ranges_m, b.ranges_m)
+        np.testing.assert_array_equal(a.valid, b.valid)
+        np.testing.assert_array_equal(a.angles_rad, b.angles_rad)
+    np.testing.assert_allclose(np.diff([s.t_capture for s in replayed]), 0.01, atol=1e-9)
+    with pytest.raises(OSError):
+        asyncio.run(ReplayLidar("x", ReplayLidarSettings(file=str(tmp_path / "missing.npz"))).open())
+    np.savez(tmp_path / "bad.npz", t_capture=np.zeros(2), angles_rad=np.zeros(5), ranges_m=np.zeros((2, 4)),
+             valid=np.zeros((2, 4), bool))
+    with pytest.raises(OSError, match="inconsistent"):
+        asyncio.run(ReplayLidar("x", ReplayLidarSettings(file=str(tmp_path / "bad.npz"))).open())
