@@ -1,0 +1,131 @@
+"""Height above the floor from the vertical scanner (Wang et al. section III-B).
+
+The vertical scanner's plane contains body x and z (mount roll 90 deg: sensor y = body down).
+Steps: split-and-merge lines on its scan (lines.py, in the sensor frame); keep the lines whose
+direction is floor-like once roll and pitch are compensated; sort them by perpendicular
+distance from the scanner; keep the furthest ones (within ``furthest_tolerance_m``) and among
+them the longest: the floor. Surfaces above the floor (a table top) are floor-like but nearer,
+so the floor wins as long as some beams reach it.
+
+Attitude compensation, exact for any mount: let ``G = L(roll, pitch) M`` map sensor axes to
+the levelled frame (``M`` the mount rotation, ``L`` the attitude without yaw). A sensor-plane
+point (u, v) is ``g . (u, v)`` metres below the scanner, ``g = (G[2,0], G[2,1])``. So the floor
+is the sensor-plane line with unit normal ``g / |g|`` (its expected direction: the gradient
+test) at perpendicular distance ``d = H / |g|``: the scanner is ``H = |g| d`` above the floor.
+With the scan plane vertical (no roll) ``|g| = 1`` and pitch only tilts the floor line; roll
+tilts the plane sideways and ``|g| = cos(roll)`` for the usual mount. The body origin is
+``(L p_mount)_z`` above the scanner (``p_mount`` the mount offset, FRD), which is added.
+
+Deviation: a jump of the height by more than ``jump_m`` between fixes is reported degraded (it
+is what a step in the floor seen as the floor looks like, e.g. when only a table is in view).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from companion.frames import rotation_from_euler
+from companion.nav.lines import LineParams, extract_lines
+from drivers.scan import Scan
+
+HeightState = Literal["ok", "degraded", "lost"]
+
+
+@dataclass(frozen=True)
+class HeightParams:
+    """Thresholds of the height fix (line defaults for a URG-04LX: ~1 cm, 3 % beyond 1 m)."""
+
+    lines: LineParams = field(default_factory=lambda: LineParams(noise_m=0.01, noise_per_m=0.01))
+    floor_angle_tolerance_deg: float = 10.0  # a floor line's normal within this of the expected
+    furthest_tolerance_m: float = 0.1  # floor candidates: within this of the furthest one, metres
+    min_length_m: float = 0.3  # shorter floor-like lines are ignored, metres
+    good_length_m: float = 0.6  # a shorter floor line makes the fix degraded, metres
+    min_gradient: float = 0.3  # |g| below this: the scan plane is too flat to see the floor
+    jump_m: float = 0.2  # a larger change from the previous fix is reported, metres
+    variance_floor_m2: float = 0.005 ** 2  # model floor of the variance, m^2
+
+
+@dataclass(frozen=True)
+class HeightFix:
+    """Height of the body origin above the floor (metres, positive up; NED z = -height_m)."""
+
+    height_m: float  # 0.0 when lost
+    variance: float  # m^2 (large when lost)
+    state: HeightState
+    reason: str
+    floor_lines: int  # floor-like lines seen
+
+
+LOST_VARIANCE_M2 = 100.0
+
+
+class HeightEstimator:
+    """Height above the floor from scans of a vertical scanner."""
+
+    def __init__(self, mount_position: tuple[float, float, float] = (0.0, 0.0, 0.0),
+                 mount_rpy: tuple[float, float, float] = (math.pi / 2, 0.0, 0.0),
+                 params: HeightParams = HeightParams()) -> None:
+        """``mount_position``: scanner origin in the body frame (FRD, metres); ``mount_rpy``:
+        its roll, pitch, yaw relative to the body (radians; default: plane = body x-z)."""
+        self.mount_position = np.asarray(mount_position, dtype=float)
+        self.mount_rotation = rotation_from_euler(*mount_rpy)
+        self.params = params
+        self._previous: float | None = None
+
+    def update(self, scan: Scan | np.ndarray, roll: float = 0.0, pitch: float = 0.0,
+               valid: np.ndarray | None = None) -> HeightFix:
+        """Height from one scan (a Scan, or (N, 2) sensor-plane points in beam order with an
+        optional validity mask) at body ``roll`` and ``pitch`` (radians)."""
+        p = self.params
+        points, ok, ranges = _sensor_points(scan, valid)
+        level = rotation_from_euler(roll, pitch, 0.0)
+        g = (level @ self.mount_rotation)[2, :2]
+        gain = float(np.hypot(g[0], g[1]))
+        if gain < p.min_gradient:
+            return _lost(f"scan plane too flat to see the floor (|g| = {gain:.2f})", 0)
+        lines = extract_lines(points, ok, p.lines, ranges)
+        expected = math.atan2(g[1], g[0])
+        off = np.abs(np.angle(np.exp(1j * (lines.alpha - expected))))
+        floor = np.flatnonzero((off <= math.radians(p.floor_angle_tolerance_deg))
+                               & (lines.length >= p.min_length_m))
+        if floor.size == 0:
+            return _lost("no floor-like line", 0)
+        furthest = floor[lines.d[floor] >= lines.d[floor].max() - p.furthest_tolerance_m]
+        k = int(furthest[np.argmax(lines.length[furthest])])
+        tangent = np.array([-math.sin(lines.alpha[k]), math.cos(lines.alpha[k])])
+        lever = float(tangent @ lines.centroid[k])  # centroid to the foot of the perpendicular
+        var_d = float(lines.offset_var[k] + lines.alpha_var[k] * lever ** 2)
+        height = gain * float(lines.d[k]) + float((level @ self.mount_position)[2])
+        variance = gain * gain * var_d + p.variance_floor_m2
+        return self._fix(height, variance, float(lines.length[k]), int(floor.size))
+
+    def _fix(self, height: float, variance: float, length: float, count: int) -> HeightFix:
+        p = self.params
+        previous, self._previous = self._previous, height
+        if previous is not None and abs(height - previous) > p.jump_m:
+            return HeightFix(height, variance, "degraded",
+                             f"height jumped by {height - previous:+.2f} m: a step in the floor?", count)
+        if length < p.good_length_m:
+            return HeightFix(height, variance, "degraded", f"floor line only {length:.2f} m long", count)
+        return HeightFix(height, variance, "ok", "", count)
+
+
+def _lost(reason: str, count: int) -> HeightFix:
+    return HeightFix(0.0, LOST_VARIANCE_M2, "lost", reason, count)
+
+
+def _sensor_points(scan: Scan | np.ndarray,
+                   valid: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(points (N, 2) in the sensor plane, valid (N,), ranges (N,)), invalid rows zeroed."""
+    if isinstance(scan, Scan):
+        ok = scan.valid & np.isfinite(scan.ranges_m)
+        r = np.where(ok, scan.ranges_m, 0.0)
+        return np.column_stack((r * np.cos(scan.angles_rad), r * np.sin(scan.angles_rad))), ok, r
+    pts = np.asarray(scan, dtype=float)
+    ok = np.isfinite(pts).all(axis=1) if valid is None else valid & np.isfinite(pts).all(axis=1)
+    pts = np.where(ok[:, None], pts, 0.0)
+    return pts, ok, np.hypot(pts[:, 0], pts[:, 1])

@@ -1,0 +1,480 @@
+"""Planar localization from the horizontal scanner (Wang et al. section III-A), plus global
+relocalization.
+
+Frames. The scan is in the SENSOR frame (drivers/scan.py). The scanner sits at ``Mount2D``
+in the body frame (FRD: x forward, y right, z down, metres; yaw from body x towards body y).
+Every scan is first mapped into the LEVELLED BODY frame: origin at the body origin, x/y axes
+horizontal, rotated from the world by the body yaw only. With roll and pitch the scan plane is
+tilted; the 3-D hit points (mount offset included) are rotated by the attitude and projected
+onto the horizontal plane, which is exact for vertical walls (scaling x by cos(pitch) and y by
+cos(roll) is the first-order form of this projection). The world is LOCAL_NED (x north, y east).
+
+Transform (derived for OUR frames; it replaces eq. 5-6 of the paper, whose printed matrix
+[[cos, sin], [-sin, cos]] is R(-psi), i.e. the opposite sign convention for psi or for the
+scanner angles, and inconsistent with its own eq. 2 where angles add): a levelled-body point
+``q`` is in the world at ``p + R(yaw) q`` with ``R(yaw) = [[cos, -sin], [sin, cos]]`` acting on
+(north, east): body x at yaw ``psi`` points to (cos psi, sin psi), body y (right) to
+(-sin psi, cos psi). Directions therefore add: a sensor angle ``a`` is ``yaw + a`` in the world,
+which is what heading.py (eq. 2) uses.
+
+One update (eqs. 2-8):
+
+1. lines (lines.py), corners from adjacent non-parallel lines (corners.py);
+2. heading from the wall directions modulo the wall angle (heading.py, eqs. 2-4), predicted
+   from the previous heading plus the optional gyro yaw change;
+3. observed corners to the world with the previous (or prior) position and the new heading
+   (eq. 5 with our R), mutual nearest neighbours among the known corners within ``gate_m``;
+4. position = previous + weighted mean displacement (eqs. 7-8). Deviation: the weights are the
+   inverse traces of the corner covariances (corners.py) rather than a bare range law; they
+   fall with range as the paper asks, and also with poor line fits and short lever arms.
+   Outliers: iteratively drop matches whose residual exceeds ``outlier_k`` times the median
+   residual (at least ``outlier_floor_m``), then recompute (needs 3 or more matches).
+5. covariance (x, y, yaw): the weighted mean's ``sum(W_j^2 C_j)`` (``W_j`` the normalised
+   weights, ``C_j`` the world corner covariances), scaled up by the residual chi-square per
+   degree of freedom when the corners disagree more than their covariances say, plus the
+   heading variance through the lever arm of the mean corner (a heading error swings the
+   corners around the vehicle), and the x/y-yaw cross terms of that lever arm. With ONE
+   corner the position is still determined (the corner's map position and the wall heading fix
+   it), with that corner's covariance (from its two line fits, growing with range) plus the
+   lever-arm term, but nothing cross-checks the association: the covariance is multiplied by
+   ``single_corner_inflation`` and the state is degraded.
+
+States: ``tracking`` (>= ``min_matches`` corners), ``degraded`` (1 corner; or 0 corners for
+fewer than ``lost_after_frames`` frames: then the fix is not a measurement, ``measured`` is
+False and the position is the previous one with a growing covariance; or the heading near
+its inter-frame limit), ``lost`` (no corner for ``lost_after_frames`` frames, or the wall
+directions are ambiguous; tracking then resumes only with ``min_matches`` corners or by
+relocalization). A fix that is not ``measured`` must not be sent to the autopilot.
+
+Relocalization (beyond the paper), tried when lost or when no pose is known: the wall
+directions fix the heading modulo the wall angle, so the candidate headings are a small
+discrete set (360 / A of them). For each, every correspondence (observed corner i, map corner
+a) proposes a translation; its score is the number of observed corners that then land within
+``reloc_tolerance_m`` of a map corner (a score of 2 or more means an observed pair matches a
+map pair in distance AND direction). The best distinct poses are refined by the normal
+association and update; if the walls are known, the fraction of scan points lying on a wall
+breaks ties (it sees, for instance, which room's doors the beams go through). Only a clear
+winner is accepted (more corners than every other distinct pose, or as many but a wall fraction
+``reloc_wall_margin`` higher); the fix then has ``relocalized`` True when it is a jump from the
+pose held before (or there was none), so the daemon increments ``reset_counter``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from companion.frames import rotation_from_euler, wrap_pi
+from companion.nav.corners import CornerParams, Corners, find_corners
+from companion.nav.heading import (UNMEASURED_VARIANCE_RAD2, HeadingParams, HeadingResult,
+                                   heading_hypotheses, track_heading)
+from companion.nav.lines import LineParams, LineSet, extract_lines
+from drivers.scan import Scan
+
+PlanarState = Literal["tracking", "degraded", "lost"]
+
+
+@dataclass(frozen=True)
+class Mount2D:
+    """Pose of the horizontal scanner in the body frame (FRD, metres, radians)."""
+
+    x_m: float = 0.0  # forward of the body origin
+    y_m: float = 0.0  # right of the body origin
+    yaw_rad: float = 0.0  # sensor x from body x towards body y
+    z_m: float = 0.0  # below the body origin (negative: above); used only with roll/pitch
+
+
+@dataclass(frozen=True)
+class PlanarParams:
+    """Thresholds of the planar localizer (stage thresholds in their own dataclasses)."""
+
+    lines: LineParams = field(default_factory=LineParams)
+    heading: HeadingParams = field(default_factory=HeadingParams)
+    corners: CornerParams = field(default_factory=CornerParams)
+    gate_m: float = 0.5  # association gate around a predicted corner, metres
+    outlier_k: float = 3.0  # drop a match beyond this many median residuals ...
+    outlier_floor_m: float = 0.05  # ... and beyond this, metres
+    min_matches: int = 2  # fewer matched corners: degraded
+    lost_after_frames: int = 5  # frames without a matched corner before lost
+    coast_growth_m2: float = 0.01  # x and y variance added per frame without a match, m^2
+    single_corner_inflation: float = 4.0  # covariance factor for a fix from one corner
+    lost_variance_m2: float = 100.0  # x and y variance reported while lost, m^2
+    reloc_min_inliers: int = 3  # corners a relocalization must match
+    reloc_tolerance_m: float = 0.15  # an observed corner lands on a map corner within this
+    reloc_distinct_m: float = 0.5  # poses closer than this (same heading) are one candidate
+    reloc_max_corners: int = 10  # best observed corners used for the search
+    reloc_candidates: int = 30  # at most this many distinct poses (within 1 of the best score) compared
+    reloc_wall_tolerance_m: float = 0.1  # a scan point on a wall, metres
+    reloc_wall_margin: float = 0.1  # wall fraction lead needed to break a tie in corners
+    reloc_min_wall_fraction: float = 0.5  # the winner's points on walls (when walls are known)
+    jump_m: float = 0.3  # a relocalization moving the pose more than this is a reset
+    jump_rad: float = math.radians(10.0)  # ... or turning it more than this
+
+
+@dataclass(frozen=True)
+class PlanarFix:
+    """The body pose in the map: x north, y east (metres), yaw from north towards east (rad)."""
+
+    x: float
+    y: float
+    yaw: float
+    covariance: np.ndarray  # (3, 3) of (x, y, yaw): m^2, m rad, rad^2
+    matched: int  # map corners used
+    state: PlanarState
+    reason: str  # why degraded or lost ("" when tracking cleanly)
+    relocalized: bool  # a jump from the pose held before: increment reset_counter
+    heading_status: str  # HeadingResult.status of this scan
+    timing_ms: dict[str, float] = field(default_factory=dict)  # per stage, wall clock
+
+    @property
+    def measured(self) -> bool:
+        """Whether this fix is a position measurement (send it) or a coasted / lost report."""
+        return self.matched > 0 and self.state != "lost"
+
+
+@dataclass(frozen=True)
+class Match:
+    """Result of associating corners with the map and updating the position (eqs. 5-8)."""
+
+    xy: np.ndarray  # (2,) updated position, metres
+    covariance: np.ndarray  # (3, 3) x, y, yaw
+    matched: int
+    rms_m: float  # RMS residual of the matched corners after the update
+
+
+def rotation(yaw: float) -> np.ndarray:
+    """2-D rotation from the levelled body frame to the world (north, east)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s], [s, c]])
+
+
+class PlanarLocalizer:
+    """Tracks the body pose (x, y, yaw) in a map of known corners from horizontal scans."""
+
+    def __init__(self, corners: np.ndarray, wall_angle_deg: float, mount: Mount2D = Mount2D(),
+                 walls: np.ndarray | None = None, params: PlanarParams = PlanarParams(),
+                 initial_pose: tuple[float, float, float] | None = None) -> None:
+        """``corners``: (M, 2) known map corners [north, east] m; ``wall_angle_deg``: every
+        wall at a multiple of it (90, 45, 30); ``walls``: optional (S, 4) segments
+        [x0, y0, x1, y1] m, used only to break relocalization ties (cut the doors and windows
+        at the scan height out of them: beams through an opening then tell rooms apart);
+        ``initial_pose``:
+        (x m, y m, yaw rad), or None to relocalize from the first scans."""
+        self.map = np.asarray(corners, dtype=float).reshape(-1, 2)
+        self.wall_angle = math.radians(wall_angle_deg)
+        self.mount = mount
+        self.walls = None if walls is None else np.asarray(walls, dtype=float).reshape(-1, 4)
+        self.params = params
+        self._pose: tuple[float, float, float] | None = None
+        self._cov = np.diag([params.lost_variance_m2, params.lost_variance_m2, UNMEASURED_VARIANCE_RAD2])
+        self._misses = 0
+        self._angles: np.ndarray | None = None
+        self._unit = np.zeros((0, 2))
+        self._level_cache: tuple[float, float, np.ndarray, np.ndarray] | None = None
+        self.last_reason = ""  # why the last update returned None
+        if initial_pose is not None:
+            self.reset(*initial_pose)
+
+    def reset(self, x: float, y: float, yaw: float) -> None:
+        """Set the pose (metres, radians), e.g. a known take-off pose."""
+        self._pose = (x, y, wrap_pi(yaw))
+        self._misses = 0
+
+    def forget(self) -> None:
+        """Drop the pose: the next update relocalizes globally."""
+        self._pose = None
+
+    @property
+    def pose(self) -> tuple[float, float, float] | None:
+        """The pose held now (x m, y m, yaw rad), or None."""
+        return self._pose
+
+    def update(self, scan: Scan | np.ndarray, prior: tuple[float, float, float] | None = None, *,
+               roll: float = 0.0, pitch: float = 0.0, yaw_delta: float = 0.0,
+               valid: np.ndarray | None = None) -> PlanarFix | None:
+        """Process one scan; None only when no pose is known and relocalization found none.
+
+        ``scan``: a Scan, or (N, 2) sensor-frame points in beam order (``valid`` marks the
+        real returns, default the finite rows). ``prior``: (x, y, yaw) predicted for the
+        capture time (e.g. the EKF), replacing the held pose as the prediction. ``roll``,
+        ``pitch``: body attitude at capture (rad) for tilt compensation. ``yaw_delta``: the
+        gyro's yaw change since the previous scan (rad), added to the predicted heading (leave
+        it 0 with a ``prior`` whose yaw already includes the turn)."""
+        t0 = time.perf_counter()
+        points, ok, ranges = self.level_points(scan, roll, pitch, valid)
+        lines = extract_lines(points, ok, self.params.lines, ranges)
+        t1 = time.perf_counter()
+        corners = find_corners(lines, self.params.corners)
+        t2 = time.perf_counter()
+        timing = {"lines": (t1 - t0) * 1e3, "corners": (t2 - t1) * 1e3}
+        if prior is not None:
+            self._pose = (prior[0], prior[1], wrap_pi(prior[2]))
+        if self._pose is None:
+            return self._relocalize(lines, corners, points[ok], "no pose known", "", timing, t0)
+        x, y, yaw = self._pose
+        heading = track_heading(lines, yaw, self.wall_angle, yaw_delta, self.params.heading)
+        t3 = time.perf_counter()
+        timing["heading"] = (t3 - t2) * 1e3
+        if not heading.measured:
+            return self._miss(heading, heading.reason, heading.status == "ambiguous", lines, corners,
+                              points[ok], timing, t0)
+        best, yaw_used = self._best_alias(corners, np.array([x, y]), heading)
+        timing["match"] = (time.perf_counter() - t3) * 1e3
+        # Once lost, the held position is stale: resume tracking only on a cross-checked match.
+        needed = self.params.min_matches if self._misses >= self.params.lost_after_frames else 1
+        if best.matched < needed:
+            return self._miss(heading, f"{best.matched} corners within {self.params.gate_m:g} m of a map "
+                              "corner", False, lines, corners, points[ok], timing, t0)
+        return self._accept(best, yaw_used, heading, False, timing, t0)
+
+    def level_points(self, scan: Scan | np.ndarray, roll: float = 0.0, pitch: float = 0.0,
+                     valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(points (N, 2) in the levelled body frame, metres; valid (N,); measured ranges (N,))."""
+        if isinstance(scan, Scan):
+            ok = scan.valid & np.isfinite(scan.ranges_m)
+            r = np.where(ok, scan.ranges_m, 0.0)
+            local = r[:, None] * self._unit_vectors(scan.angles_rad)
+        else:
+            local = np.asarray(scan, dtype=float)
+            ok = np.isfinite(local).all(axis=1) if valid is None else valid & np.isfinite(local).all(axis=1)
+            local = np.where(ok[:, None], local, 0.0)
+            r = np.hypot(local[:, 0], local[:, 1])
+        matrix, offset = self._level_transform(roll, pitch)
+        return local @ matrix.T + offset, ok, r
+
+    def match(self, corners: Corners, xy: np.ndarray, heading: HeadingResult,
+              gate_m: float | None = None) -> Match:
+        """Associate ``corners`` (levelled body frame) with the map from the position ``xy``
+        and the heading, and update the position (eqs. 5-8 with outlier rejection)."""
+        gate = self.params.gate_m if gate_m is None else gate_m
+        rot = rotation(heading.yaw)
+        world = corners.xy @ rot.T  # R q for every corner (eq. 5 without the position)
+        obs, idx = _associate(xy + world, self.map, gate)
+        if obs.size == 0:
+            return Match(np.asarray(xy, dtype=float), self._cov, 0, 0.0)
+        disp = self.map[idx] - (xy + world[obs])  # eq. 8: map corner minus observed corner
+        cov = rot @ corners.cov[obs] @ rot.T
+        weight = 1.0 / np.trace(cov, axis1=1, axis2=2)
+        keep = self._inliers(disp, weight)
+        disp, cov, weight, arms = disp[keep], cov[keep], weight[keep], world[obs][keep]
+        w = weight / weight.sum()
+        delta = w @ disp
+        resid = disp - delta
+        pos_cov = np.einsum("j,jkl->kl", w * w, cov) * _chi2_scale(resid, cov)
+        if w.size == 1:
+            pos_cov = pos_cov * self.params.single_corner_inflation
+        lever = w @ arms  # d(position)/d(yaw) = (lever_y, -lever_x): p = m - R(yaw) q
+        dp_dyaw = np.array([lever[1], -lever[0]])
+        full = np.empty((3, 3))
+        full[:2, :2] = pos_cov + heading.variance * np.outer(dp_dyaw, dp_dyaw)
+        full[:2, 2] = full[2, :2] = heading.variance * dp_dyaw
+        full[2, 2] = heading.variance
+        rms = float(np.sqrt(np.mean(np.sum(resid ** 2, axis=1))))
+        return Match(xy + delta, full, int(w.size), rms)
+
+    # -- internals ----------------------------------------------------------------------------
+
+    def _unit_vectors(self, angles: np.ndarray) -> np.ndarray:
+        """(cos a, sin a) per beam, cached while the beam angles stay the same."""
+        if self._angles is None or (self._angles is not angles and not np.array_equal(self._angles, angles)):
+            self._angles = angles
+            self._unit = np.column_stack((np.cos(angles), np.sin(angles)))
+        return self._unit
+
+    def _level_transform(self, roll: float, pitch: float) -> tuple[np.ndarray, np.ndarray]:
+        """(2x2 matrix, offset) from sensor-plane x, y to levelled-body x, y (see module doc)."""
+        cached = self._level_cache
+        if cached is not None and cached[0] == roll and cached[1] == pitch:
+            return cached[2], cached[3]
+        level = rotation_from_euler(roll, pitch, 0.0)[:2, :]
+        m = self.mount
+        matrix = level[:, :2] @ rotation(m.yaw_rad)
+        offset = level @ np.array([m.x_m, m.y_m, m.z_m])
+        self._level_cache = (roll, pitch, matrix, offset)
+        return matrix, offset
+
+    def _inliers(self, disp: np.ndarray, weight: np.ndarray) -> np.ndarray:
+        """Mask of the matches kept by the iterated k-times-median residual test."""
+        keep = np.ones(disp.shape[0], dtype=bool)
+        while keep.sum() >= 3:
+            w = weight[keep] / weight[keep].sum()
+            resid = np.hypot(*(disp - w @ disp[keep]).T)
+            limit = max(self.params.outlier_k * float(np.median(resid[keep])), self.params.outlier_floor_m)
+            bad = keep & (resid > limit)
+            if not bad.any():
+                break
+            keep &= ~bad
+        return keep
+
+    def _best_alias(self, corners: Corners, xy: np.ndarray, heading: HeadingResult) -> tuple[Match, float]:
+        """Match with the measured heading; near the inter-frame limit also with its aliases
+        +/- A (a rotation beyond A/2 aliases by A), and keep the one matching most corners."""
+        best = self.match(corners, xy, heading)
+        yaw = heading.yaw
+        if heading.status == "near_limit":
+            for k in (-1, 1):
+                alias = _with_yaw(heading, wrap_pi(heading.yaw + k * self.wall_angle))
+                m = self.match(corners, xy, alias)
+                if m.matched > best.matched or (m.matched == best.matched > 0 and m.rms_m < best.rms_m):
+                    best, yaw = m, alias.yaw
+        return best, yaw
+
+    def _accept(self, m: Match, yaw: float, heading: HeadingResult, relocalized: bool,
+                timing: dict[str, float], t0: float) -> PlanarFix:
+        self._pose = (float(m.xy[0]), float(m.xy[1]), yaw)
+        self._cov = m.covariance
+        self._misses = 0
+        state: PlanarState = "tracking"
+        reason = ""
+        if m.matched < self.params.min_matches:
+            state = "degraded"
+            reason = f"{m.matched} corner matched: no cross-check of the association"
+        elif heading.status == "near_limit":
+            state = "degraded"
+            reason = heading.reason
+        if yaw != heading.yaw:
+            reason = (f"{reason}; " if reason else "") + "heading alias resolved by the corners"
+        timing["total"] = (time.perf_counter() - t0) * 1e3
+        return PlanarFix(self._pose[0], self._pose[1], yaw, m.covariance.copy(), m.matched, state, reason,
+                         relocalized, heading.status, timing)
+
+    def _miss(self, heading: HeadingResult, reason: str, lost_now: bool, lines: LineSet, corners: Corners,
+              points: np.ndarray, timing: dict[str, float], t0: float) -> PlanarFix | None:
+        """A scan without a position measurement: coast, or report lost and try to relocalize."""
+        assert self._pose is not None
+        self._misses += 1
+        x, y, _ = self._pose
+        self._pose = (x, y, heading.yaw)
+        if lost_now or self._misses >= self.params.lost_after_frames:
+            return self._relocalize(lines, corners, points, reason, heading.status, timing, t0)
+        cov = self._cov.copy()
+        cov[:2, :2] += self._misses * self.params.coast_growth_m2 * np.eye(2)
+        if heading.measured:
+            cov[2, 2] = heading.variance
+        timing["total"] = (time.perf_counter() - t0) * 1e3
+        return PlanarFix(x, y, heading.yaw, cov, 0, "degraded",
+                         f"{reason} ({self._misses}/{self.params.lost_after_frames} frames)",
+                         False, heading.status, timing)
+
+    def _relocalize(self, lines: LineSet, corners: Corners, points: np.ndarray, why: str,
+                    heading_status: str, timing: dict[str, float], t0: float) -> PlanarFix | None:
+        """Global search (see the module docstring); a lost fix (or None) when no clear winner."""
+        t = time.perf_counter()
+        found, detail = self._search(lines, corners, points)
+        timing["relocalize"] = (time.perf_counter() - t) * 1e3
+        if found is not None:
+            match, heading = found
+            jump = self._pose is None or (
+                math.dist(self._pose[:2], match.xy) > self.params.jump_m
+                or abs(wrap_pi(self._pose[2] - heading.yaw)) > self.params.jump_rad)
+            return self._accept(match, heading.yaw, heading, jump, timing, t0)
+        timing["total"] = (time.perf_counter() - t0) * 1e3
+        if self._pose is None:
+            self.last_reason = f"{why}; relocalization: {detail}"
+            return None
+        x, y, yaw = self._pose
+        cov = np.diag([self.params.lost_variance_m2, self.params.lost_variance_m2, UNMEASURED_VARIANCE_RAD2])
+        return PlanarFix(x, y, yaw, cov, 0, "lost", f"{why}; relocalization: {detail}", False, heading_status,
+                         timing)
+
+    def _search(self, lines: LineSet, corners: Corners,
+                points: np.ndarray) -> tuple[tuple[Match, HeadingResult] | None, str]:
+        p = self.params
+        yaws, base = heading_hypotheses(lines, self.wall_angle, p.heading)
+        if yaws.size == 0:
+            return None, base.reason
+        if corners.count < p.reloc_min_inliers:
+            return None, f"{corners.count} corners visible, at least {p.reloc_min_inliers} needed"
+        spread = np.trace(corners.cov, axis1=1, axis2=2)
+        corners = corners.subset(np.argsort(spread)[:p.reloc_max_corners])
+        poses = _pose_hypotheses(corners.xy, self.map, yaws, p.reloc_tolerance_m, p.reloc_min_inliers)
+        if poses.shape[0]:
+            poses = poses[poses[:, 0] >= poses[0, 0] - 1]
+        poses = _distinct(poses, p.reloc_distinct_m, p.reloc_candidates)
+        scored = []
+        for score, yaw, tx, ty in poses:
+            heading = _with_yaw(base, float(yaw))
+            m = self.match(corners, np.array([tx, ty]), heading, p.reloc_tolerance_m)
+            frac = self._wall_fraction(points, m.xy, heading.yaw)
+            scored.append((m.matched, frac, m, heading))
+        scored.sort(key=lambda s: (s[0], s[1]), reverse=True)
+        if not scored or scored[0][0] < p.reloc_min_inliers:
+            return None, f"no pose matches {p.reloc_min_inliers} corners"
+        best = scored[0]
+        if self.walls is not None and best[1] < p.reloc_min_wall_fraction:
+            return None, f"best pose puts only {best[1]:.0%} of the points on walls"
+        for other in scored[1:]:
+            if other[0] == best[0] and (self.walls is None or best[1] - other[1] < p.reloc_wall_margin):
+                return None, f"{len(scored)} candidate poses, no clear winner"
+        return (best[2], best[3]), ""
+
+    def _wall_fraction(self, points: np.ndarray, xy: np.ndarray, yaw: float) -> float:
+        """Fraction of (every 4th) levelled-body point within the tolerance of a map wall."""
+        if self.walls is None or points.shape[0] == 0:
+            return 0.0
+        world = xy + points[::4] @ rotation(yaw).T
+        a, b = self.walls[:, 0:2], self.walls[:, 2:4]
+        edge = b - a
+        rel = world[:, None, :] - a[None, :, :]
+        u = np.clip(np.einsum("psk,sk->ps", rel, edge) / np.einsum("sk,sk->s", edge, edge), 0.0, 1.0)
+        dist = np.hypot(*(rel - u[:, :, None] * edge[None, :, :]).transpose(2, 0, 1)).min(axis=1)
+        return float(np.mean(dist <= self.params.reloc_wall_tolerance_m))
+
+
+def _with_yaw(heading: HeadingResult, yaw: float) -> HeadingResult:
+    return HeadingResult(yaw, heading.correction, heading.variance, heading.status, heading.reason,
+                         heading.lines_used, heading.consensus, heading.limit_rad)
+
+
+def _associate(predicted: np.ndarray, landmarks: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
+    """(observed indices, map indices) of mutual nearest neighbours closer than ``gate``."""
+    if landmarks.shape[0] == 0 or predicted.shape[0] == 0:
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    diff = predicted[:, None, :] - landmarks[None, :, :]
+    dist = np.hypot(diff[..., 0], diff[..., 1])
+    nearest = dist.argmin(axis=1)
+    mutual = dist.argmin(axis=0)[nearest] == np.arange(predicted.shape[0])
+    ok = mutual & (dist[np.arange(predicted.shape[0]), nearest] <= gate)
+    return np.flatnonzero(ok), nearest[ok]
+
+
+def _chi2_scale(resid: np.ndarray, cov: np.ndarray) -> float:
+    """max(1, chi-square per degree of freedom) of the residuals after the weighted mean."""
+    n = resid.shape[0]
+    if n < 2:
+        return 1.0
+    chi2 = float(np.einsum("ji,jik,jk->", resid, np.linalg.inv(cov), resid))
+    return max(1.0, chi2 / (2 * (n - 1)))
+
+
+def _pose_hypotheses(observed: np.ndarray, landmarks: np.ndarray, yaws: np.ndarray, tolerance: float,
+                     min_score: int) -> np.ndarray:
+    """Rows (score, yaw, x, y): every (heading, observed corner i -> map corner a) hypothesis
+    scoring at least ``min_score``, best first. The score counts the observed corners j that
+    have a map corner b with (b - R q_j) within ``tolerance`` of the hypothesis translation."""
+    k, m = observed.shape[0], landmarks.shape[0]
+    rows = []
+    for yaw in yaws:
+        trans = (landmarks[None, :, :] - (observed @ rotation(float(yaw)).T)[:, None, :]).reshape(-1, 2)
+        diff = trans[:, None, :] - trans[None, :, :]
+        close = (diff[..., 0] ** 2 + diff[..., 1] ** 2 <= tolerance ** 2).reshape(k * m, k, m)
+        score = close.any(axis=2).sum(axis=1)
+        good = score >= min_score
+        rows.append(np.column_stack((score[good], np.full(good.sum(), yaw), trans[good])))
+    out = np.concatenate(rows) if rows else np.zeros((0, 4))
+    return out[np.argsort(-out[:, 0], kind="stable")]
+
+
+def _distinct(poses: np.ndarray, distinct_m: float, limit: int) -> list[np.ndarray]:
+    """The first ``limit`` best-first pose rows that are not near a kept one of the same yaw."""
+    kept: list[np.ndarray] = []
+    for row in poses:
+        if not any(row[1] == k[1] and math.hypot(row[2] - k[2], row[3] - k[3]) < distinct_m for k in kept):
+            kept.append(row)
+            if len(kept) == limit:
+                break
+    return kept

@@ -1,0 +1,303 @@
+"""Heading tracking and planar localization on ray-cast scans of the default arena (1 cm noise)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.nav.bench_stages import (DEFAULT_WORLD, UTM30LX_ANGLES, ArenaGeometry, render_scan,
+                                        run_stage_bench)
+from companion.nav.corners import find_corners
+from companion.nav.heading import HeadingResult, track_heading, wall_mod
+from companion.nav.lines import LineSet, extract_lines
+from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer
+from drivers.scan import Scan
+from sitl.world import World, load_world
+
+NOISE_M = 0.01
+HEIGHT_M = 1.0  # flying height of the body; the scanner is MOUNT.z_m above or below it
+MOUNT = Mount2D(x_m=0.05, y_m=0.0, yaw_rad=0.0, z_m=-0.10)
+A45 = math.radians(45)
+
+
+@pytest.fixture(scope="module")
+def arena() -> World:
+    return load_world(DEFAULT_WORLD)
+
+
+@pytest.fixture(scope="module")
+def geometry(arena: World) -> ArenaGeometry:
+    return ArenaGeometry.from_world(arena)
+
+
+def scan_at(geometry: ArenaGeometry, x: float, y: float, yaw: float, rng: np.random.Generator,
+            roll: float = 0.0, pitch: float = 0.0, mount: Mount2D = MOUNT) -> Scan:
+    return render_scan(geometry, np.array([x, y, -HEIGHT_M]), (roll, pitch, yaw),
+                       (mount.x_m, mount.y_m, mount.z_m), (0.0, 0.0, mount.yaw_rad),
+                       UTM30LX_ANGLES, NOISE_M, rng)
+
+
+def localizer(arena: World, geometry: ArenaGeometry, pose: tuple[float, float, float] | None,
+              mount: Mount2D = MOUNT) -> PlanarLocalizer:
+    return PlanarLocalizer(arena.corner_array(), arena.wall_angle_deg, mount=mount,
+                           walls=geometry.segments_at(HEIGHT_M - mount.z_m), initial_pose=pose)
+
+
+def yaw_error(a: float, b: float) -> float:
+    return abs(math.remainder(a - b, 2 * math.pi))
+
+
+def assert_finite(fix: PlanarFix) -> None:
+    assert all(math.isfinite(v) for v in (fix.x, fix.y, fix.yaw))
+    assert fix.covariance.shape == (3, 3) and np.all(np.isfinite(fix.covariance))
+    assert np.all(np.linalg.eigvalsh(fix.covariance) > 0)
+
+
+def levelled_lines(geometry: ArenaGeometry, x: float, y: float, yaw: float, rng: np.random.Generator) -> LineSet:
+    loc = PlanarLocalizer(np.zeros((0, 2)), 45, mount=MOUNT)
+    points, valid, ranges = loc.level_points(scan_at(geometry, x, y, yaw, rng))
+    return extract_lines(points, valid, ranges=ranges)
+
+
+# -- heading ----------------------------------------------------------------------------------
+
+def test_paper_modulo_operator() -> None:
+    assert np.allclose(wall_mod(np.radians([10, 30, 22.5, -22.5, 44, 90]), A45),
+                       np.radians([10, -15, 22.5, 22.5, -1, 0]))
+
+
+def test_heading_tracks_a_slowly_rotating_vehicle(geometry: ArenaGeometry) -> None:
+    rng = np.random.default_rng(1)
+    yaw_true = np.radians(10.0) + np.radians(2.5) * np.arange(100)  # 250 deg in 100 frames
+    yaw = yaw_true[0]
+    errors = []
+    for truth in yaw_true:
+        result = track_heading(levelled_lines(geometry, 7.0, 7.0, truth, rng), yaw, A45)
+        assert result.status == "ok", result.reason
+        yaw = result.yaw
+        errors.append(yaw_error(yaw, truth))
+    assert math.degrees(math.sqrt(np.mean(np.square(errors)))) < 0.2
+
+
+def test_rotation_beyond_half_the_wall_angle_is_reported(geometry: ArenaGeometry) -> None:
+    rng = np.random.default_rng(2)
+    for turn_deg in (15.0, 30.0):  # 30 deg > A/2 aliases to -15 deg: both are flagged
+        result = track_heading(levelled_lines(geometry, 2.0, 2.0, math.radians(20 + turn_deg), rng),
+                               math.radians(20), A45)
+        assert result.status == "near_limit" and "limit" in result.reason
+        assert result.limit_rad == pytest.approx(A45 / 2)
+    # The gyro's predicted change moves the prediction: the residual rotation is small.
+    result = track_heading(levelled_lines(geometry, 2.0, 2.0, math.radians(50), rng), math.radians(20),
+                           A45, predicted_delta=math.radians(28))
+    assert result.status == "ok" and yaw_error(result.yaw, math.radians(50)) < math.radians(0.2)
+
+
+def synthetic_lines(alpha_deg: list[float]) -> LineSet:
+    """Lines with the given normal angles, 2 m long, 0.05 deg sigma (other fields plausible)."""
+    k = len(alpha_deg)
+    one = np.ones(k)
+    return LineSet(np.radians(alpha_deg), one, np.zeros((k, 2)), np.zeros((k, 2)), np.zeros((k, 2)),
+                   np.full(k, 100), 2 * one, 0.01 * one, np.radians(0.05) ** 2 * one, 1e-6 * one, one,
+                   np.arange(k), np.arange(k))
+
+
+def test_heading_mean_wraps_at_half_the_wall_angle() -> None:
+    # Corrections of +22.4 and -22.4 deg (= +22.6) agree modulo 45: the mean is 22.5, not 0.
+    result = track_heading(synthetic_lines([-22.4, 22.4 + 90]), 0.0, A45)
+    assert abs(abs(math.degrees(result.correction)) - 22.5) < 1e-6 and result.lines_used == 2
+
+
+def test_disagreeing_wall_directions_are_ambiguous_and_outliers_ignored() -> None:
+    clutter = track_heading(synthetic_lines([0.0, 15.0, 30.0]), 0.0, A45)
+    assert clutter.status == "ambiguous" and clutter.yaw == 0.0
+    one_outlier = track_heading(synthetic_lines([1.0, 91.0, -179.0, 13.0]), 0.0, A45)
+    assert one_outlier.status == "ok" and one_outlier.lines_used == 3
+    assert math.degrees(one_outlier.correction) == pytest.approx(-1.0)
+    assert track_heading(synthetic_lines([]), 0.3, A45).status == "no_lines"
+
+
+# -- position tracking ---------------------------------------------------------------------------
+
+def arena_path(step_m: float = 0.08) -> np.ndarray:
+    """Rows (x, y, yaw) along a path through all four rooms and their doors, turning slowly."""
+    waypoints = np.array([[1, 1], [2.5, 2.5], [4.3, 2.5], [5.7, 2.5], [7.5, 3.0], [8.5, 3], [7.5, 4.0],
+                          [7.5, 5.0], [6.5, 6.5], [6.0, 8.0], [5.7, 7.5], [4.3, 7.5], [2.5, 7.5],
+                          [1.2, 6.0], [1.2, 4.0], [2, 2]], dtype=float)
+    s = np.concatenate(([0.0], np.cumsum(np.hypot(*np.diff(waypoints, axis=0).T))))
+    t = np.linspace(0.0, s[-1], int(s[-1] / step_m))
+    yaw = np.radians(20.0) + np.linspace(0.0, 2 * math.pi, t.size)
+    return np.column_stack((np.interp(t, s, waypoints[:, 0]), np.interp(t, s, waypoints[:, 1]), yaw))
+
+
+def test_tracks_a_path_through_the_arena(arena: World, geometry: ArenaGeometry) -> None:
+    rng = np.random.default_rng(3)
+    path = arena_path()
+    loc = localizer(arena, geometry, tuple(path[0]))
+    errors = []
+    for x, y, yaw in path:
+        fix = loc.update(scan_at(geometry, x, y, yaw, rng))
+        assert fix is not None and fix.state == "tracking" and fix.measured, fix
+        assert not fix.relocalized and fix.matched >= 2
+        assert_finite(fix)
+        errors.append((fix.x - x, fix.y - y, math.remainder(fix.yaw - yaw, 2 * math.pi)))
+        # The covariance is not overconfident: chi-square (3 dof) below its 99.9 % point.
+        assert errors[-1] @ np.linalg.solve(fix.covariance, errors[-1]) < 16.3
+    e = np.array(errors)
+    assert math.sqrt(np.mean(np.sum(e[:, :2] ** 2, axis=1))) < 0.02
+    assert math.degrees(math.sqrt(np.mean(e[:, 2] ** 2))) < 0.2
+    assert set(fix.timing_ms) >= {"lines", "corners", "heading", "match", "total"}
+
+
+def test_fast_turn_beyond_the_limit_is_resolved_by_the_corners(arena: World, geometry: ArenaGeometry) -> None:
+    rng = np.random.default_rng(4)
+    loc = localizer(arena, geometry, (2.0, 2.0, 0.0))
+    assert loc.update(scan_at(geometry, 2.0, 2.0, 0.0, rng)).state == "tracking"
+    fix = loc.update(scan_at(geometry, 2.0, 2.0, math.radians(30), rng))  # aliases to -15 deg
+    assert fix.heading_status == "near_limit" and fix.state == "degraded"
+    assert "alias" in fix.reason and yaw_error(fix.yaw, math.radians(30)) < math.radians(0.3)
+    assert math.hypot(fix.x - 2.0, fix.y - 2.0) < 0.02
+
+
+def test_gyro_prior_and_pose_prior(arena: World, geometry: ArenaGeometry) -> None:
+    rng = np.random.default_rng(5)
+    loc = localizer(arena, geometry, (2.0, 2.0, 0.0))
+    fix = loc.update(scan_at(geometry, 2.1, 2.0, math.radians(40), rng), yaw_delta=math.radians(38))
+    assert fix.state == "tracking" and fix.heading_status == "ok"
+    assert yaw_error(fix.yaw, math.radians(40)) < math.radians(0.2)
+    # A prior pose (e.g. the EKF's) replaces the held pose as the prediction: a 0.7 m move
+    # between scans is outside the gate from the held pose but not from the prior.
+    fix = loc.update(scan_at(geometry, 2.8, 2.0, math.radians(40), rng), prior=(2.75, 2.0, math.radians(40)))
+    assert fix.state == "tracking" and math.hypot(fix.x - 2.8, fix.y - 2.0) < 0.02
+
+
+def test_tilt_and_mount_are_compensated(arena: World, geometry: ArenaGeometry) -> None:
+    rng = np.random.default_rng(6)
+    mount = Mount2D(x_m=0.1, y_m=0.05, yaw_rad=math.pi / 2, z_m=-0.15)  # scanner turned to the right
+    loc = localizer(arena, geometry, None, mount)
+    for roll, pitch in ((0.0, 0.0), (0.15, -0.1), (-0.2, 0.2)):
+        loc.reset(2.0, 2.0, 0.5)
+        fix = loc.update(scan_at(geometry, 2.0, 2.0, 0.5, rng, roll, pitch, mount), roll=roll, pitch=pitch)
+        assert fix.state == "tracking"
+        assert math.hypot(fix.x - 2.0, fix.y - 2.0) < 0.01 and yaw_error(fix.yaw, 0.5) < math.radians(0.2)
+
+
+def test_points_input_equals_scan_input(arena: World, geometry: ArenaGeometry) -> None:
+    scan = scan_at(geometry, 3.0, 2.0, 1.0, np.random.default_rng(7))
+    r = np.where(scan.valid, scan.ranges_m, np.nan)
+    points = np.column_stack((r * np.cos(scan.angles_rad), r * np.sin(scan.angles_rad)))
+    a = localizer(arena, geometry, (3.0, 2.0, 1.0)).update(scan)
+    b = localizer(arena, geometry, (3.0, 2.0, 1.0)).update(points)
+    assert (a.x, a.y, a.yaw, a.matched) == pytest.approx((b.x, b.y, b.yaw, b.matched), abs=1e-9)
+
+
+# -- covariance ---------------------------------------------------------------------------------
+
+def test_covariance_grows_with_fewer_corners(arena: World, geometry: ArenaGeometry) -> None:
+    rng = np.random.default_rng(8)
+    loc = localizer(arena, geometry, (2.0, 2.0, math.radians(30)))
+    points, valid, ranges = loc.level_points(scan_at(geometry, 2.0, 2.0, math.radians(30), rng))
+    lines = extract_lines(points, valid, ranges=ranges)
+    corners = find_corners(lines)
+    heading = track_heading(lines, math.radians(30), A45)
+    assert corners.count >= 4
+    traces = []
+    for n in (corners.count, 3, 2, 1):
+        m = loc.match(corners.subset(np.arange(n)), np.array([2.0, 2.0]), heading)
+        assert m.matched == n and math.hypot(*(m.xy - 2.0)) < 0.03
+        assert np.all(np.linalg.eigvalsh(m.covariance) > 0)
+        traces.append(np.trace(m.covariance[:2, :2]))
+    assert traces == sorted(traces)  # fewer corners, larger covariance
+    assert traces[-1] > 2 * traces[0]
+
+
+def test_one_corner_is_a_degraded_but_usable_fix(arena: World, geometry: ArenaGeometry) -> None:
+    rng = np.random.default_rng(9)
+    only = np.array([[5.0, 5.0]])
+    loc = PlanarLocalizer(only, 45, mount=MOUNT, initial_pose=(2.0, 2.0, math.radians(30)))
+    fix = loc.update(scan_at(geometry, 2.0, 2.0, math.radians(30), rng))
+    assert fix.matched == 1 and fix.state == "degraded" and fix.measured
+    assert "1 corner" in fix.reason and math.hypot(fix.x - 2.0, fix.y - 2.0) < 0.03
+    assert_finite(fix)
+
+
+# -- lost and relocalization ---------------------------------------------------------------------
+
+@pytest.mark.parametrize("pose", [(2.0, 2.0, 30.0), (8.5, 7.5, 200.0), (6.5, 2.0, -120.0), (3.0, 7.0, 100.0)])
+def test_relocalizes_from_an_unknown_start(arena: World, geometry: ArenaGeometry,
+                                           pose: tuple[float, float, float]) -> None:
+    x, y, yaw = pose[0], pose[1], math.radians(pose[2])
+    loc = localizer(arena, geometry, None)
+    fix = loc.update(scan_at(geometry, x, y, yaw, np.random.default_rng(10)))
+    assert fix is not None, loc.last_reason
+    assert fix.relocalized and fix.measured and fix.matched >= 3
+    assert math.hypot(fix.x - x, fix.y - y) < 0.03 and yaw_error(fix.yaw, yaw) < math.radians(0.3)
+    assert_finite(fix)
+
+
+def test_relocalizes_from_a_wrong_start(arena: World, geometry: ArenaGeometry) -> None:
+    rng = np.random.default_rng(11)
+    loc = localizer(arena, geometry, (3.5, 3.0, 0.3))  # 2.6 m and 6 deg off
+    states = []
+    for _ in range(8):
+        fix = loc.update(scan_at(geometry, 1.5, 1.2, 0.2, rng))
+        assert_finite(fix)
+        states.append((fix.state, fix.relocalized, fix.measured))
+    first = states.index(("tracking", True, True))  # after lost_after_frames frames without a match
+    assert first == loc.params.lost_after_frames - 1
+    assert all(s == ("degraded", False, False) for s in states[:first])
+    assert all(s == ("tracking", False, True) for s in states[first + 1:])
+    assert math.hypot(fix.x - 1.5, fix.y - 1.2) < 0.02 and yaw_error(fix.yaw, 0.2) < math.radians(0.2)
+
+
+def test_symmetric_room_has_no_clear_winner() -> None:
+    size = 4.0
+    c = [(0, 0), (size, 0), (size, size), (0, size)]
+    room = ArenaGeometry(np.array([(*c[i], *c[(i + 1) % 4], 0.0, 3.0) for i in range(4)]), np.zeros((0, 5)))
+    loc = PlanarLocalizer(np.array(c, dtype=float), 90, mount=MOUNT, walls=room.segments_at(1.1))
+    assert loc.update(scan_at(room, 1.7, 2.2, math.radians(40), np.random.default_rng(12))) is None
+    assert "no clear winner" in loc.last_reason
+
+
+def test_featureless_views_become_lost_without_nan(arena: World) -> None:
+    wall = ArenaGeometry(np.array([[3.0, -50.0, 3.0, 50.0, 0.0, 3.0]]), np.zeros((0, 5)))
+    straight = scan_at(wall, 1.0, 0.0, 0.3, np.random.default_rng(13))
+    n = UTM30LX_ANGLES.size
+    blind = Scan("h", 0.0, UTM30LX_ANGLES, np.full(n, np.nan), np.zeros(n, dtype=bool))
+    for scan in (straight, blind):
+        loc = PlanarLocalizer(arena.corner_array(), 45, mount=MOUNT, initial_pose=(1.0, 1.0, 0.3))
+        fixes = [loc.update(scan) for _ in range(loc.params.lost_after_frames + 2)]
+        for fix in fixes:
+            assert fix is not None and not fix.measured and fix.matched == 0
+            assert_finite(fix)
+        assert [f.state for f in fixes[:loc.params.lost_after_frames - 1]] == ["degraded"] * 4
+        assert all(f.state == "lost" and "relocalization" in f.reason for f in fixes[loc.params.lost_after_frames - 1:])
+        assert PlanarLocalizer(arena.corner_array(), 45).update(scan) is None
+
+
+def test_ambiguous_walls_are_lost_at_once(arena: World) -> None:
+    # Three walls at 0, 20 and 40 degrees: no consensus modulo 45 degrees.
+    walls = []
+    for k, deg in enumerate((0.0, 20.0, 40.0)):
+        bearing, half = math.radians(-60 + 60 * k), 1.2 * np.array([math.cos(math.radians(deg)),
+                                                                   math.sin(math.radians(deg))])
+        centre = 3.0 * np.array([math.cos(bearing), math.sin(bearing)])
+        walls.append((*(centre - half), *(centre + half), 0.0, 3.0))
+    clutter = ArenaGeometry(np.array(walls), np.zeros((0, 5)))
+    loc = PlanarLocalizer(arena.corner_array(), 45, mount=MOUNT, initial_pose=(0.0, 0.0, 0.0))
+    fix = loc.update(scan_at(clutter, 0.0, 0.0, 0.0, np.random.default_rng(14)))
+    assert fix.state == "lost" and fix.heading_status == "ambiguous" and "disagree" in fix.reason
+    assert_finite(fix)
+
+
+def test_stage_bench_runs() -> None:
+    result = run_stage_bench(3)
+    assert "lidar.planar update (whole pipeline)" in result
+    assert all(math.isfinite(m) and math.isfinite(p) and 0 < m <= p for m, p in result.values())
+
+
+def test_heading_result_is_reported(arena: World, geometry: ArenaGeometry) -> None:
+    result = track_heading(levelled_lines(geometry, 2.0, 2.0, 0.1, np.random.default_rng(15)), 0.1, A45)
+    assert isinstance(result, HeadingResult) and result.measured and result.lines_used >= 3
+    assert 0 < result.variance < math.radians(0.1) ** 2 and result.consensus == pytest.approx(1.0)
