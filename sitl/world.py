@@ -182,6 +182,38 @@ class World:
         """Walls as an (N, 4) float array of rows [x0, y0, x1, y1], metres (NED north, east)."""
         return np.array([[*w.start, *w.end] for w in self.walls], dtype=float).reshape(-1, 4)
 
+    def segments_at(self, height_m: float) -> np.ndarray:
+        """(K, 4) float array of rows [x0, y0, x1, y1] (metres, NED north, east): what a
+        horizontal scan ``height_m`` metres above the floor meets. Every wall at least that high
+        contributes its pieces left once the openings it holds with ``bottom_m < height_m <
+        top_m`` are cut out (a door at 1 m, a window at its sill height or above is a gap);
+        lower walls are omitted. Obstacle boxes at least that high add their four sides.
+        This is the ``walls`` map of :class:`companion.nav.planar.PlanarLocalizer`."""
+        rows: list[tuple[float, float, float, float]] = []
+        for wall in self.walls:
+            if wall.height_m < height_m:
+                continue
+            length = wall.length_m
+            holes = sorted(
+                (along - o.width_m / 2, along + o.width_m / 2)
+                for o in self.openings if o.bottom_m < height_m < o.top_m
+                for distance, along in [wall.locate(o.center)] if distance <= TOLERANCE_M)
+            (sx, sy), (ex, ey) = wall.start, wall.end
+
+            def at(s: float) -> tuple[float, float]:  # the point s metres along (the ends exact)
+                return (ex, ey) if s >= length else (sx + (ex - sx) * s / length, sy + (ey - sy) * s / length)
+
+            s = 0.0  # start of the solid piece in progress, metres along the wall
+            for lo, hi in [*holes, (length, length)]:
+                if min(lo, length) > s + 1e-9:
+                    rows.append((*at(s), *at(min(lo, length))))
+                s = max(s, hi)
+        for box in self.obstacles:
+            if box.height_m >= height_m:
+                (xa, ya), (xb, yb) = box.min, box.max
+                rows.extend([(xa, ya, xb, ya), (xb, ya, xb, yb), (xb, yb, xa, yb), (xa, yb, xa, ya)])
+        return np.array(rows, dtype=float).reshape(-1, 4)
+
     def corner_array(self) -> np.ndarray:
         """Corners as an (M, 2) float array of rows [x, y], metres (NED north, east)."""
         return np.array(self.corners, dtype=float).reshape(-1, 2)

@@ -7,26 +7,29 @@ import math
 import numpy as np
 import pytest
 
-from companion.nav.bench_stages import DEFAULT_WORLD, URG04LX_ANGLES, ArenaGeometry, render_scan
+from companion.nav.bench_stages import DEFAULT_WORLD, make_mount, synthetic_scan
 from companion.nav.height import HeightEstimator, HeightFix
+from drivers.lidar_models import URG_04LX
 from drivers.scan import Scan
+from sitl.raycast import WorldGeometry
 from sitl.world import load_world
 
 MOUNT_POSITION = (0.05, 0.0, 0.05)  # body FRD, metres: 5 cm forward, 5 cm below the body origin
 MOUNT_RPY = (math.pi / 2, 0.0, 0.0)  # scan plane = body x-z, sensor y = body down
 TABLE_XY = (7.4, 1.6)  # centre of the 0.75 m table in the north-west room
+URG04LX_ANGLES = URG_04LX.angles_rad()
 
 
 @pytest.fixture(scope="module")
-def geometry() -> ArenaGeometry:
-    return ArenaGeometry.from_world(load_world(DEFAULT_WORLD))
+def geometry() -> WorldGeometry:
+    return WorldGeometry.from_world(load_world(DEFAULT_WORLD))
 
 
-def vertical_scan(geometry: ArenaGeometry, x: float, y: float, height: float, rng: np.random.Generator,
+def vertical_scan(geometry: WorldGeometry, x: float, y: float, height: float, rng: np.random.Generator,
                   roll: float = 0.0, pitch: float = 0.0, yaw: float = 0.0) -> Scan:
     """A URG-04LX (1 cm noise, 0.02-5.6 m) on a body ``height`` m above the floor."""
-    return render_scan(geometry, np.array([x, y, -height]), (roll, pitch, yaw), MOUNT_POSITION, MOUNT_RPY,
-                       URG04LX_ANGLES, 0.01, rng, max_range_m=5.6, min_range_m=0.02)
+    return synthetic_scan(geometry, URG_04LX, make_mount(MOUNT_POSITION, MOUNT_RPY), np.array([x, y, -height]),
+                          (roll, pitch, yaw), rng, 0.01)
 
 
 def assert_finite(fix: HeightFix) -> None:
@@ -34,7 +37,7 @@ def assert_finite(fix: HeightFix) -> None:
 
 
 @pytest.mark.parametrize("height", [0.3, 1.0, 2.0])
-def test_height_over_the_floor(geometry: ArenaGeometry, height: float) -> None:
+def test_height_over_the_floor(geometry: WorldGeometry, height: float) -> None:
     rng = np.random.default_rng(int(height * 10))
     est = HeightEstimator(MOUNT_POSITION, MOUNT_RPY)
     for yaw in np.radians([0.0, 60.0, 135.0, 250.0]):
@@ -45,7 +48,7 @@ def test_height_over_the_floor(geometry: ArenaGeometry, height: float) -> None:
 
 
 @pytest.mark.parametrize("roll, pitch", [(0.1, 0.0), (0.0, -0.2), (0.15, 0.15), (-0.2, 0.1)])
-def test_attitude_is_compensated(geometry: ArenaGeometry, roll: float, pitch: float) -> None:
+def test_attitude_is_compensated(geometry: WorldGeometry, roll: float, pitch: float) -> None:
     rng = np.random.default_rng(3)
     est = HeightEstimator(MOUNT_POSITION, MOUNT_RPY)
     fix = est.update(vertical_scan(geometry, 2.5, 2.0, 1.2, rng, roll, pitch, yaw=0.4), roll, pitch)
@@ -56,7 +59,7 @@ def test_attitude_is_compensated(geometry: ArenaGeometry, roll: float, pitch: fl
 
 
 @pytest.mark.parametrize("yaw_deg", [0.0, 90.0, 30.0])
-def test_the_floor_wins_over_the_table(geometry: ArenaGeometry, yaw_deg: float) -> None:
+def test_the_floor_wins_over_the_table(geometry: WorldGeometry, yaw_deg: float) -> None:
     rng = np.random.default_rng(4)
     est = HeightEstimator(MOUNT_POSITION, MOUNT_RPY)
     fix = est.update(vertical_scan(geometry, *TABLE_XY, 1.5, rng, yaw=math.radians(yaw_deg)))
@@ -64,7 +67,7 @@ def test_the_floor_wins_over_the_table(geometry: ArenaGeometry, yaw_deg: float) 
     assert abs(fix.height_m - 1.5) < 0.01  # not 0.75 above the table
 
 
-def test_table_only_in_view_is_flagged_as_a_jump(geometry: ArenaGeometry) -> None:
+def test_table_only_in_view_is_flagged_as_a_jump(geometry: WorldGeometry) -> None:
     """Just above the table the floor is hidden: the table top is taken for the floor, which the
     paper's method cannot tell; the jump from the previous fix is reported."""
     rng = np.random.default_rng(5)
@@ -75,7 +78,7 @@ def test_table_only_in_view_is_flagged_as_a_jump(geometry: ArenaGeometry) -> Non
     assert fix.height_m == pytest.approx(0.9 - 0.75, abs=0.01)
 
 
-def test_no_floor_is_lost_without_nan(geometry: ArenaGeometry) -> None:
+def test_no_floor_is_lost_without_nan(geometry: WorldGeometry) -> None:
     est = HeightEstimator(MOUNT_POSITION, MOUNT_RPY)
     n = URG04LX_ANGLES.size
     blind = Scan("v", 0.0, URG04LX_ANGLES, np.full(n, np.inf), np.zeros(n, dtype=bool))
@@ -88,7 +91,7 @@ def test_no_floor_is_lost_without_nan(geometry: ArenaGeometry) -> None:
         assert_finite(fix)
 
 
-def test_points_input(geometry: ArenaGeometry) -> None:
+def test_points_input(geometry: WorldGeometry) -> None:
     scan = vertical_scan(geometry, 2.5, 2.0, 1.0, np.random.default_rng(8))
     r = np.where(scan.valid, scan.ranges_m, np.nan)
     points = np.column_stack((r * np.cos(scan.angles_rad), r * np.sin(scan.angles_rad)))

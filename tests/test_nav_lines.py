@@ -7,26 +7,28 @@ import math
 import numpy as np
 import pytest
 
-from companion.nav.bench_stages import DEFAULT_WORLD, UTM30LX_ANGLES, ArenaGeometry, render_scan
+from companion.nav.bench_stages import DEFAULT_WORLD, make_mount, synthetic_scan
 from companion.nav.corners import find_corners
 from companion.nav.lines import LineParams, extract_lines
+from drivers.lidar_models import UTM_30LX
+from sitl.raycast import WorldGeometry
 from sitl.world import World, load_world
+from tests.scan_synthesis import square_room
 
 NOISE_M = 0.01  # UTM-30LX
+UTM30LX_ANGLES = UTM_30LX.angles_rad()
+AT_BODY_ORIGIN = make_mount((0.0, 0.0, 0.0), (0.0, 0.0, 0.0))
 
 
-def room(size: float = 4.0) -> ArenaGeometry:
+def room(size: float = 4.0) -> WorldGeometry:
     """A closed square room [0, size]^2, walls 3 m high, nothing else."""
-    c = [(0, 0), (size, 0), (size, size), (0, size)]
-    walls = [(*c[i], *c[(i + 1) % 4], 0.0, 3.0) for i in range(4)]
-    return ArenaGeometry(np.array(walls, dtype=float), np.zeros((0, 5)))
+    return WorldGeometry.from_world(square_room(size))
 
 
-def sensor_points(geometry: ArenaGeometry, x: float, y: float, yaw: float, noise: float,
+def sensor_points(geometry: WorldGeometry, x: float, y: float, yaw: float, noise: float,
                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
     """(points (N, 2) in the sensor frame, valid) of a level UTM-30LX at 1 m height."""
-    scan = render_scan(geometry, np.array([x, y, -1.0]), (0.0, 0.0, yaw), (0.0, 0.0, 0.0),
-                       (0.0, 0.0, 0.0), UTM30LX_ANGLES, noise, rng)
+    scan = synthetic_scan(geometry, UTM_30LX, AT_BODY_ORIGIN, np.array([x, y, -1.0]), (0.0, 0.0, yaw), rng, noise)
     r = np.where(scan.valid, scan.ranges_m, 0.0)
     return np.column_stack((r * np.cos(scan.angles_rad), r * np.sin(scan.angles_rad))), scan.valid
 
@@ -138,7 +140,7 @@ def test_room_corners_and_their_covariance() -> None:
 def test_corners_in_the_arena_are_only_real_corners(arena: World) -> None:
     """Over random poses no corner is reported where the map has none: door jambs, the ends of
     walls occluded by nearer ones and the field-of-view cuts are all rejected."""
-    geometry = ArenaGeometry.from_world(arena)
+    geometry = WorldGeometry.from_world(arena)
     truth = arena.corner_array()
     rng = np.random.default_rng(7)
     found = 0

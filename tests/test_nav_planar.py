@@ -7,19 +7,22 @@ import math
 import numpy as np
 import pytest
 
-from companion.nav.bench_stages import (DEFAULT_WORLD, UTM30LX_ANGLES, ArenaGeometry, render_scan,
-                                        run_stage_bench)
+from companion.nav.bench_stages import DEFAULT_WORLD, make_mount, run_stage_bench, synthetic_scan
 from companion.nav.corners import find_corners
 from companion.nav.heading import HeadingResult, track_heading, wall_mod
 from companion.nav.lines import LineSet, extract_lines
 from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer
+from drivers.lidar_models import UTM_30LX
 from drivers.scan import Scan
+from sitl.raycast import WorldGeometry
 from sitl.world import World, load_world
+from tests.scan_synthesis import square_room, walls_world
 
 NOISE_M = 0.01
 HEIGHT_M = 1.0  # flying height of the body; the scanner is MOUNT.z_m above or below it
 MOUNT = Mount2D(x_m=0.05, y_m=0.0, yaw_rad=0.0, z_m=-0.10)
 A45 = math.radians(45)
+UTM30LX_ANGLES = UTM_30LX.angles_rad()
 
 
 @pytest.fixture(scope="module")
@@ -28,21 +31,20 @@ def arena() -> World:
 
 
 @pytest.fixture(scope="module")
-def geometry(arena: World) -> ArenaGeometry:
-    return ArenaGeometry.from_world(arena)
+def geometry(arena: World) -> WorldGeometry:
+    return WorldGeometry.from_world(arena)
 
 
-def scan_at(geometry: ArenaGeometry, x: float, y: float, yaw: float, rng: np.random.Generator,
+def scan_at(geometry: WorldGeometry, x: float, y: float, yaw: float, rng: np.random.Generator,
             roll: float = 0.0, pitch: float = 0.0, mount: Mount2D = MOUNT) -> Scan:
-    return render_scan(geometry, np.array([x, y, -HEIGHT_M]), (roll, pitch, yaw),
-                       (mount.x_m, mount.y_m, mount.z_m), (0.0, 0.0, mount.yaw_rad),
-                       UTM30LX_ANGLES, NOISE_M, rng)
+    return synthetic_scan(geometry, UTM_30LX, make_mount((mount.x_m, mount.y_m, mount.z_m), (0.0, 0.0, mount.yaw_rad)),
+                          np.array([x, y, -HEIGHT_M]), (roll, pitch, yaw), rng, NOISE_M)
 
 
-def localizer(arena: World, geometry: ArenaGeometry, pose: tuple[float, float, float] | None,
+def localizer(arena: World, geometry: WorldGeometry, pose: tuple[float, float, float] | None,
               mount: Mount2D = MOUNT) -> PlanarLocalizer:
     return PlanarLocalizer(arena.corner_array(), arena.wall_angle_deg, mount=mount,
-                           walls=geometry.segments_at(HEIGHT_M - mount.z_m), initial_pose=pose)
+                           walls=arena.segments_at(HEIGHT_M - mount.z_m), initial_pose=pose)
 
 
 def yaw_error(a: float, b: float) -> float:
@@ -55,7 +57,7 @@ def assert_finite(fix: PlanarFix) -> None:
     assert np.all(np.linalg.eigvalsh(fix.covariance) > 0)
 
 
-def levelled_lines(geometry: ArenaGeometry, x: float, y: float, yaw: float, rng: np.random.Generator) -> LineSet:
+def levelled_lines(geometry: WorldGeometry, x: float, y: float, yaw: float, rng: np.random.Generator) -> LineSet:
     loc = PlanarLocalizer(np.zeros((0, 2)), 45, mount=MOUNT)
     points, valid, ranges = loc.level_points(scan_at(geometry, x, y, yaw, rng))
     return extract_lines(points, valid, ranges=ranges)
@@ -68,7 +70,7 @@ def test_paper_modulo_operator() -> None:
                        np.radians([10, -15, 22.5, 22.5, -1, 0]))
 
 
-def test_heading_tracks_a_slowly_rotating_vehicle(geometry: ArenaGeometry) -> None:
+def test_heading_tracks_a_slowly_rotating_vehicle(geometry: WorldGeometry) -> None:
     rng = np.random.default_rng(1)
     yaw_true = np.radians(10.0) + np.radians(2.5) * np.arange(100)  # 250 deg in 100 frames
     yaw = yaw_true[0]
@@ -81,7 +83,7 @@ def test_heading_tracks_a_slowly_rotating_vehicle(geometry: ArenaGeometry) -> No
     assert math.degrees(math.sqrt(np.mean(np.square(errors)))) < 0.2
 
 
-def test_rotation_beyond_half_the_wall_angle_is_reported(geometry: ArenaGeometry) -> None:
+def test_rotation_beyond_half_the_wall_angle_is_reported(geometry: WorldGeometry) -> None:
     rng = np.random.default_rng(2)
     for turn_deg in (15.0, 30.0):  # 30 deg > A/2 aliases to -15 deg: both are flagged
         result = track_heading(levelled_lines(geometry, 2.0, 2.0, math.radians(20 + turn_deg), rng),
@@ -131,7 +133,7 @@ def arena_path(step_m: float = 0.08) -> np.ndarray:
     return np.column_stack((np.interp(t, s, waypoints[:, 0]), np.interp(t, s, waypoints[:, 1]), yaw))
 
 
-def test_tracks_a_path_through_the_arena(arena: World, geometry: ArenaGeometry) -> None:
+def test_tracks_a_path_through_the_arena(arena: World, geometry: WorldGeometry) -> None:
     rng = np.random.default_rng(3)
     path = arena_path()
     loc = localizer(arena, geometry, tuple(path[0]))
@@ -150,7 +152,7 @@ def test_tracks_a_path_through_the_arena(arena: World, geometry: ArenaGeometry) 
     assert set(fix.timing_ms) >= {"lines", "corners", "heading", "match", "total"}
 
 
-def test_fast_turn_beyond_the_limit_is_resolved_by_the_corners(arena: World, geometry: ArenaGeometry) -> None:
+def test_fast_turn_beyond_the_limit_is_resolved_by_the_corners(arena: World, geometry: WorldGeometry) -> None:
     rng = np.random.default_rng(4)
     loc = localizer(arena, geometry, (2.0, 2.0, 0.0))
     assert loc.update(scan_at(geometry, 2.0, 2.0, 0.0, rng)).state == "tracking"
@@ -160,7 +162,7 @@ def test_fast_turn_beyond_the_limit_is_resolved_by_the_corners(arena: World, geo
     assert math.hypot(fix.x - 2.0, fix.y - 2.0) < 0.02
 
 
-def test_gyro_prior_and_pose_prior(arena: World, geometry: ArenaGeometry) -> None:
+def test_gyro_prior_and_pose_prior(arena: World, geometry: WorldGeometry) -> None:
     rng = np.random.default_rng(5)
     loc = localizer(arena, geometry, (2.0, 2.0, 0.0))
     fix = loc.update(scan_at(geometry, 2.1, 2.0, math.radians(40), rng), yaw_delta=math.radians(38))
@@ -172,7 +174,7 @@ def test_gyro_prior_and_pose_prior(arena: World, geometry: ArenaGeometry) -> Non
     assert fix.state == "tracking" and math.hypot(fix.x - 2.8, fix.y - 2.0) < 0.02
 
 
-def test_tilt_and_mount_are_compensated(arena: World, geometry: ArenaGeometry) -> None:
+def test_tilt_and_mount_are_compensated(arena: World, geometry: WorldGeometry) -> None:
     rng = np.random.default_rng(6)
     mount = Mount2D(x_m=0.1, y_m=0.05, yaw_rad=math.pi / 2, z_m=-0.15)  # scanner turned to the right
     loc = localizer(arena, geometry, None, mount)
@@ -183,7 +185,7 @@ def test_tilt_and_mount_are_compensated(arena: World, geometry: ArenaGeometry) -
         assert math.hypot(fix.x - 2.0, fix.y - 2.0) < 0.01 and yaw_error(fix.yaw, 0.5) < math.radians(0.2)
 
 
-def test_points_input_equals_scan_input(arena: World, geometry: ArenaGeometry) -> None:
+def test_points_input_equals_scan_input(arena: World, geometry: WorldGeometry) -> None:
     scan = scan_at(geometry, 3.0, 2.0, 1.0, np.random.default_rng(7))
     r = np.where(scan.valid, scan.ranges_m, np.nan)
     points = np.column_stack((r * np.cos(scan.angles_rad), r * np.sin(scan.angles_rad)))
@@ -194,7 +196,7 @@ def test_points_input_equals_scan_input(arena: World, geometry: ArenaGeometry) -
 
 # -- covariance ---------------------------------------------------------------------------------
 
-def test_covariance_grows_with_fewer_corners(arena: World, geometry: ArenaGeometry) -> None:
+def test_covariance_grows_with_fewer_corners(arena: World, geometry: WorldGeometry) -> None:
     rng = np.random.default_rng(8)
     loc = localizer(arena, geometry, (2.0, 2.0, math.radians(30)))
     points, valid, ranges = loc.level_points(scan_at(geometry, 2.0, 2.0, math.radians(30), rng))
@@ -212,7 +214,7 @@ def test_covariance_grows_with_fewer_corners(arena: World, geometry: ArenaGeomet
     assert traces[-1] > 2 * traces[0]
 
 
-def test_one_corner_is_a_degraded_but_usable_fix(arena: World, geometry: ArenaGeometry) -> None:
+def test_one_corner_is_a_degraded_but_usable_fix(arena: World, geometry: WorldGeometry) -> None:
     rng = np.random.default_rng(9)
     only = np.array([[5.0, 5.0]])
     loc = PlanarLocalizer(only, 45, mount=MOUNT, initial_pose=(2.0, 2.0, math.radians(30)))
@@ -225,7 +227,7 @@ def test_one_corner_is_a_degraded_but_usable_fix(arena: World, geometry: ArenaGe
 # -- lost and relocalization ---------------------------------------------------------------------
 
 @pytest.mark.parametrize("pose", [(2.0, 2.0, 30.0), (8.5, 7.5, 200.0), (6.5, 2.0, -120.0), (3.0, 7.0, 100.0)])
-def test_relocalizes_from_an_unknown_start(arena: World, geometry: ArenaGeometry,
+def test_relocalizes_from_an_unknown_start(arena: World, geometry: WorldGeometry,
                                            pose: tuple[float, float, float]) -> None:
     x, y, yaw = pose[0], pose[1], math.radians(pose[2])
     loc = localizer(arena, geometry, None)
@@ -236,7 +238,7 @@ def test_relocalizes_from_an_unknown_start(arena: World, geometry: ArenaGeometry
     assert_finite(fix)
 
 
-def test_relocalizes_from_a_wrong_start(arena: World, geometry: ArenaGeometry) -> None:
+def test_relocalizes_from_a_wrong_start(arena: World, geometry: WorldGeometry) -> None:
     rng = np.random.default_rng(11)
     loc = localizer(arena, geometry, (3.5, 3.0, 0.3))  # 2.6 m and 6 deg off
     states = []
@@ -254,14 +256,15 @@ def test_relocalizes_from_a_wrong_start(arena: World, geometry: ArenaGeometry) -
 def test_symmetric_room_has_no_clear_winner() -> None:
     size = 4.0
     c = [(0, 0), (size, 0), (size, size), (0, size)]
-    room = ArenaGeometry(np.array([(*c[i], *c[(i + 1) % 4], 0.0, 3.0) for i in range(4)]), np.zeros((0, 5)))
+    room = square_room(size, 90)
     loc = PlanarLocalizer(np.array(c, dtype=float), 90, mount=MOUNT, walls=room.segments_at(1.1))
-    assert loc.update(scan_at(room, 1.7, 2.2, math.radians(40), np.random.default_rng(12))) is None
+    assert loc.update(scan_at(WorldGeometry.from_world(room), 1.7, 2.2, math.radians(40),
+                              np.random.default_rng(12))) is None
     assert "no clear winner" in loc.last_reason
 
 
 def test_featureless_views_become_lost_without_nan(arena: World) -> None:
-    wall = ArenaGeometry(np.array([[3.0, -50.0, 3.0, 50.0, 0.0, 3.0]]), np.zeros((0, 5)))
+    wall = WorldGeometry.from_world(walls_world([(3.0, -50.0, 3.0, 50.0)]))
     straight = scan_at(wall, 1.0, 0.0, 0.3, np.random.default_rng(13))
     n = UTM30LX_ANGLES.size
     blind = Scan("h", 0.0, UTM30LX_ANGLES, np.full(n, np.nan), np.zeros(n, dtype=bool))
@@ -283,8 +286,8 @@ def test_ambiguous_walls_are_lost_at_once(arena: World) -> None:
         bearing, half = math.radians(-60 + 60 * k), 1.2 * np.array([math.cos(math.radians(deg)),
                                                                    math.sin(math.radians(deg))])
         centre = 3.0 * np.array([math.cos(bearing), math.sin(bearing)])
-        walls.append((*(centre - half), *(centre + half), 0.0, 3.0))
-    clutter = ArenaGeometry(np.array(walls), np.zeros((0, 5)))
+        walls.append((*(centre - half), *(centre + half)))
+    clutter = WorldGeometry.from_world(walls_world(walls))
     loc = PlanarLocalizer(arena.corner_array(), 45, mount=MOUNT, initial_pose=(0.0, 0.0, 0.0))
     fix = loc.update(scan_at(clutter, 0.0, 0.0, 0.0, np.random.default_rng(14)))
     assert fix.state == "lost" and fix.heading_status == "ambiguous" and "disagree" in fix.reason
@@ -297,7 +300,7 @@ def test_stage_bench_runs() -> None:
     assert all(math.isfinite(m) and math.isfinite(p) and 0 < m <= p for m, p in result.values())
 
 
-def test_heading_result_is_reported(arena: World, geometry: ArenaGeometry) -> None:
+def test_heading_result_is_reported(arena: World, geometry: WorldGeometry) -> None:
     result = track_heading(levelled_lines(geometry, 2.0, 2.0, 0.1, np.random.default_rng(15)), 0.1, A45)
     assert isinstance(result, HeadingResult) and result.measured and result.lines_used >= 3
     assert 0 < result.variance < math.radians(0.1) ** 2 and result.consensus == pytest.approx(1.0)

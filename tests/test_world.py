@@ -119,3 +119,47 @@ def test_bad_worlds_name_file_key_and_line(
     assert (err.value.file, err.value.line, err.value.key_path) == (str(file), line, key_path)
     assert words in err.value.message
     assert str(err.value).startswith(f"{file}:{line}: {key_path}: ")
+
+
+def test_segments_at_cut_the_openings_at_that_height(tmp_path: Path) -> None:
+    world = load_world(write(tmp_path, BASE + """\
+openings:
+  - {name: w, kind: window, center: [2, 0], width_m: 1, bottom_m: 0.8, top_m: 1.6}
+  - {name: d, kind: door, center: [4, 1], width_m: 0.8, bottom_m: 0, top_m: 2}
+obstacles:
+  - {name: crate, min: [2, 2], max: [3, 3], height_m: 0.75}
+"""))
+
+    def rows(height: float) -> list[list[float]]:
+        segments = world.segments_at(height)
+        assert segments.shape[1] == 4 and segments.dtype == float
+        return np.round(segments, 9).tolist()
+
+    walls = [[0, 0, 4, 0], [4, 0, 4, 4], [4, 4, 0, 4], [0, 4, 0, 0]]
+    crate = [[2, 2, 3, 2], [3, 2, 3, 3], [3, 3, 2, 3], [2, 3, 2, 2]]
+    door_cut = [[4, 0, 4, 0.6], [4, 1.4, 4, 4]]
+    window_cut = [[0, 0, 1.5, 0], [2.5, 0, 4, 0]]
+    # 0.5 m: below the window's sill (not cut), in the door (cut); the crate is taller than that.
+    assert rows(0.5) == [walls[0], *door_cut, *walls[2:], *crate]
+    # 1.0 m and 1.2 m: in the door and in the window (both cut); the crate is lower.
+    assert rows(1.0) == rows(1.2) == [*window_cut, *door_cut, *walls[2:]]
+    assert rows(0.75) == [walls[0], *door_cut, *walls[2:], *crate]  # as high as the crate: it counts
+    assert rows(2.5) == walls  # above both openings
+    assert rows(3.5) == []  # above the walls (3 m): nothing
+
+
+def test_segments_at_in_the_arena(arena: World) -> None:
+    window = next(o for o in arena.openings if o.kind == "window")
+    door = next(o for o in arena.openings if o.kind == "door")
+
+    def blocked(height: float, opening_center: tuple[float, float]) -> bool:
+        """Whether a segment at ``height`` covers the opening's centre."""
+        s = arena.segments_at(height)
+        a, edge = s[:, :2], s[:, 2:] - s[:, :2]
+        u = np.einsum("sk,sk->s", np.subtract(opening_center, a), edge) / np.einsum("sk,sk->s", edge, edge)
+        u = np.clip(u, 0.0, 1.0)
+        return bool(np.min(np.hypot(*(a + u[:, None] * edge - opening_center).T)) < 1e-9)
+
+    assert blocked(0.5, window.center) and not blocked(1.2, window.center)
+    assert not blocked(1.0, door.center) and blocked(2.5, door.center)
+    assert len(arena.segments_at(0.5)) == len(arena.segments_at(1.2)) - 1 + 4  # window cut, table
