@@ -29,22 +29,31 @@ def _cmd_run(args: argparse.Namespace) -> int:
         return EXIT_CONFIG_ERROR
     setup_logging(args.log_level or cfg.logging.level)
     daemon = Daemon(cfg, args.mavlink)
-    if args.lockstep:
-        loop = LockstepEventLoop()
-        try:
-            return loop.run_until_complete(daemon.run())
-        finally:
-            loop.close()
-    return asyncio.run(daemon.run())
+    try:
+        if args.lockstep:
+            loop = LockstepEventLoop()
+            try:
+                return loop.run_until_complete(daemon.run())
+            finally:
+                loop.close()
+        return asyncio.run(daemon.run())
+    except ConfigError as exc:  # a file the config names (map, world, mission) is bad
+        print(f"companion: {exc}", file=sys.stderr)
+        return EXIT_CONFIG_ERROR
 
 
 def _cmd_check_config(args: argparse.Namespace) -> int:
     from companion.mission import load_mission
+    from sitl.world import load_world
 
     try:
         cfg = load_config(args.config)
         if cfg.mission.file:
             load_mission(cfg.resolve(cfg.mission.file))
+        if cfg.pipelines.lidar is not None:
+            load_world(cfg.resolve(cfg.pipelines.lidar.map))
+        if any(s.backend == "sim" for s in cfg.sensors.values()):
+            load_world(cfg.resolve(cfg.sitl.world))
     except ConfigError as exc:
         print(f"companion: {exc}", file=sys.stderr)
         return EXIT_CONFIG_ERROR

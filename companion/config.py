@@ -74,13 +74,34 @@ class SensorConfig:
     kind: Literal["lidar", "camera", "imu", "gnss"] = field(metadata=meta("What the sensor measures."))
     backend: Literal["real", "sim", "replay"] = field(metadata=meta("real device, simulated from ground truth, or replay of a recording."))
     mount: MountConfig = field(default_factory=MountConfig, metadata=meta("Mount pose in the body frame."))
-    settings: dict[str, Any] = field(default_factory=dict, metadata=meta("Backend settings (port, model, file...), validated by the driver."))
+    settings: dict[str, Any] = field(default_factory=dict, metadata=meta(
+        "Backend settings (port, model, file...), validated by the driver: see drivers/registry.py."))
+
+    def validate(self) -> tuple[str, str] | None:
+        from drivers.registry import check_settings  # drivers import this module
+
+        return check_settings(self.kind, self.backend, self.settings)
+
+
+@dataclass
+class LidarPipelineConfig:
+    """The two-lidar localization of Wang et al. (horizontal: x, y, yaw; vertical: height)."""
+
+    horizontal_sensor: str = field(metadata=meta("Name (in `sensors`) of the horizontal scanner."))
+    vertical_sensor: str = field(metadata=meta("Name (in `sensors`) of the vertical scanner: height above the floor."))
+    map: str = field(default="worlds/arena.yaml", metadata=meta(
+        "Map (world YAML: walls, known corners, wall_angle_deg), relative to this file."))
+    initial_pose: tuple[float, float, float] | None = field(default=None, metadata=meta(
+        "Start pose [north m, east m, yaw deg] in the map; null = relocalize globally from the first scans."))
+    correspondence_gate_m: float = field(default=0.5, metadata=meta(
+        "Nearest-neighbour gate between an observed and a map corner.", (0.05, 5)))
 
 
 @dataclass
 class PipelinesConfig:
     fix_rate_hz: float = field(default=10.0, metadata=meta("Nominal rate of sensor fixes (lidar, camera).", (1, 100)))
     fusion_rate_hz: float = field(default=50.0, metadata=meta("Rate of the fused output loop (the nav loop).", (10, 400)))
+    lidar: LidarPipelineConfig | None = field(default=None, metadata=meta("Two-lidar localization; null = off."))
 
 
 @dataclass
@@ -139,6 +160,19 @@ class Config:
     sitl: SitlConfig = field(default_factory=SitlConfig, metadata=meta("Simulation harness settings."))
     base_dir: Path = field(default=Path("."), init=False, repr=False)
     source: str = field(default="<string>", init=False, repr=False)
+
+    def validate(self) -> tuple[str, str] | None:
+        if any(s.backend == "sim" for s in self.sensors.values()) and self.mavlink.streams.sim_state <= 0:
+            return "mavlink.streams.sim_state", "simulated sensors render from SIM_STATE ground truth: ask for it (e.g. 50)"
+        lidar = self.pipelines.lidar
+        if lidar is None:
+            return None
+        for key in ("horizontal_sensor", "vertical_sensor"):
+            name = getattr(lidar, key)
+            sensor = self.sensors.get(name)
+            if sensor is None or sensor.kind != "lidar":
+                return f"pipelines.lidar.{key}", f"{name!r} is not a lidar in `sensors` ({', '.join(self.sensors) or 'none'})"
+        return None
 
     def resolve(self, relative: str) -> Path:
         """A path from the config file, resolved against the file's directory."""

@@ -14,10 +14,11 @@ import resource
 import signal
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from companion import clock
-from companion.config import Config
+from companion.config import Config, SensorConfig
 from companion.health import ComponentHealth, Health, State
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.checklist import expected_parameters
@@ -27,11 +28,21 @@ from companion.mavlink.link import MavlinkLink, load_signing_key, mavlink
 from companion.mavlink.origin import OriginSetter
 from companion.mavlink.setpoints import SetpointStream
 from companion.mission import MissionRunner, load_mission
+from companion.nav.lidar_pipeline import LidarPipeline
 from companion.nav.loop import NavLoop, Pipeline
 from companion.sdnotify import Notifier, WatchdogGate, run_watchdog
 from companion.supervisor import Supervisor
 from companion.telemetry.publisher import TelemetryPublisher
 from companion.telemetry.session import open_session
+from drivers.base import LidarDriver, ScanBackend
+from drivers.hokuyo import HokuyoScip
+from drivers.lidar_replay import ReplayLidar
+from drivers.lidar_sim import SimulatedLidar
+from drivers.mount import Mount
+from drivers.registry import build_settings
+from drivers.scan import Scan
+from drivers.sim_truth import TruthSource
+from sitl.world import load_world
 
 log = logging.getLogger("companion.daemon")
 
@@ -51,6 +62,8 @@ class Daemon:
         self.supervisor = Supervisor(self.health)
         self.session = None
         self.started_wall = time.monotonic()
+        self.drivers: dict[str, LidarDriver] = {}
+        self.truth: TruthSource | None = None  # ground truth, only for simulated sensors
         self._stop = asyncio.Event()
 
     def request_stop(self) -> None:
@@ -103,16 +116,50 @@ class Daemon:
         return 0
 
     def build_pipelines(self) -> list[Pipeline]:
-        """The navigation pipelines of this config, built once the link exists.
+        """The navigation pipelines of this config and their sensor drivers (one task each).
 
-        No driver or pipeline ships yet (the lidar ones are the next issue): configured sensors
-        are reported lost, loudly, and the autopilot navigates on its own sources.
+        A configured sensor without a driver in this version (camera, IMU, GNSS) is reported
+        lost, loudly; it is never silently ignored.
         """
-        for name, sensor in self.cfg.sensors.items():
-            reason = f"no {sensor.kind} driver with backend {sensor.backend!r} in this version"
-            log.error("sensor %s: %s; it is not read", name, reason)
-            self.health.report(f"sensor:{name}", State.LOST, reason)
-        return []
+        cfg = self.cfg
+        lidar_cfg = cfg.pipelines.lidar
+        pipeline = None
+        if lidar_cfg is not None:
+            vertical = cfg.sensors[lidar_cfg.vertical_sensor]
+            pipeline = LidarPipeline(lidar_cfg, load_world(cfg.resolve(lidar_cfg.map)),
+                                     cfg.sensors[lidar_cfg.horizontal_sensor].mount, vertical.mount,
+                                     self.state, self.health)
+        self.drivers = {}
+        for name, sensor in cfg.sensors.items():
+            if sensor.kind != "lidar":
+                reason = f"no {sensor.kind} driver with backend {sensor.backend!r} in this version"
+                log.error("sensor %s: %s; it is not read", name, reason)
+                self.health.report(f"sensor:{name}", State.LOST, reason)
+                continue
+            driver = LidarDriver(name, self._lidar_backend(name, sensor), self.health, self._scan_sink(name, pipeline))
+            self.drivers[name] = driver
+            self.supervisor.spawn(f"driver:{name}", driver.run)
+        return [pipeline] if pipeline is not None else []
+
+    def _lidar_backend(self, name: str, sensor: SensorConfig) -> ScanBackend:
+        settings = build_settings(sensor.kind, sensor.backend, sensor.settings)
+        if sensor.backend == "real":
+            return HokuyoScip(settings, sensor_id=name)
+        if sensor.backend == "replay":
+            return ReplayLidar(name, settings, base_dir=self.cfg.base_dir)
+        if self.truth is None:
+            self.truth = TruthSource(self.link, self.cfg.origin)
+            self.sim_world = load_world(self.cfg.resolve(self.cfg.sitl.world))
+        return SimulatedLidar(name, settings, Mount.from_config(sensor.mount), self.sim_world, self.truth)
+
+    def _scan_sink(self, name: str, pipeline: LidarPipeline | None) -> Callable[[Scan], None]:
+        lidar_cfg = self.cfg.pipelines.lidar
+        if pipeline is not None and lidar_cfg is not None and name == lidar_cfg.horizontal_sensor:
+            return pipeline.on_horizontal_scan
+        if pipeline is not None and lidar_cfg is not None and name == lidar_cfg.vertical_sensor:
+            return pipeline.on_vertical_scan
+        log.warning("sensor %s feeds no pipeline; its scans are counted and dropped", name)
+        return lambda scan: None
 
     def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_WARNING) -> None:
         """Send a STATUSTEXT (<= 50 characters) to the autopilot, which forwards it to the GCS."""
@@ -164,7 +211,9 @@ class Daemon:
                                      "nonfinite_dropped_link": link.stats.nonfinite_dropped})
         t.publish("system", {**process_usage(self.started_wall),
                              "loop_jitter_ms": self.nav.jitter_ms.summary(),
-                             "stage_ms": {n: s.summary() for n, s in self.nav.stage_ms.items()},
+                             "stage_ms": self.nav.stage_summaries(),
+                             "pipelines": {p.name: p.snapshot() for p in self.nav.pipelines},
+                             "drivers": {n: vars(d.stats) for n, d in self.drivers.items()},
                              "setpoints_sent": self.setpoints.sent})
         t.publish("rates", {"streams": t.stats()})
         if self.mission is not None:

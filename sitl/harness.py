@@ -78,8 +78,14 @@ def write_run_config(cfg: Config, mission: str | None, out_dir: Path, autopilot_
     raw.setdefault("mission", {})["file"] = str(mission_file) if mission_file else None
     raw.setdefault("sitl", {})["world"] = str(cfg.resolve(cfg.sitl.world))
     raw.setdefault("mavlink", {})["url"] = autopilot_url or companion_url_for(cfg.sitl.vehicle_url)
+    # The copy lives elsewhere: every path the config holds becomes absolute.
     if cfg.mavlink.signing_key_file:
         raw["mavlink"]["signing_key_file"] = str(cfg.resolve(cfg.mavlink.signing_key_file))
+    if cfg.pipelines.lidar is not None:
+        raw["pipelines"]["lidar"]["map"] = str(cfg.resolve(cfg.pipelines.lidar.map))
+    for name, sensor in cfg.sensors.items():
+        if "file" in sensor.settings:
+            raw["sensors"][name]["settings"]["file"] = str(cfg.resolve(sensor.settings["file"]))
     path = out_dir / "companion.yaml"
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
     return path

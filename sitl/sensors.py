@@ -54,8 +54,15 @@ class ImuErrors:
     gyro_bias_walk_rad_s_per_sqrt_s: float = 2e-5
 
 
+# ArduPilot reports its IMU through low-pass filters (INS_ACCEL_FILTER, INS_GYRO_FILTER,
+# 20 Hz by default), so a 50 Hz HIGHRES_IMU stream does not alias a touchdown impulse.
+REPORT_FILTER_HZ = 20.0
+
+
 class Imu:
-    """400 Hz accelerometer + gyro. Latest reading in floats ``ax ay az`` (m/s^2), ``gx gy gz`` (rad/s)."""
+    """400 Hz accelerometer + gyro. Latest raw reading in floats ``ax ay az`` (m/s^2), ``gx gy gz``
+    (rad/s), which the flight controller and estimator use; :meth:`snapshot` gives the
+    20 Hz low-passed values the autopilot reports over MAVLink."""
 
     def __init__(self, noise: GaussianStream, errors: ImuErrors | None = None) -> None:
         self._noise = noise
@@ -65,6 +72,7 @@ class Imu:
         self._gyro_bias = [e.gyro_bias_rad_s * draw() for _ in range(3)]
         self.ax, self.ay, self.az = 0.0, 0.0, 0.0
         self.gx, self.gy, self.gz = 0.0, 0.0, 0.0
+        self._reported: list[float] | None = None  # low-passed [ax, ay, az, gx, gy, gz]
 
     def sample(self, dt: float, specific_force: tuple[float, float, float], rate: tuple[float, float, float]) -> None:
         """Read the true body specific force (m/s^2) and angular rate (rad/s) after ``dt`` seconds."""
@@ -82,10 +90,17 @@ class Imu:
         self.gx = rate[0] + gb[0] + ng * draw()
         self.gy = rate[1] + gb[1] + ng * draw()
         self.gz = rate[2] + gb[2] + ng * draw()
+        raw = [self.ax, self.ay, self.az, self.gx, self.gy, self.gz]
+        if self._reported is None:
+            self._reported = raw
+        else:
+            k = dt / (dt + 1.0 / (2 * math.pi * REPORT_FILTER_HZ))
+            self._reported = [f + k * (r - f) for f, r in zip(self._reported, raw)]
 
     def snapshot(self, t: float) -> ImuSample:
-        """The latest reading as an :class:`ImuSample` taken at simulation time ``t``."""
-        return ImuSample(t, np.array([self.ax, self.ay, self.az]), np.array([self.gx, self.gy, self.gz]))
+        """The reported (20 Hz low-passed) reading as an :class:`ImuSample` at simulation time ``t``."""
+        f = self._reported or [self.ax, self.ay, self.az, self.gx, self.gy, self.gz]
+        return ImuSample(t, np.array(f[:3]), np.array(f[3:]))
 
 
 class Barometer:

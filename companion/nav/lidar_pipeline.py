@@ -1,0 +1,196 @@
+"""The `lidar` pipeline: Wang et al.'s two-lidar localization fused with the IMU to 50 Hz.
+
+Data flow (all in the daemon's event loop, no I/O here):
+
+- the horizontal scanner's scans -> :class:`~companion.nav.planar.PlanarLocalizer` (x, y, yaw
+  in the map = LOCAL_NED at the EKF origin) -> fusion position and yaw corrections at the
+  scan's capture time;
+- the vertical scanner's scans -> :class:`~companion.nav.height.HeightEstimator` (height above
+  the floor) -> fusion height correction;
+- the autopilot's HIGHRES_IMU (specific force) and ATTITUDE (roll, pitch; yaw only as a rate)
+  -> fusion prediction;
+- every nav cycle: the fused state -> a :class:`PoseEstimate` (VISION_POSITION_ESTIMATE +
+  VISION_SPEED_ESTIMATE), only while the filter is healthy. A relocalization jump or a fusion
+  reset sets ``reset`` so the autopilot's ``reset_counter`` increments.
+
+Scans are processed when the nav loop turns (the newest one of each scanner; a scan that was
+overtaken before processing is counted as skipped).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.config import LidarPipelineConfig, MountConfig
+from companion.frames import wrap_pi
+from companion.health import Health, State
+from companion.mavlink.autopilot import AutopilotState
+from companion.mavlink.estimate import PoseEstimate
+from companion.nav.fusion import FusionFilter, to_pose_estimate
+from companion.nav.height import HeightEstimator
+from companion.nav.loop import Timings
+from companion.nav.planar import Mount2D, PlanarLocalizer
+from drivers.scan import Scan
+from sitl.world import World
+
+LEVEL_TOLERANCE_DEG = 1.0
+# Walls are cut at this scanner height above the floor for relocalization's wall check (an
+# indoor flight height: doors and windows at it are openings the scanner sees through).
+RELOCALIZATION_SCAN_HEIGHT_M = 1.0
+PLANAR_HEALTH = {"tracking": State.OK, "degraded": State.DEGRADED, "lost": State.LOST}
+
+
+@dataclass
+class LidarPipelineStats:
+    horizontal_scans: int = 0
+    vertical_scans: int = 0
+    skipped_scans: int = 0  # overtaken by a newer scan before the nav loop got to them
+    planar_fixes: int = 0  # measured fixes given to the fusion
+    height_fixes: int = 0
+    relocalizations: int = 0
+    first_fix_t: float | None = None
+    last_fix_t: float | None = None
+
+    def fix_rate_hz(self) -> float | None:
+        """Measured planar fixes per second of daemon time."""
+        if self.first_fix_t is None or self.last_fix_t is None or self.last_fix_t <= self.first_fix_t:
+            return None
+        return (self.planar_fixes - 1) / (self.last_fix_t - self.first_fix_t)
+
+
+def planar_mount(mount: MountConfig) -> Mount2D:
+    """The horizontal scanner's 2-D mount; it must be mounted level (roll, pitch 0)."""
+    roll, pitch, yaw = mount.rpy_deg
+    if abs(roll) > LEVEL_TOLERANCE_DEG or abs(pitch) > LEVEL_TOLERANCE_DEG:
+        raise ValueError(f"the horizontal scanner must be mounted level (roll, pitch 0), got rpy_deg {list(mount.rpy_deg)}")
+    x, y, z = mount.position_m
+    return Mount2D(x_m=x, y_m=y, yaw_rad=math.radians(yaw), z_m=z)
+
+
+class LidarPipeline:
+    """Two-lidar localization + fusion; see the module docstring."""
+
+    name = "lidar"
+
+    def __init__(self, cfg: LidarPipelineConfig, world_map: World, horizontal: MountConfig,
+                 vertical: MountConfig, autopilot: AutopilotState, health: Health) -> None:
+        self.autopilot = autopilot
+        self.health = health
+        initial = None
+        if cfg.initial_pose is not None:
+            x, y, yaw_deg = cfg.initial_pose
+            initial = (x, y, math.radians(yaw_deg))
+        mount = planar_mount(horizontal)
+        self.localizer = PlanarLocalizer(world_map.corner_array(), world_map.wall_angle_deg, mount,
+                                         walls=world_map.segments_at(RELOCALIZATION_SCAN_HEIGHT_M),
+                                         initial_pose=initial)
+        self.height = HeightEstimator(tuple(vertical.position_m), tuple(math.radians(a) for a in vertical.rpy_deg))
+        self.fusion = FusionFilter()
+        self.stats = LidarPipelineStats()
+        self.timings = {"lidar": Timings(), "fusion": Timings()}
+        self._horizontal: Scan | None = None
+        self._vertical: Scan | None = None
+        self._imu_t: float | None = None
+        self._scan_yaw: float | None = None  # autopilot yaw at the previous horizontal scan
+        self._reset_counter = 0
+        health.report("nav:lidar", State.LOST, "waiting for scans")
+
+    # -- inputs (driver callbacks) ------------------------------------------------------
+
+    def on_horizontal_scan(self, scan: Scan) -> None:
+        self.stats.horizontal_scans += 1
+        self.stats.skipped_scans += self._horizontal is not None
+        self._horizontal = scan
+
+    def on_vertical_scan(self, scan: Scan) -> None:
+        self.stats.vertical_scans += 1
+        self.stats.skipped_scans += self._vertical is not None
+        self._vertical = scan
+
+    # -- the nav cycle --------------------------------------------------------------------
+
+    def step(self, now: float) -> PoseEstimate | None:
+        """Advance to daemon time ``now`` (s); the fused estimate, or None while not healthy."""
+        started = time.perf_counter()
+        self._predict()
+        predicted = time.perf_counter()
+        scan_ms = 0.0
+        if self._horizontal is not None:
+            scan_ms += self._process_horizontal(self._horizontal)
+            self._horizontal = None
+        if self._vertical is not None:
+            scan_ms += self._process_vertical(self._vertical)
+            self._vertical = None
+        if scan_ms:
+            self.timings["lidar"].add(scan_ms)
+        resumed = time.perf_counter()
+        estimate = self._output(now)
+        self.timings["fusion"].add((predicted - started + time.perf_counter() - resumed) * 1e3)
+        return estimate
+
+    def _attitude(self) -> tuple[float, float, float]:
+        return self.autopilot.attitude_euler or (0.0, 0.0, 0.0)
+
+    def _predict(self) -> None:
+        ap = self.autopilot
+        if ap.imu_time is None or ap.accel_body is None or ap.imu_time == self._imu_t:
+            return
+        self._imu_t = ap.imu_time
+        self.fusion.predict(ap.imu_time, ap.accel_body, self._attitude(), ap.gyro_body)
+
+    def _process_horizontal(self, scan: Scan) -> float:
+        roll, pitch, yaw = self._attitude()
+        yaw_delta = 0.0 if self._scan_yaw is None else wrap_pi(yaw - self._scan_yaw)
+        self._scan_yaw = yaw
+        started = time.perf_counter()
+        fix = self.localizer.update(scan, roll=roll, pitch=pitch, yaw_delta=yaw_delta)
+        elapsed = (time.perf_counter() - started) * 1e3
+        if fix is None:
+            self.health.report("nav:lidar", State.LOST, self.localizer.last_reason or "no pose: relocalizing")
+            return elapsed
+        self.health.report("nav:lidar", PLANAR_HEALTH[fix.state], fix.reason or f"{fix.matched} corners matched")
+        if fix.relocalized:
+            self.stats.relocalizations += 1
+            z = self.fusion.state(scan.t_capture).position_ned[2]
+            self.fusion.reset(np.array([fix.x, fix.y, z]), fix.yaw, scan.t_capture)
+        elif fix.measured:
+            self.fusion.correct_position(scan.t_capture, np.array([fix.x, fix.y]), fix.covariance[:2, :2])
+            self.fusion.correct_yaw(scan.t_capture, fix.yaw, float(fix.covariance[2, 2]))
+        if fix.measured:
+            self.stats.planar_fixes += 1
+            self.stats.first_fix_t = self.stats.first_fix_t if self.stats.first_fix_t is not None else scan.t_capture
+            self.stats.last_fix_t = scan.t_capture
+        return elapsed
+
+    def _process_vertical(self, scan: Scan) -> float:
+        roll, pitch, _ = self._attitude()
+        started = time.perf_counter()
+        fix = self.height.update(scan, roll, pitch)
+        elapsed = (time.perf_counter() - started) * 1e3
+        if fix.state == "lost":
+            self.health.report("nav:height", State.LOST, fix.reason)
+            return elapsed
+        self.health.report("nav:height", State.OK if fix.state == "ok" else State.DEGRADED, fix.reason or "floor found")
+        self.fusion.correct_height(scan.t_capture, fix.height_m, fix.variance)
+        self.stats.height_fixes += 1
+        return elapsed
+
+    def _output(self, now: float) -> PoseEstimate | None:
+        state = self.fusion.state(now)
+        if not state.healthy:
+            self.health.report("nav:fusion", State.LOST, state.reason)
+            return None
+        self.health.report("nav:fusion", state.status, state.reason or "fused")
+        reset = state.reset_counter != self._reset_counter
+        self._reset_counter = state.reset_counter
+        roll, pitch, _ = self._attitude()
+        return to_pose_estimate(state, roll, pitch, reset=reset, source=self.name)
+
+    def snapshot(self) -> dict:
+        """Telemetry: counters and the fix rate."""
+        return {**{k: v for k, v in vars(self.stats).items()}, "fix_rate_hz": self.stats.fix_rate_hz(),
+                "fusion": {"gated": dict(self.fusion.stats.fixes_gated), "stale": self.fusion.stats.fixes_stale}}
