@@ -9,7 +9,8 @@ A backend implements :class:`ScanBackend`: ``open()``, ``read()`` returning the 
   frontend counts it and reads on; nothing else is lost.
 - ``OSError`` (including pyserial's SerialException, ConnectionError, EOF as
   :class:`DeviceLost`): the device is gone. The frontend closes it, reports the sensor lost
-  and reopens with backoff (0.5 s doubling to 10 s) until it comes back.
+  and reopens with backoff (0.5 s doubling to 10 s; reset once scans flow again) until it
+  comes back.
 - :class:`EndOfData`: a replay has no more scans (the frontend stops, health says why).
 
 :class:`LidarDriver` is the frontend; it hands every good scan to ``on_scan`` (the pipeline)
@@ -81,30 +82,29 @@ class LidarDriver:
         self.on_scan = on_scan
         self.stats = DriverStats()
         self._component = f"sensor:{name}"
+        self._backoff = MIN_BACKOFF_S  # wait before the next open after a loss, s
 
     async def run(self) -> None:
         """Read forever (until cancelled or a replay ends), reopening the device when it drops."""
-        backoff = MIN_BACKOFF_S
         while True:
             try:
                 await self.backend.open()
             except OSError as exc:
-                self._lost(f"cannot open {self.backend.description}: {exc}", backoff)
-                await asyncio.sleep(backoff)
-                backoff = min(2 * backoff, MAX_BACKOFF_S)
+                await self._lost(f"cannot open {self.backend.description}: {exc}")
                 continue
-            backoff = MIN_BACKOFF_S
             self.health.report(self._component, State.OK, f"{self.backend.description} streaming")
             try:
-                await self._read_until_lost()
+                reason = await self._read_until_lost()
             except EndOfData:
                 self.health.report(self._component, State.LOST, "replay finished")
                 await asyncio.Event().wait()  # done; stay quiet until cancelled
             finally:
                 await self.backend.close()
             self.stats.reconnects += 1
+            await self._lost(reason)
 
-    async def _read_until_lost(self) -> None:
+    async def _read_until_lost(self) -> str:
+        """Read until the device is lost; returns why."""
         while True:
             try:
                 scan = await self.backend.read()
@@ -114,12 +114,15 @@ class LidarDriver:
                 log.debug("%s: corrupt frame skipped: %s", self.name, exc)
                 continue
             except OSError as exc:
-                self._lost(f"{self.backend.description} lost: {exc}", MIN_BACKOFF_S)
-                return
+                return f"{self.backend.description} lost: {exc}"
+            self._backoff = MIN_BACKOFF_S  # scans flow: the next loss starts the backoff afresh
             self.stats.scans += 1
             self.on_scan(scan)
 
-    def _lost(self, reason: str, retry_s: float) -> None:
+    async def _lost(self, reason: str) -> None:
+        """Report the loss, then wait the backoff before the next open (doubling each time)."""
         self.stats.last_error = reason
         self.health.report(self._component, State.LOST, reason)
-        log.warning("%s: %s; retrying in %.1f s", self.name, reason, retry_s)
+        log.warning("%s: %s; retrying in %.1f s", self.name, reason, self._backoff)
+        await asyncio.sleep(self._backoff)
+        self._backoff = min(2 * self._backoff, MAX_BACKOFF_S)

@@ -70,13 +70,15 @@ def test_ready_and_watchdog_pings_reach_systemd(tmp_path: Path) -> None:
     assert "STOPPING=1" in received
 
 
-def test_a_configured_sensor_without_a_driver_is_reported_lost_not_ignored(tmp_path: Path) -> None:
+def test_sensors_that_cannot_be_read_are_reported_lost_not_ignored(tmp_path: Path) -> None:
+    """A camera (no driver in this version) and an unplugged scanner (retried with backoff)."""
     cfg = tmp_path / "c.yaml"
     cfg.write_text(
         "origin: {lat: 1.0, lon: 2.0, alt: 3.0}\n"
         f"mavlink: {{url: 'udpout:127.0.0.1:{free_port()}'}}\n"
         "telemetry: {enabled: false}\n"
-        "sensors:\n  lidar_h: {kind: lidar, backend: real, settings: {port: /dev/ttyACM0}}\n")
+        "sensors:\n  cam: {kind: camera, backend: real}\n"
+        "  lidar_h: {kind: lidar, backend: real, settings: {port: /dev/ttyNOSUCHDEVICE}}\n")
     proc = subprocess.Popen([sys.executable, "-m", "companion.cli", "run", "-c", str(cfg)],
                             cwd=REPO, stderr=subprocess.PIPE, text=True)
     try:
@@ -87,5 +89,7 @@ def test_a_configured_sensor_without_a_driver_is_reported_lost_not_ignored(tmp_p
         proc.kill()
         proc.wait()
     stderr = proc.stderr.read()
-    assert "sensor lidar_h: no lidar driver with backend 'real' in this version" in stderr
-    assert "sensor:lidar_h: lost" in stderr
+    assert "sensor cam: no camera driver with backend 'real' in this version" in stderr
+    assert "sensor:cam: lost" in stderr
+    assert "sensor:lidar_h: lost (cannot open" in stderr
+    assert stderr.count("lidar_h: cannot open") >= 2  # retried

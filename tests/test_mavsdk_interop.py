@@ -83,6 +83,7 @@ def write_sitl_config(path: Path, *, vehicle_port: int, gcs_port: int, zenoh_por
     raw["sitl"]["vehicle_url"] = f"udpin:127.0.0.1:{vehicle_port}"
     raw["sitl"]["gcs_urls"] = [f"udpout:127.0.0.1:{gcs_port}"]
     raw["sitl"]["world"] = str(REPO / "config" / "worlds" / "arena.yaml")
+    raw["pipelines"]["lidar"]["map"] = str(REPO / "config" / "worlds" / "arena.yaml")
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
     return path
 
