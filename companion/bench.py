@@ -72,12 +72,24 @@ STAGES: dict[str, Callable[[], Callable[[], object]]] = {
 }
 
 
+def _row(name: str, median: float, p99: float) -> None:
+    print(f"{name:<50} {median:>10.4f} {p99:>10.4f}")
+
+
 def run_bench(repeat: int) -> int:
+    """Print every stage's median and p99 in ms: link, telemetry, SITL, lidar pipeline, fusion."""
+    from companion.nav.bench_fusion import run_fusion_bench
+    from companion.nav.bench_stages import run_stage_bench
+
     print(f"companion bench: {repeat} calls per stage, Python {platform.python_version()}, "
           f"numpy {np.__version__}, {platform.machine()}")
     print(f"{'stage':<50} {'median ms':>10} {'p99 ms':>10}")
     for name, make in STAGES.items():
-        median, p99 = time_stage(make(), repeat)
-        print(f"{name:<50} {median:>10.4f} {p99:>10.4f}")
-    print("navigation pipelines: none in this build yet (the lidar pipeline arrives with issue 3)")
+        _row(name, *time_stage(make(), repeat))
+    print("lidar pipeline (a 1081-beam UTM-30LX scan / 682-beam URG-04LX scan of the default arena):")
+    for name, (median, p99) in run_stage_bench(repeat).items():
+        _row(name, median, p99)
+    print("fusion (50 Hz Kalman filter):")
+    for name, (median, p99) in run_fusion_bench(repeat).items():
+        _row(name, median, p99)
     return 0

@@ -25,7 +25,8 @@ import yaml
 
 from sitl.harness import TelemetryListener
 from tests.conftest import REPO, free_port
-from tests.test_mavsdk_interop import SitlRun, children_of, cmdline_of, note_children, stop_sitl, write_sitl_config
+from tests.sitl_helpers import write_sitl_config
+from tests.test_mavsdk_interop import SitlRun, children_of, cmdline_of, note_children, stop_sitl
 
 MISSION_TIMEOUT_S = 60.0
 EXIT_TIMEOUT_S = 10.0

@@ -30,9 +30,9 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-import yaml
 
 from tests.conftest import REPO, free_port
+from tests.sitl_helpers import write_sitl_config
 
 SITL_SECONDS = 90  # --seconds: the vehicle's own end of the run, far beyond the flight
 TAKEOFF_ALT_M = 1.0
@@ -71,21 +71,6 @@ def children_of(pid: int) -> dict[int, bytes]:
     except OSError:
         pass
     return found
-
-
-def write_sitl_config(path: Path, *, vehicle_port: int, gcs_port: int, zenoh_port: int,
-                      mission: str | None) -> Path:
-    """config/sitl.yaml with free loopback ports, absolute paths and the given mission file (None: none)."""
-    raw = yaml.safe_load((REPO / "config" / "sitl.yaml").read_text())
-    raw["mavlink"]["url"] = f"udpout:127.0.0.1:{vehicle_port}"
-    raw["telemetry"]["listen"] = [f"tcp/127.0.0.1:{zenoh_port}"]
-    raw["mission"]["file"] = mission
-    raw["sitl"]["vehicle_url"] = f"udpin:127.0.0.1:{vehicle_port}"
-    raw["sitl"]["gcs_urls"] = [f"udpout:127.0.0.1:{gcs_port}"]
-    raw["sitl"]["world"] = str(REPO / "config" / "worlds" / "arena.yaml")
-    raw["pipelines"]["lidar"]["map"] = str(REPO / "config" / "worlds" / "arena.yaml")
-    path.write_text(yaml.safe_dump(raw, sort_keys=False))
-    return path
 
 
 def note_children(run: SitlRun, timeout_s: float = 10.0) -> None:
