@@ -16,14 +16,19 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from tests.conftest import REPO, free_port
 from tests.sitl_helpers import write_sitl_config
 
 
-def fly(tmp_path: Path, mission: str, seconds: float, seed: int = 1) -> dict:
+def fly(tmp_path: Path, mission: str, seconds: float, seed: int = 1, initial_pose: bool = True) -> dict:
     cfg = write_sitl_config(tmp_path / "sitl.yaml", vehicle_port=free_port(), gcs_port=free_port(),
                             zenoh_port=free_port(socket.SOCK_STREAM), mission=None)
+    if not initial_pose:
+        raw = yaml.safe_load(cfg.read_text())
+        raw["pipelines"]["lidar"]["initial_pose"] = None
+        cfg.write_text(yaml.safe_dump(raw, sort_keys=False))
     report = tmp_path / "report.json"
     proc = subprocess.run(
         [sys.executable, "-m", "companion.cli", "sitl", "-c", str(cfg), "--mission", mission, "--lockstep",
@@ -59,3 +64,10 @@ def test_patrol_flies_every_room_on_the_lidar_estimate(tmp_path: Path) -> None:
     assert r["autopilot"]["external_nav_in_use"]
     assert r["estimate"]["position_rms_m"] <= 0.03
     assert r["estimate"]["lost_seconds"] == 0.0
+
+
+def test_an_unknown_start_pose_is_found_by_global_relocalization(tmp_path: Path) -> None:
+    r = fly(tmp_path, "hover", 30, seed=3, initial_pose=False)
+    assert r["control"]["mission_completed"]
+    assert r["estimate"]["position_rms_m"] <= 0.03
+    assert r["estimate"]["yaw_rms_deg"] <= 0.5
