@@ -145,6 +145,10 @@ class SitlConfig:
     wind_ned_mps: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0), metadata=meta("Mean wind, NED m/s.", (-20, 20)))
     gust_mps: float = field(default=0.2, metadata=meta("Gust standard deviation, m/s.", (0, 10)))
     tick_s: float = field(default=0.005, metadata=meta("Lockstep tick (simulation seconds per clock step).", (0.001, 0.05)))
+    scip_sensors: list[str] = field(default_factory=list, metadata=meta(
+        "Sensors (names in `sensors`: lidars with backend real, settings.host 127.0.0.1, settings.model "
+        "UTM-30LX or URG-04LX, one settings.tcp_port each) that the SCIP bridge (python -m sitl.scip_bridge) "
+        "emulates from the vehicle's ground truth, so the real Hokuyo driver runs end to end. Real time only."))
 
 
 @dataclass
@@ -164,6 +168,9 @@ class Config:
     def validate(self) -> tuple[str, str] | None:
         if any(s.backend == "sim" for s in self.sensors.values()) and self.mavlink.streams.sim_state <= 0:
             return "mavlink.streams.sim_state", "simulated sensors render from SIM_STATE ground truth: ask for it (e.g. 50)"
+        problem = self._check_scip_sensors()
+        if problem is not None:
+            return problem
         lidar = self.pipelines.lidar
         if lidar is None:
             return None
@@ -172,6 +179,29 @@ class Config:
             sensor = self.sensors.get(name)
             if sensor is None or sensor.kind != "lidar":
                 return f"pipelines.lidar.{key}", f"{name!r} is not a lidar in `sensors` ({', '.join(self.sensors) or 'none'})"
+        return None
+
+    def _check_scip_sensors(self) -> tuple[str, str] | None:
+        """sitl.scip_sensors: real lidars on loopback, of a model the bridge emulates, on distinct ports."""
+        from drivers.lidar_models import MODELS  # drivers import this module
+
+        ports: dict[int, str] = {}
+        for i, name in enumerate(self.sitl.scip_sensors):
+            key = f"sitl.scip_sensors[{i}]"
+            if name in self.sitl.scip_sensors[:i]:
+                return key, f"{name!r} is named twice"
+            sensor = self.sensors.get(name)
+            if sensor is None or sensor.kind != "lidar" or sensor.backend != "real":
+                return key, f"{name!r} is not a lidar with backend: real in `sensors`"
+            settings = sensor.settings
+            if settings.get("host") != "127.0.0.1":
+                return key, f"sensor {name!r}: the SCIP bridge listens on loopback: set settings.host: 127.0.0.1"
+            if settings.get("model") not in MODELS:
+                return key, f"sensor {name!r}: settings.model must name the emulated model ({', '.join(sorted(MODELS))})"
+            port = int(settings.get("tcp_port", 10940))
+            if port in ports:
+                return key, f"sensor {name!r}: settings.tcp_port {port} is also {ports[port]!r}'s"
+            ports[port] = name
         return None
 
     def resolve(self, relative: str) -> Path:

@@ -4,6 +4,11 @@ The harness writes a run config derived from the given one (mission, absolute pa
 ``python -m sitl.vehicle`` (MAVLink on loopback UDP) and ``companion run`` (which publishes
 zenoh telemetry on loopback TCP), listens to that telemetry as a zenoh peer, and at the end
 scores the run against the vehicle's ground truth (sitl/report.py).
+
+With ``sitl.scip_sensors`` (real time only) it also starts ``python -m sitl.scip_bridge``
+before the daemon: the bridge gets its own vehicle link (an extra ``--gcs`` on a free loopback
+UDP port) for SIM_STATE truth and serves those sensors over SCIP 2.0 on their
+``settings.tcp_port``, where the daemon's real Hokuyo driver connects.
 """
 
 from __future__ import annotations
@@ -14,6 +19,7 @@ import json
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
@@ -33,6 +39,11 @@ from sitl.world import load_world
 log = logging.getLogger("companion.sitl")
 
 STOP_GRACE_S = 5.0
+BRIDGE_READY_S = 15.0  # the SCIP bridge must listen on every port within this
+
+
+class StartFailure(Exception):
+    """A process of the run did not come up."""
 
 
 class TelemetryListener:
@@ -91,7 +102,8 @@ def write_run_config(cfg: Config, mission: str | None, out_dir: Path, autopilot_
     return path
 
 
-def vehicle_command(cfg: Config, args: argparse.Namespace, log_path: Path) -> list[str]:
+def vehicle_command(cfg: Config, args: argparse.Namespace, log_path: Path,
+                    extra_gcs: tuple[str, ...] = ()) -> list[str]:
     s = cfg.sitl
     start = s.start if s.start is not None else load_world(cfg.resolve(s.world)).start
     cmd = [sys.executable, "-m", "sitl.vehicle", "--companion", s.vehicle_url,
@@ -100,7 +112,7 @@ def vehicle_command(cfg: Config, args: argparse.Namespace, log_path: Path) -> li
            "--position-source", s.position_source,
            "--wind", ",".join(str(w) for w in s.wind_ned_mps), "--gust", str(s.gust_mps),
            "--start", ",".join(str(v) for v in start), "--sysid", str(cfg.vehicle.autopilot_sysid)]
-    for url in s.gcs_urls:
+    for url in (*s.gcs_urls, *extra_gcs):
         cmd += ["--gcs", url]
     if not s.gps:
         cmd.append("--no-gps")
@@ -109,6 +121,45 @@ def vehicle_command(cfg: Config, args: argparse.Namespace, log_path: Path) -> li
     if args.seconds is not None:
         cmd += ["--seconds", str(args.seconds)]
     return cmd
+
+
+def free_udp_port() -> int:
+    """A currently free loopback UDP port."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def scip_bridge_command(cfg: Config, args: argparse.Namespace, vehicle_url: str) -> list[str]:
+    """``python -m sitl.scip_bridge`` serving ``sitl.scip_sensors`` (validated by Config) from
+    the vehicle link ``vehicle_url``: model, mount and TCP port of each from its config."""
+    cmd = [sys.executable, "-m", "sitl.scip_bridge", "--vehicle", vehicle_url,
+           "--world", str(cfg.resolve(cfg.sitl.world)),
+           "--home", f"{cfg.origin.lat},{cfg.origin.lon},{cfg.origin.alt}", "--seed", str(args.seed)]
+    for name in cfg.sitl.scip_sensors:
+        sensor = cfg.sensors[name]
+        values = (*sensor.mount.position_m, *sensor.mount.rpy_deg, sensor.settings.get("tcp_port", 10940))
+        cmd += ["--sensor", ",".join([name, sensor.settings["model"], *(str(v) for v in values)])]
+    return cmd
+
+
+def scip_ports(cfg: Config) -> list[int]:
+    return [int(cfg.sensors[name].settings.get("tcp_port", 10940)) for name in cfg.sitl.scip_sensors]
+
+
+def wait_listening(proc: subprocess.Popen, ports: list[int], timeout_s: float) -> bool:
+    """Until ``proc`` accepts TCP connections on every loopback port (True), exits or times out."""
+    deadline = time.monotonic() + timeout_s
+    waiting = list(ports)
+    while waiting:
+        if proc.poll() is not None or time.monotonic() > deadline:
+            return False
+        try:
+            with socket.create_connection(("127.0.0.1", waiting[0]), timeout=0.5):
+                waiting.pop(0)
+        except OSError:
+            time.sleep(0.05)
+    return True
 
 
 def process_cpu_rss(pid: int) -> tuple[float, float] | None:
@@ -159,6 +210,8 @@ class Session:
 
     vehicle: subprocess.Popen | None = None
     daemon: subprocess.Popen | None = None
+    bridge: subprocess.Popen | None = None  # the SCIP bridge (sitl.scip_sensors)
+    bridge_rc: int | None = None  # its exit code; 1 if it ended during the run
     listener: TelemetryListener | None = None
     started: float = field(default_factory=time.monotonic)
     usage: tuple[float, float] | None = None  # daemon (CPU s, peak RSS MB)
@@ -172,6 +225,9 @@ class Session:
             if self.daemon.poll() is not None:
                 log.error("the daemon exited with %s during the run", self.daemon.returncode)
                 return
+            if self.bridge is not None and self.bridge.poll() is not None:
+                log.error("the SCIP bridge exited with %s during the run", self.bridge.returncode)
+                return
             if self.vehicle is None and seconds is not None and time.monotonic() - self.started > seconds:
                 return
             self.usage = process_cpu_rss(self.daemon.pid) or self.usage
@@ -182,16 +238,28 @@ class Session:
         if self.daemon is not None:
             self.usage = process_cpu_rss(self.daemon.pid) or self.usage
         telemetry = self.listener.snapshot() if self.listener else {}
+        bridge_ended_early = self.bridge is not None and self.bridge.poll() is not None
         daemon_rc = _terminate(self.daemon, "daemon") if self.daemon is not None else 0
         vehicle_rc = _terminate(self.vehicle, "vehicle") if self.vehicle is not None else 0
+        if self.bridge is not None:
+            rc = _terminate(self.bridge, "SCIP bridge")
+            self.bridge_rc = (rc or 1) if bridge_ended_early else rc
         if self.listener:
             self.listener.close()
         return daemon_rc, vehicle_rc, telemetry
 
 
 def _start(session: Session, cfg: Config, args: argparse.Namespace, run_cfg: Path, vehicle_log: Path) -> None:
+    extra_gcs: tuple[str, ...] = ()
+    if cfg.sitl.scip_sensors:
+        port = free_udp_port()
+        extra_gcs = (f"udpout:127.0.0.1:{port}",)
+        session.bridge = subprocess.Popen(scip_bridge_command(cfg, args, f"udpin:127.0.0.1:{port}"))
     if args.autopilot is None:
-        session.vehicle = subprocess.Popen(vehicle_command(cfg, args, vehicle_log))
+        session.vehicle = subprocess.Popen(vehicle_command(cfg, args, vehicle_log, extra_gcs))
+    if session.bridge is not None and not wait_listening(session.bridge, scip_ports(cfg), BRIDGE_READY_S):
+        raise StartFailure(f"the SCIP bridge is not serving {', '.join(cfg.sitl.scip_sensors)} "
+                           f"on 127.0.0.1:{', '.join(str(p) for p in scip_ports(cfg))}")
     daemon_cmd = [sys.executable, "-m", "companion.cli", "run", "-c", str(run_cfg)]
     if args.lockstep:
         daemon_cmd.append("--lockstep")
@@ -210,29 +278,41 @@ def run_harness(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"companion: {exc}", file=sys.stderr)
         return 2
+    if cfg.sitl.scip_sensors and (args.lockstep or args.autopilot is not None):
+        print("companion: sitl.scip_sensors needs the built-in vehicle in real time (the SCIP bridge runs on the "
+              "wall clock); lockstep runs use backend: sim sensors", file=sys.stderr)
+        return 2
     work = Path(tempfile.mkdtemp(prefix="companion-sitl-"))
     run_cfg = write_run_config(cfg, args.mission, work, args.autopilot)
     vehicle_log = work / "vehicle-log.json"
     mission_name = args.mission or (Path(cfg.mission.file).stem if cfg.mission.file else "none")
     session = Session()
     interrupted = False
+    start_failed = False
     with _sigterm_as_ctrl_c():
         try:
             _start(session, cfg, args, run_cfg, vehicle_log)
+            bridge = f"; SCIP bridge serving {', '.join(cfg.sitl.scip_sensors)}" if session.bridge else ""
             print(f"companion sitl: vehicle + daemon running (mission {mission_name}, "
                   f"{'lockstep' if args.lockstep else 'real time'}, seed {args.seed}); "
-                  f"telemetry on zenoh {', '.join(cfg.telemetry.listen)}; GCS links {', '.join(cfg.sitl.gcs_urls)}",
-                  flush=True)
+                  f"telemetry on zenoh {', '.join(cfg.telemetry.listen)}; GCS links {', '.join(cfg.sitl.gcs_urls)}"
+                  f"{bridge}", flush=True)
             session.wait(args.seconds)
         except KeyboardInterrupt:
             interrupted = True
+        except StartFailure as exc:
+            log.error("%s", exc)
+            start_failed = True
         wall = time.monotonic() - session.started
         daemon_rc, vehicle_rc, telemetry = session.stop()
     if interrupted:
         print("companion sitl: stopped", flush=True)
-    ok = daemon_rc == 0 and vehicle_rc == 0
+    if start_failed:
+        return 1
+    ok = daemon_rc == 0 and vehicle_rc == 0 and session.bridge_rc in (None, 0)
     if not ok:
-        print(f"companion sitl: daemon exit {daemon_rc}, vehicle exit {vehicle_rc}", file=sys.stderr)
+        bridge_exit = f", SCIP bridge exit {session.bridge_rc}" if session.bridge is not None else ""
+        print(f"companion sitl: daemon exit {daemon_rc}, vehicle exit {vehicle_rc}{bridge_exit}", file=sys.stderr)
     if args.report:
         if session.vehicle is None or not vehicle_log.exists():
             print("companion sitl: no vehicle flight log, cannot score a report "
