@@ -43,7 +43,8 @@ class WaitReadyStep:
 
 @dataclass
 class ArmStep:
-    timeout_s: float = field(default=5.0, metadata=meta("Wait for the armed HEARTBEAT this long.", (0.1, 60)))
+    timeout_s: float = field(default=10.0, metadata=meta(
+        "Keep asking (pre-arm checks can be transient) and wait for the armed HEARTBEAT this long.", (0.1, 60)))
 
 
 @dataclass
@@ -190,8 +191,17 @@ class MissionRunner:
     async def _arm(self, step: ArmStep) -> None:
         if not self.allow_arm:
             raise MissionFailed("arming is not allowed by the config (mission.allow_arm: false)")
-        await self.commander.arm()
-        await self._wait_for(lambda: self.state.armed, step.timeout_s, "the armed state")
+        deadline = clock.now() + step.timeout_s
+        while True:  # a refusal (pre-arm check) is retried every second until the timeout
+            try:
+                await self.commander.arm()
+                break
+            except CommandFailed:
+                if clock.now() + 1.0 > deadline:
+                    raise
+                log.info("arming refused (see the autopilot's PreArm message); retrying")
+                await asyncio.sleep(1.0)
+        await self._wait_for(lambda: self.state.armed, max(1.0, deadline - clock.now()), "the armed state")
 
     async def _takeoff(self, step: TakeoffStep) -> None:
         self._takeoff_altitude = step.altitude_m

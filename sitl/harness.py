@@ -175,7 +175,18 @@ def process_cpu_rss(pid: int) -> tuple[float, float] | None:
         return None
 
 
-def _terminate(proc: subprocess.Popen, name: str) -> int:
+SELF_EXIT_GRACE_S = 2.0  # after Ctrl-C, which the whole foreground group receives
+
+
+def _terminate(proc: subprocess.Popen, name: str, interrupted: bool = False) -> int:
+    """Stop a child: SIGTERM, then SIGKILL after STOP_GRACE_S. After a Ctrl-C the child got the
+    SIGINT too and is already stopping: give it a moment first, or SIGTERM could land just
+    after it restored its default handlers and kill its exit."""
+    if interrupted and proc.poll() is None:
+        try:
+            return proc.wait(SELF_EXIT_GRACE_S)
+        except subprocess.TimeoutExpired:
+            pass
     if proc.poll() is None:
         proc.send_signal(signal.SIGTERM)
         try:
@@ -233,16 +244,16 @@ class Session:
             self.usage = process_cpu_rss(self.daemon.pid) or self.usage
             time.sleep(0.2)
 
-    def stop(self) -> tuple[int, int, dict[str, dict]]:
+    def stop(self, interrupted: bool = False) -> tuple[int, int, dict[str, dict]]:
         """Stop everything; (daemon exit code, vehicle exit code, last telemetry)."""
         if self.daemon is not None:
             self.usage = process_cpu_rss(self.daemon.pid) or self.usage
         telemetry = self.listener.snapshot() if self.listener else {}
         bridge_ended_early = self.bridge is not None and self.bridge.poll() is not None
-        daemon_rc = _terminate(self.daemon, "daemon") if self.daemon is not None else 0
-        vehicle_rc = _terminate(self.vehicle, "vehicle") if self.vehicle is not None else 0
+        daemon_rc = _terminate(self.daemon, "daemon", interrupted) if self.daemon is not None else 0
+        vehicle_rc = _terminate(self.vehicle, "vehicle", interrupted) if self.vehicle is not None else 0
         if self.bridge is not None:
-            rc = _terminate(self.bridge, "SCIP bridge")
+            rc = _terminate(self.bridge, "SCIP bridge", interrupted)
             self.bridge_rc = (rc or 1) if bridge_ended_early else rc
         if self.listener:
             self.listener.close()
@@ -304,7 +315,7 @@ def run_harness(args: argparse.Namespace) -> int:
             log.error("%s", exc)
             start_failed = True
         wall = time.monotonic() - session.started
-        daemon_rc, vehicle_rc, telemetry = session.stop()
+        daemon_rc, vehicle_rc, telemetry = session.stop(interrupted)
     if interrupted:
         print("companion sitl: stopped", flush=True)
     if start_failed:

@@ -131,6 +131,9 @@ class AutopilotState:
 
     def _on_statustext(self, msg: mavlink.MAVLink_message) -> None:
         text = msg.text
+        if msg.get_srcComponent() == self.link.ids.autopilot_compid:  # not our own, routed back
+            log.log(logging.WARNING if msg.severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO,
+                    "autopilot says: %s", text)
         self.statustext.append((clock.now(), msg.severity, text))
         del self.statustext[:-50]
         if "using external nav" in text:
