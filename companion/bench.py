@@ -7,7 +7,6 @@ call on this machine. Figures in the README come from this command.
 from __future__ import annotations
 
 import platform
-import time
 from collections.abc import Callable
 
 import numpy as np
@@ -16,18 +15,7 @@ from companion.mavlink.estimate import PoseEstimate, is_finite, upper_triangle
 from companion.mavlink.link import mavlink, nonfinite_fields
 from companion.mavlink.setpoints import Setpoint, setpoint_message
 from companion.telemetry.publisher import encode_json
-
-
-def time_stage(fn: Callable[[], object], repeat: int) -> tuple[float, float]:
-    """(median ms, p99 ms) of ``fn`` over ``repeat`` calls after a short warm-up."""
-    for _ in range(min(50, repeat)):
-        fn()
-    samples = np.empty(repeat)
-    for i in range(repeat):
-        start = time.perf_counter()
-        fn()
-        samples[i] = time.perf_counter() - start
-    return float(np.median(samples) * 1e3), float(np.percentile(samples, 99) * 1e3)
+from companion.timing import time_stage
 
 
 def _estimate_output_stage() -> Callable[[], object]:

@@ -12,6 +12,7 @@ import numpy as np
 
 from companion.frames import GRAVITY_MPS2
 from companion.nav.fusion import FusionFilter, to_pose_estimate
+from companion.timing import percentiles_ms
 
 IMU_DT_S = 0.02  # 50 Hz
 FIX_DELAY_STEPS = 4.5  # the benchmarked fix was captured 90 ms ago: 5 stored steps to re-run
@@ -45,11 +46,6 @@ class _Hover:
         f.correct_yaw(t_capture, 0.1, 1e-4)
 
 
-def _percentiles(samples: list[float]) -> tuple[float, float]:
-    s = np.asarray(samples) * 1e3
-    return float(np.median(s)), float(np.percentile(s, 99))
-
-
 def run_fusion_bench(repeat: int) -> dict[str, tuple[float, float]]:
     """Stage name -> (median ms, p99 ms) of the fusion hot paths over ``repeat`` calls each."""
     hover = _Hover()
@@ -77,7 +73,7 @@ def run_fusion_bench(repeat: int) -> dict[str, tuple[float, float]]:
         f.correct_height(t_capture, 1.0 + hover.rng.normal(0.0, 0.01), 1e-4)
         f.correct_yaw(t_capture, 0.1, 1e-4)
     return {
-        "fusion.predict (one 50 Hz IMU step)": _percentiles(predict),
-        "fusion.predict + state + to_pose_estimate": _percentiles(step),
-        "fusion.correct_position (90 ms late, 5 steps re-run)": _percentiles(correct),
+        "fusion.predict (one 50 Hz IMU step)": percentiles_ms(predict),
+        "fusion.predict + state + to_pose_estimate": percentiles_ms(step),
+        "fusion.correct_position (90 ms late, 5 steps re-run)": percentiles_ms(correct),
     }

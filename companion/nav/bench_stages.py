@@ -14,7 +14,6 @@ the floor are -z), body FRD, sensor frames as in drivers/scan.py.
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from companion.nav.heading import track_heading
 from companion.nav.height import HeightEstimator
 from companion.nav.lines import extract_lines
 from companion.nav.planar import Mount2D, PlanarLocalizer
+from companion.timing import time_stage
 from drivers.lidar_models import URG_04LX, UTM_30LX, LidarModel
 from drivers.mount import Mount, beam_directions
 from drivers.scan import Scan
@@ -97,16 +97,4 @@ def run_stage_bench(repeat: int, world: World | None = None) -> dict[str, tuple[
         "lidar.relocalize (whole pipeline, no prior)": relocalize,
         "lidar.height (vertical scan)": lambda: height.update(vertical),
     }
-    return {name: _time(fn, repeat) for name, fn in stages.items()}
-
-
-def _time(fn: Callable[[], object], repeat: int) -> tuple[float, float]:
-    """(median ms, p99 ms) of ``fn`` over ``repeat`` calls after a short warm-up."""
-    for _ in range(min(50, repeat)):
-        fn()
-    samples = np.empty(repeat)
-    for i in range(repeat):
-        start = time.perf_counter()
-        fn()
-        samples[i] = time.perf_counter() - start
-    return float(np.median(samples) * 1e3), float(np.percentile(samples, 99) * 1e3)
+    return {name: time_stage(fn, repeat) for name, fn in stages.items()}
