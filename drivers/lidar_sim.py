@@ -121,7 +121,12 @@ class SimulatedLidar(ScanBackend):
         """The scan seen from a vehicle at ``position_ned`` (m, NED) with attitude ``quat``
         ([w, x, y, z], body FRD -> NED), stamped ``t_capture`` (daemon clock, s)."""
         rotation, origin = self.mount.sensor_to_world(position_ned, quat)
-        true_m = cast(self.geometry, origin, self._directions @ rotation.T)
+        ranges, valid = self.measure(cast(self.geometry, origin, self._directions @ rotation.T))
+        return Scan(self.sensor_id, t_capture, self._angles, ranges, valid, sweep_s=0.0, sequence=sequence)
+
+    def measure(self, true_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(ranges m, valid) the scanner reports for true distances ``true_m`` (inf = no hit):
+        the model's range noise, its min/max range and the configured dropouts; 0 where invalid."""
         hit = np.isfinite(true_m)
         true_m = np.where(hit, true_m, 0.0)
         bound = self.model.accuracy_bound_m(true_m) * self.settings.noise_scale
@@ -129,5 +134,4 @@ class SimulatedLidar(ScanBackend):
         ranges = true_m + noise
         valid = (hit & (ranges >= self.model.min_range_m) & (ranges <= self.model.max_range_m)
                  & (self._rng.random(len(true_m)) >= self.settings.dropout_prob))
-        return Scan(self.sensor_id, t_capture, self._angles, np.where(valid, ranges, 0.0), valid,
-                    sweep_s=0.0, sequence=sequence)
+        return np.where(valid, ranges, 0.0), valid

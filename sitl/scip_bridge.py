@@ -255,16 +255,8 @@ class SweptLidar(SimulatedLidar):
         body_to_ned = rotations_from_quats(quats)
         origins = positions + body_to_ned @ self.mount.offset_m
         directions = np.einsum("nij,nj->ni", body_to_ned @ self.mount.rotation, self._directions)
-        true_m = cast(self.geometry, origins, directions)
-        # The noise and validity of SimulatedLidar.render.
-        hit = np.isfinite(true_m)
-        true_m = np.where(hit, true_m, 0.0)
-        bound = self.model.accuracy_bound_m(true_m) * self.settings.noise_scale
-        noise = np.clip(self._rng.standard_normal(len(true_m)) * (bound / 3.0), -bound, bound)
-        ranges = true_m + noise
-        valid = (hit & (ranges >= self.model.min_range_m) & (ranges <= self.model.max_range_m)
-                 & (self._rng.random(len(true_m)) >= self.settings.dropout_prob))
-        return Scan(self.sensor_id, float(beam_times[0]), self._angles, np.where(valid, ranges, 0.0), valid,
+        ranges, valid = self.measure(cast(self.geometry, origins, directions))
+        return Scan(self.sensor_id, float(beam_times[0]), self._angles, ranges, valid,
                     sweep_s=float(beam_times[-1] - beam_times[0]), sequence=sequence)
 
 
