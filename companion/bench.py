@@ -66,6 +66,7 @@ def _row(name: str, median: float, p99: float) -> None:
 
 def run_bench(repeat: int) -> int:
     """Print every stage's median and p99 in ms: link, telemetry, SITL, lidar pipeline, fusion."""
+    from companion.control.bench_control import control_figures, run_control_bench
     from companion.nav.bench_fusion import run_fusion_bench
     from companion.nav.bench_stages import run_stage_bench
 
@@ -80,4 +81,19 @@ def run_bench(repeat: int) -> int:
     print("fusion (50 Hz Kalman filter):")
     for name, (median, p99) in run_fusion_bench(repeat).items():
         _row(name, median, p99)
+    print("control (RPT outer loop vs a PID with the same closed-loop poles):")
+    for name, (median, p99) in run_control_bench(repeat).items():
+        _row(name, median, p99)
+    for name, value in control_figures().items():
+        print(f"  {name}: {_figure(value)}")
     return 0
+
+
+def _figure(value: object) -> str:
+    """Readable control figures: step (rise s, settling s, overshoot %), tracking {name: (rms m, max m)}."""
+    if isinstance(value, tuple):
+        rise, settle, overshoot = value
+        return f"rise {rise:.2f} s, settling {settle:.2f} s, overshoot {overshoot:.1f} %"
+    if isinstance(value, dict):
+        return ", ".join(f"{k} RMS {rms * 1e3:.1f} mm (max {mx * 1e3:.1f})" for k, (rms, mx) in value.items())
+    return f"{value:.1f}"
