@@ -1,7 +1,8 @@
 """The Hokuyo scanner models as data: beam geometry, timing, range limits and range noise.
 
 Numbers from the SCIP 2.0 ``PP`` replies and the datasheets (/work/shared/REFERENCE.md,
-"Hokuyo SCIP 2.0"). A model measures steps ``amin .. amax`` of ``ares`` steps per turn; step
+"Hokuyo SCIP 2.0"). The PP reply (``pp``) is the one source of the step geometry, the scan
+rate and DMIN; the SCIP emulator answers PP with the same values. A model measures steps ``amin .. amax`` of ``ares`` steps per turn; step
 ``afrt`` is the scanner's front. Angles are in the sensor frame of :mod:`drivers.scan`
 (positive from the front towards the right, i.e. clockwise seen from above), and Hokuyo steps
 count counter-clockwise, so ``angle = -(step - afrt) * 2 pi / ares``: the first step is on
@@ -21,23 +22,50 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from drivers.scip import SensorParams
+
 
 @dataclass(frozen=True)
 class LidarModel:
     """One scanner model. Distances in metres, times in seconds, steps in Hokuyo step units."""
 
     name: str
-    amin: int  # first measured step
-    amax: int  # last measured step
-    afrt: int  # step pointing along the scanner's front (sensor x)
-    ares: int  # steps per full turn
-    scan_period_s: float  # one turn of the mirror = one scan
-    min_range_m: float  # DMIN: shorter readings are error codes
-    max_range_m: float  # DMAX: the longest range the device reports
+    pp: SensorParams  # the device's PP reply: steps AMIN..AMAX, AFRT, ARES, SCAN rpm, DMIN, DMAX
+    max_range_m: float  # the longest range simulated (the datasheet's, which may be below DMAX)
     near_limit_m: float  # accuracy bound changes at this range
     near_bound_m: float  # accuracy bound (m) up to near_limit_m
     far_bound_m: float  # beyond near_limit_m the bound is far_bound_m + far_bound_fraction * range
     far_bound_fraction: float
+
+    @property
+    def amin(self) -> int:
+        """First measured step."""
+        return self.pp.amin
+
+    @property
+    def amax(self) -> int:
+        """Last measured step."""
+        return self.pp.amax
+
+    @property
+    def afrt(self) -> int:
+        """Step pointing along the scanner's front (sensor x)."""
+        return self.pp.afrt
+
+    @property
+    def ares(self) -> int:
+        """Steps per full turn."""
+        return self.pp.ares
+
+    @property
+    def scan_period_s(self) -> float:
+        """One turn of the mirror = one scan, s."""
+        return self.pp.scan_period_s
+
+    @property
+    def min_range_m(self) -> float:
+        """DMIN: shorter readings are error codes, m."""
+        return self.pp.dmin_mm / 1000.0
 
     @property
     def beams(self) -> int:
@@ -70,16 +98,16 @@ class LidarModel:
 
 
 UTM_30LX = LidarModel(
-    name="UTM-30LX", amin=0, amax=1080, afrt=540, ares=1440, scan_period_s=0.025,
+    name="UTM-30LX", pp=SensorParams("UTM-30LX", 23, 60000, 1440, 0, 1080, 540, 2400),
     # DMAX in the PP reply is 60 m, but ranges are specified (and accurate) to 30 m only.
-    min_range_m=0.023, max_range_m=30.0,
+    max_range_m=30.0,
     near_limit_m=10.0, near_bound_m=0.030, far_bound_m=0.050, far_bound_fraction=0.0,
 )
 
 URG_04LX = LidarModel(
-    name="URG-04LX", amin=44, amax=725, afrt=384, ares=1024, scan_period_s=0.1,
+    name="URG-04LX", pp=SensorParams("URG-04LX(Hokuyo Automatic Co., Ltd.)", 20, 5600, 1024, 44, 725, 384, 600),
     # Rated to 4 m; the device reports up to DMAX = 5.6 m (the real recording has 5.58 m).
-    min_range_m=0.020, max_range_m=5.6,
+    max_range_m=5.6,
     near_limit_m=1.0, near_bound_m=0.010, far_bound_m=0.0, far_bound_fraction=0.01,
 )
 

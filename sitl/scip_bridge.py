@@ -75,7 +75,6 @@ from drivers.lidar_sim import SimLidarSettings, SimulatedLidar  # noqa: E402
 from drivers.mount import Mount  # noqa: E402
 from drivers.scan import Scan  # noqa: E402
 from sitl.raycast import cast  # noqa: E402
-from sitl.scip_emulator import MODELS as SCIP_MODELS  # noqa: E402
 from sitl.scip_emulator import ScipEmulator  # noqa: E402
 from sitl.world import World, load_world  # noqa: E402
 
@@ -275,8 +274,8 @@ class SensorSpec:
         if len(parts) != 9:
             raise argparse.ArgumentTypeError("expected NAME,MODEL,X,Y,Z,ROLL,PITCH,YAW_DEG,PORT")
         name, model = parts[0], parts[1]
-        if model not in SCIP_MODELS or model not in LIDAR_MODELS:
-            raise argparse.ArgumentTypeError(f"model {model!r}: one of {', '.join(sorted(SCIP_MODELS))}")
+        if model not in LIDAR_MODELS:
+            raise argparse.ArgumentTypeError(f"model {model!r}: one of {', '.join(sorted(LIDAR_MODELS))}")
         try:
             x, y, z, roll, pitch, yaw = (float(v) for v in parts[2:8])
             port = int(parts[8])
@@ -293,11 +292,7 @@ class BridgedScanner:
     def __init__(self, spec: SensorSpec, world: World, truth: TruthHistory, seed: int,
                  clock: Callable[[], float], noise_scale: float = 1.0) -> None:
         self.spec = spec
-        self.params = params = SCIP_MODELS[spec.model]
-        model = LIDAR_MODELS[spec.model]
-        if (params.amin, params.amax, params.afrt, params.ares) != (model.amin, model.amax, model.afrt, model.ares) \
-                or not math.isclose(params.scan_period_s, model.scan_period_s):
-            raise ValueError(f"{spec.model}: the emulator's PP and drivers/lidar_models.py disagree")
+        self.params = params = LIDAR_MODELS[spec.model].pp
         self.truth = truth
         settings = SimLidarSettings(model=spec.model, seed=seed, noise_scale=noise_scale)  # type: ignore[arg-type]
         self.lidar = SweptLidar(spec.name, settings, Mount.from_config(spec.mount), world, truth)

@@ -42,13 +42,11 @@ from typing import Literal
 import numpy as np
 
 from drivers import scip
+from drivers.lidar_models import MODELS as LIDAR_MODELS
 from drivers.scip import SensorParams
 
-MODELS: dict[str, SensorParams] = {
-    # PP replies of the real sensors (/work/shared/REFERENCE.md, "Hokuyo SCIP 2.0").
-    "URG-04LX": SensorParams("URG-04LX(Hokuyo Automatic Co., Ltd.)", 20, 5600, 1024, 44, 725, 384, 600),
-    "UTM-30LX": SensorParams("UTM-30LX", 23, 60000, 1440, 0, 1080, 540, 2400),
-}
+# PP replies of the real sensors, from the one model table (drivers/lidar_models.py).
+MODELS: dict[str, SensorParams] = {name: model.pp for name, model in LIDAR_MODELS.items()}
 
 StartMode = Literal["scip2", "scip1", "tm", "streaming"]
 # One scan: (sensor timestamp in ms or None for the emulator's clock, ranges in mm for
