@@ -188,6 +188,11 @@ class Link:
         self.conn.close()
 
 
+def _covariance(msg: mav.MAVLink_message) -> list[float] | None:
+    """A VISION_* covariance as sent, or None ("unknown") when any entry is non-finite."""
+    return list(msg.covariance) if _finite(msg.covariance) else None
+
+
 def _finite(values: Sequence[float]) -> bool:
     return all(math.isfinite(v) for v in values)
 
@@ -537,28 +542,25 @@ class Vehicle:
         pos = (msg.x, msg.y, msg.z)
         euler = (msg.roll, msg.pitch, msg.yaw)
         self.log.add_vision_position(t_rx, msg.usec, pos, euler, msg.reset_counter, msg.covariance[0])
-        if not _finite(pos + euler):
-            self._nonfinite += 1
-            return
-        t_capture = self._capture_time(link, msg.usec, t_rx)
-        if t_capture is None:
-            return
-        covariance = list(msg.covariance) if _finite(msg.covariance) else None
-        self.copter.vision_position(t_capture, np.array(pos), np.array(euler), covariance, msg.reset_counter)
+        t_capture = self._vision_capture_time(link, msg.usec, t_rx, pos + euler)
+        if t_capture is not None:
+            self.copter.vision_position(t_capture, np.array(pos), np.array(euler), _covariance(msg), msg.reset_counter)
 
     def _on_vision_speed(self, link: Link, msg: mav.MAVLink_message) -> None:
         """VISION_SPEED_ESTIMATE: world-frame velocity (m/s) at ``usec``."""
         t_rx = self._now()
         vel = (msg.x, msg.y, msg.z)
         self.log.add_vision_speed(t_rx, msg.usec, vel)
-        if not _finite(vel):
+        t_capture = self._vision_capture_time(link, msg.usec, t_rx, vel)
+        if t_capture is not None:
+            self.copter.vision_speed(t_capture, np.array(vel), _covariance(msg), msg.reset_counter)
+
+    def _vision_capture_time(self, link: Link, usec: int, t_rx: float, values: tuple[float, ...]) -> float | None:
+        """Sim time of a vision sample, or None (counted) if a value is non-finite or the stamp is dropped."""
+        if not _finite(values):
             self._nonfinite += 1
-            return
-        t_capture = self._capture_time(link, msg.usec, t_rx)
-        if t_capture is None:
-            return
-        covariance = list(msg.covariance) if _finite(msg.covariance) else None
-        self.copter.vision_speed(t_capture, np.array(vel), covariance, msg.reset_counter)
+            return None
+        return self._capture_time(link, usec, t_rx)
 
     def _capture_time(self, link: Link, usec: int, t_rx: float) -> float | None:
         """Sim time of a companion capture stamp (JitterCorrection); None (counted) if dropped."""
