@@ -396,19 +396,22 @@ def test_setpoint_fields_make_a_pos_vel_acc_target() -> None:
     out = c.step(0.02, Reference((1.0, 0.0, -1.0)), MeasuredState((0.0, 0.0, -1.2), (0.1, 0.0, 0.0)))
     sp = Setpoint(**out.setpoint_fields())
     assert sp.type_mask == 3072
-    assert tuple(sp.position_ned) == (0.0, 0.0, -1.2)  # measured: the autopilot's loop adds nothing
-    assert sp.velocity_ned[2] == out.velocity_ned_z and sp.velocity_ned[0] == 0.1
+    assert tuple(sp.position_ned) == (1.0, 0.0, -1.0)  # the reference: the autopilot's loop closes on it too
+    assert sp.velocity_ned[2] == out.velocity_ned_z and sp.velocity_ned[0] == 0.0  # reference velocity
+    assert tuple(sp.acceleration_ned[:2]) == out.acceleration_ned[:2] and out.acceleration_ned[0] > 0.0
 
 
 def test_position_only_target_inverts_the_autopilot_cascade() -> None:
-    out = ControlOutput((0.6, -0.4, 0.0), -0.3, (1.0, 2.0, -1.0), (0.2, 0.1, -0.3), (False,) * 3)
+    out = ControlOutput((0.6, -0.4, 0.0), -0.3, (9.0, 9.0, -9.0), (0.0, 0.0, -0.3), (1.0, 2.0, -1.0),
+                        (0.2, 0.1, 0.0), (False,) * 3)
     kp, kv, kpz = 1.0, 2.0, 1.0
     tx, ty, tz = position_only_target(out, pos_gain_xy=kp, vel_gain_xy=kv, pos_gain_z=kpz)
     # the autopilot's linear cascade demands exactly the RPT output
     assert kv * (kp * (tx - 1.0) - 0.2) == pytest.approx(0.6)
     assert kv * (kp * (ty - 2.0) - 0.1) == pytest.approx(-0.4)
     assert kpz * (tz + 1.0) == pytest.approx(-0.3)
-    far = ControlOutput((2.5, 0.0, 0.0), 1.0, (0.0, 0.0, -1.0), (2.0, 0.0, 1.0), (False,) * 3)
+    far = ControlOutput((2.5, 0.0, 0.0), 1.0, (5.0, 0.0, -1.0), (0.0, 0.0, 1.0), (0.0, 0.0, -1.0),
+                        (2.0, 0.0, 0.0), (False,) * 3)
     tx, ty, tz = position_only_target(far, max_lead_m=1.0)
     assert math.hypot(tx, ty) == pytest.approx(1.0) and tz == pytest.approx(0.0)
     held = far._replace(valid=False)

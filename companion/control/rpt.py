@@ -106,17 +106,19 @@ velocity, acceleration, jerk")
 Sending it to the autopilot (companion/mavlink/setpoints.py)
 ------------------------------------------------------------
 ArduPilot accepts one type mask for all axes, so "acceleration for x, y and velocity for z"
-is sent as position + velocity + acceleration (mask 3072): ``ControlOutput.position_ned`` is
-the MEASURED position, ``velocity_ned`` the measured horizontal velocity with the z velocity
-reference, ``acceleration_ned`` the x, y acceleration references and the rate of the z
-velocity reference. The autopilot's own position/velocity loop therefore sees zero error at
-each send and passes the acceleration and the z velocity through (the closed loop is the RPT
-one) and propagates the target with the feed-forward between sends. If the stream stops,
-the target is a position target near the vehicle (ArduPilot drops the feed-forward after its
-3 s GUIDED timeout and holds; PX4 leaves OFFBOARD), not a bare acceleration. Sending the
-measured position means the autopilot's own loop only acts on the difference between its
-EKF and our estimate (which it fuses), i.e. hardly at all. :func:`position_only_target` is
-the fallback for an autopilot that only takes positions (mask 3576).
+is sent as position + velocity + acceleration (mask 3072, :meth:`ControlOutput.setpoint_fields`):
+the trajectory's REFERENCE position, its horizontal reference velocity with the RPT z velocity
+reference, and the RPT x, y acceleration references (plus the rate of the z velocity
+reference) as the acceleration feed-forward. The autopilot keeps its own position/velocity
+loop closed around the same reference on its EKF (which fuses our estimate) and adds the RPT
+output as feed-forward: the RPT feedback (with its integral, on the companion's estimate) and
+the autopilot's act on the same error, so the vehicle tracks at least as stiffly as either
+alone, and if the stream stops the last target is a position on the trajectory (ArduPilot drops
+the feed-forward after its 3 s GUIDED timeout and holds there; PX4 leaves OFFBOARD). The
+report's tracking error is then the distance of the true vehicle from the reference it was
+sent. :func:`position_only_target` is the fallback for an autopilot or mode that only takes
+positions (mask 3576): it inverts the autopilot's linear cascade so that it demands the RPT
+output.
 """
 
 from __future__ import annotations
@@ -532,16 +534,19 @@ class ControlOutput(NamedTuple):
     ``acceleration_ned``: x, y acceleration references (m/s^2) and, in z, the rate of the z
     velocity reference (its feed-forward); ``velocity_ned_z``: the z velocity reference (m/s);
     ``position_ned`` / ``velocity_ned``: what to send with them under a position + velocity +
-    acceleration type mask (the measured position, the measured horizontal velocity and the
-    z velocity reference: the autopilot's own loop then adds nothing at the send instant);
-    ``saturated``: per axis, a limit changed the law's output; ``valid``: False for the held
-    safe output returned on non-finite input.
+    acceleration type mask: the reference position (m) and the horizontal reference velocity
+    with the z velocity reference (m/s); ``measured_position_ned`` / ``measured_velocity_ned``:
+    the state the law saw; ``saturated``: per axis, a limit changed the law's output;
+    ``valid``: False for the held safe output returned on non-finite input (then the position
+    is the last finite measured one and the horizontal velocity 0: hold there).
     """
 
     acceleration_ned: tuple[float, float, float]
     velocity_ned_z: float
     position_ned: tuple[float, float, float]
     velocity_ned: tuple[float, float, float]
+    measured_position_ned: tuple[float, float, float]
+    measured_velocity_ned: tuple[float, float, float]
     saturated: tuple[bool, bool, bool]
     valid: bool = True
 
@@ -564,8 +569,8 @@ def position_only_target(output: ControlOutput, *, pos_gain_xy: float = 1.0, vel
     integrators and the sampling of position targets make this an approximation of the RPT
     loop, not the RPT loop itself; prefer mask 3072 (:meth:`ControlOutput.setpoint_fields`).
     """
-    px, py, pz = output.position_ned
-    vx, vy, _ = output.velocity_ned
+    px, py, pz = output.measured_position_ned
+    vx, vy, _ = output.measured_velocity_ned
     ax, ay, _ = output.acceleration_ned
     lx = (vx + ax / vel_gain_xy) / pos_gain_xy
     ly = (vy + ay / vel_gain_xy) / pos_gain_xy
@@ -716,8 +721,8 @@ class OuterLoopController:
         za = self.z
         wz = za.step(dt, prz, vrz, arz, pz, vz)
         self._last_position = (px, py, pz)
-        return ControlOutput((ux, uy, za.feedforward), wz, (px, py, pz), (vx, vy, wz),
-                             (xa.saturated, ya.saturated, za.saturated), True)
+        return ControlOutput((ux, uy, za.feedforward), wz, (prx, pry, prz), (vrx, vry, wz), (px, py, pz),
+                             (vx, vy, vz), (xa.saturated, ya.saturated, za.saturated), True)
 
     def held_output(self, dt: float) -> ControlOutput:
         """The held safe output (non-finite input): accelerations and z velocity ramp to 0 under
@@ -739,7 +744,7 @@ class OuterLoopController:
             axis.nonfinite_inputs += 1
         wz = self.z.hold(dt)
         return ControlOutput((ox * s, oy * s, self.z.feedforward), wz, self._last_position, (0.0, 0.0, wz),
-                             (False, False, False), False)
+                             self._last_position, (0.0, 0.0, 0.0), (False, False, False), False)
 
 
 class RptController(OuterLoopController):
