@@ -296,6 +296,8 @@ class Vehicle:
             mav.MAV_CMD_NAV_TAKEOFF: self._cmd_takeoff,
             mav.MAV_CMD_NAV_LAND: self._cmd_land,
             mav.MAV_CMD_DO_SET_HOME: self._cmd_set_home,
+            mav.MAV_CMD_DO_SET_SERVO: self._cmd_set_servo,
+            mav.MAV_CMD_DO_GRIPPER: self._cmd_gripper,
         }
 
     # ------------------------------------------------------------------ time
@@ -680,6 +682,20 @@ class Vehicle:
     def _cmd_land(self, link: Link, p: tuple[float, ...], frame: int | None) -> int:
         ok, _ = self.copter.land()
         return mav.MAV_RESULT_ACCEPTED if ok else mav.MAV_RESULT_FAILED
+
+    def _cmd_set_servo(self, link: Link, p: tuple[float, ...], frame: int | None) -> int:
+        """param1 output number (1..32), param2 PWM (us); the flight log's commands record it."""
+        if not (1 <= int(p[0]) <= 32 and 500 <= int(p[1]) <= 2500):
+            return mav.MAV_RESULT_DENIED
+        return mav.MAV_RESULT_ACCEPTED
+
+    def _cmd_gripper(self, link: Link, p: tuple[float, ...], frame: int | None) -> int:
+        """param1 gripper instance (>= 1), param2 GRIPPER_ACTIONS (0 release, 1 grab)."""
+        if int(p[0]) < 1 or int(p[1]) not in (mav.GRIPPER_ACTION_RELEASE, mav.GRIPPER_ACTION_GRAB):
+            return mav.MAV_RESULT_DENIED
+        if int(p[1]) == mav.GRIPPER_ACTION_RELEASE:
+            self._texts.append((mav.MAV_SEVERITY_INFO, "Gripper load released"))
+        return mav.MAV_RESULT_ACCEPTED
 
     def _cmd_set_home(self, link: Link, p: tuple[float, ...], frame: int | None) -> int:
         """param1 1: current position; else param5/6 lat/lon (deg), param7 alt (m AMSL, or per frame)."""
