@@ -43,7 +43,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_check_config(args: argparse.Namespace) -> int:
-    from companion.mission import load_mission
+    from companion.mission.steps import load_mission
     from sitl.world import load_world
 
     try:
@@ -104,6 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
     sitl.add_argument("--lockstep", action="store_true", help="deterministic simulated clock")
     sitl.add_argument("--seed", type=int, default=0)
     sitl.add_argument("--report", help="write the truth-scored flight report (JSON) here")
+    sitl.add_argument("--control-law", choices=["rpt", "pid"], help="fly trajectories with this law (overrides control.law)")
     sitl.add_argument("--autopilot", help="use an external autopilot SITL at this pymavlink URL instead of the built-in vehicle")
     sitl.set_defaults(func=_cmd_sitl)
 

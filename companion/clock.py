@@ -24,6 +24,9 @@ import asyncio
 import selectors
 import time
 from collections.abc import Callable
+from typing import TypeVar
+
+T = TypeVar("T")
 
 
 class _IdleAwareSelector(selectors.BaseSelector):
@@ -119,3 +122,15 @@ def is_lockstep() -> bool:
 def now() -> float:
     """The daemon's monotonic time in seconds (simulation time in lockstep)."""
     return asyncio.get_running_loop().time()
+
+
+async def compute(fn: Callable[..., T], *args: object) -> T:
+    """``fn(*args)`` for CPU work that can take long (e.g. planning a trajectory, ~0.2 s).
+
+    In real time it runs on a worker thread, so the nav loop and the setpoint stream keep their
+    rates meanwhile. In lockstep it runs inline: computing costs no simulation time there (as
+    every other computation of the daemon does), which keeps a seeded run deterministic.
+    """
+    if is_lockstep():
+        return fn(*args)
+    return await asyncio.to_thread(fn, *args)

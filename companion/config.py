@@ -123,9 +123,101 @@ class LoggingConfig:
 
 
 @dataclass
+class RptAxisConfig:
+    """RPT design parameters of one channel (eq. 16): closed-loop poles at roots(p_i) / epsilon."""
+
+    epsilon: float = field(default=1.0, metadata=meta("Bandwidth scale: the poles move as 1 / epsilon.", (0.05, 20)))
+    omega_n: float = field(default=0.99, metadata=meta("Natural frequency of the pole pair, rad/s.", (0.01, 20)))
+    zeta: float = field(default=0.707, metadata=meta("Damping of the pole pair.", (0.05, 10)))
+    k_i: float = field(default=0.25, metadata=meta("Integral pole, 1/s (x, y only; the z channel has no room for it).", (0, 10)))
+
+
+@dataclass
+class ControlLimitsConfig:
+    """Limits on the controller's output (the trajectory has its own, per mission step)."""
+
+    speed_xy_mps: float = field(default=2.0, metadata=meta("Horizontal speed guard.", (0.1, 20)))
+    accel_xy_mps2: float = field(default=2.5, metadata=meta("Horizontal acceleration reference norm.", (0.1, 20)))
+    jerk_xy_mps3: float = field(default=5.0, metadata=meta("Rate limit on the horizontal acceleration reference.", (0.1, 100)))
+    climb_mps: float = field(default=1.0, metadata=meta("Largest upward velocity reference.", (0.1, 10)))
+    descent_mps: float = field(default=0.8, metadata=meta("Largest downward velocity reference.", (0.1, 10)))
+    accel_z_mps2: float = field(default=2.0, metadata=meta("Rate limit on the vertical velocity reference.", (0.1, 20)))
+
+
+@dataclass
+class AutopilotGainsConfig:
+    """The autopilot's own position-loop gains, used only by ``control.output: position_only``."""
+
+    pos_xy_p: float = field(default=1.0, metadata=meta("ArduPilot PSC_POSXY_P / PX4 MPC_XY_P, 1/s.", (0.1, 10)))
+    vel_xy_p: float = field(default=2.0, metadata=meta("ArduPilot PSC_VELXY_P / PX4 MPC_XY_VEL_P_ACC, 1/s.", (0.1, 20)))
+    pos_z_p: float = field(default=1.0, metadata=meta("ArduPilot PSC_POSZ_P / PX4 MPC_Z_P, 1/s.", (0.1, 10)))
+
+
+@dataclass
+class ControlConfig:
+    """The outer loop that flies mission trajectories (companion/control/, Wang et al. section IV)."""
+
+    rate_hz: float = field(default=50.0, metadata=meta("Control loop and setpoint rate while flying a trajectory.", (10, 200)))
+    law: Literal["rpt", "pid"] = field(default="rpt", metadata=meta(
+        "rpt: the paper's robust and perfect tracking law; pid: the baseline with the same closed-loop poles and no "
+        "feed-forward (for comparison flights)."))
+    output: Literal["pos_vel_acc", "position_only"] = field(default="pos_vel_acc", metadata=meta(
+        "pos_vel_acc: reference position + velocity (z: the controller's) + the controller's acceleration as "
+        "feed-forward (type_mask 3072); position_only: a position target that makes the autopilot's own loop "
+        "demand the controller's output (type_mask 3576), for autopilots or modes that take positions only."))
+    xy: RptAxisConfig = field(default_factory=RptAxisConfig, metadata=meta("x and y channels (paper: 1, 0.99, 0.707, 0.25)."))
+    z: RptAxisConfig = field(default_factory=lambda: RptAxisConfig(omega_n=0.559, zeta=2.0, k_i=0.0), metadata=meta(
+        "z channel (paper: epsilon 1, omega_n 0.559, zeta 2)."))
+    limits: ControlLimitsConfig = field(default_factory=ControlLimitsConfig, metadata=meta("Output limits."))
+    autopilot_gains: AutopilotGainsConfig = field(default_factory=AutopilotGainsConfig, metadata=meta(
+        "The autopilot's position-loop gains (position_only output)."))
+
+
+@dataclass
+class FailsafeConfig:
+    estimate_timeout_s: float = field(default=0.5, metadata=meta(
+        "No fused estimate for this long = estimate lost (ArduPilot's own external-nav timeout is 0.3 s).", (0.05, 5)))
+    lost_hold_s: float = field(default=3.0, metadata=meta(
+        "Estimate lost: brake and hold on the autopilot's own estimate at most this long, then LAND. "
+        "An estimate back and healthy for 1 s before that resumes the flight.", (0, 60)))
+    degraded_speed_factor: float = field(default=0.5, metadata=meta(
+        "Estimate degraded (any nav component degraded): the trajectory is flown at this fraction of its speed.", (0.1, 1)))
+
+
+@dataclass
+class GeofenceConfig:
+    """A box in the map frame (LOCAL_NED). Trajectories that leave it are refused before take-off of the step;
+    the vehicle's estimate leaving it stops the flight and holds (the pilot decides what next)."""
+
+    enabled: bool = field(default=True, metadata=meta("Check the geofence."))
+    box_ned_m: tuple[tuple[float, float], tuple[float, float]] | None = field(default=None, metadata=meta(
+        "[[x_min, y_min], [x_max, y_max]] metres; null = the bounds of the lidar map (pipelines.lidar.map); "
+        "neither: no companion geofence (logged; the autopilot's own FENCE_* still apply)."))
+    inset_m: float = field(default=0.3, metadata=meta("The fence lies this far inside the box (walls are solid).", (0, 10)))
+    ceiling_m: float = field(default=3.0, metadata=meta("Highest allowed height above the origin, metres.", (0.2, 1000)))
+
+
+@dataclass
+class PayloadConfig:
+    command: Literal["servo", "gripper"] = field(default="servo", metadata=meta(
+        "servo: MAV_CMD_DO_SET_SERVO (ArduPilot: an output with SERVOn_FUNCTION 0); gripper: MAV_CMD_DO_GRIPPER "
+        "release (ArduPilot GRIP_ENABLE, PX4 payload deliverer)."))
+    servo: int = field(default=9, metadata=meta("Servo output number for command servo.", (1, 32)))
+    release_pwm: int = field(default=1900, metadata=meta("PWM (us) that releases the payload.", (500, 2500)))
+    gripper: int = field(default=1, metadata=meta("Gripper instance for command gripper.", (1, 8)))
+
+
+@dataclass
 class MissionConfig:
     file: str | None = field(default=None, metadata=meta("Mission YAML to fly at start (relative to this file). null = fly nothing."))
     allow_arm: bool = field(default=False, metadata=meta("Whether the companion may arm the vehicle. Off for real vehicles unless you mean it."))
+    failsafe: FailsafeConfig = field(default_factory=FailsafeConfig, metadata=meta("What the mission does when the estimate degrades or is lost."))
+    geofence: GeofenceConfig = field(default_factory=GeofenceConfig, metadata=meta("Where trajectories may go."))
+    payload: PayloadConfig = field(default_factory=PayloadConfig, metadata=meta("How the payload_drop step releases the payload."))
+    on_daemon_stop: Literal["land", "hold"] = field(default="land", metadata=meta(
+        "The daemon stopping while the mission commands the vehicle in flight: land = a hold target, then LAND "
+        "(indoors the estimate stops with the daemon); hold = only the hold target (ArduPilot GUIDED keeps it on "
+        "its own estimate, e.g. GPS)."))
 
 
 @dataclass
@@ -160,6 +252,7 @@ class Config:
     pipelines: PipelinesConfig = field(default_factory=PipelinesConfig, metadata=meta("Navigation pipelines."))
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig, metadata=meta("zenoh telemetry."))
     logging: LoggingConfig = field(default_factory=LoggingConfig, metadata=meta("Logging."))
+    control: ControlConfig = field(default_factory=ControlConfig, metadata=meta("Trajectory-following controller."))
     mission: MissionConfig = field(default_factory=MissionConfig, metadata=meta("Mission to fly."))
     sitl: SitlConfig = field(default_factory=SitlConfig, metadata=meta("Simulation harness settings."))
     base_dir: Path = field(default=Path("."), init=False, repr=False)

@@ -17,17 +17,22 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from companion import clock
 from companion.config import Config, SensorConfig
 from companion.health import ComponentHealth, Health, State
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.checklist import expected_parameters
 from companion.mavlink.commands import Commander
-from companion.mavlink.estimate import EstimateSender
+from companion.mavlink.estimate import EstimateSender, PoseEstimate
 from companion.mavlink.link import MavlinkLink, load_signing_key, mavlink
 from companion.mavlink.origin import OriginSetter
 from companion.mavlink.setpoints import SetpointStream
-from companion.mission import MissionRunner, load_mission
+from companion.mission.context import MissionContext
+from companion.mission.failsafe import Geofence
+from companion.mission.runner import MissionRunner
+from companion.mission.steps import load_mission
 from companion.nav.lidar_pipeline import LidarPipeline
 from companion.nav.loop import NavLoop, Pipeline
 from companion.sdnotify import Notifier, WatchdogGate, run_watchdog
@@ -102,18 +107,43 @@ class Daemon:
         sup.spawn("status", self._publish_status)
         if self.notifier.watchdog_interval() is not None:
             sup.spawn("watchdog", lambda: run_watchdog(self.notifier, gate, clock.now))
-        if cfg.mission.file:
-            mission = load_mission(cfg.resolve(cfg.mission.file))
-            self.mission = MissionRunner(mission, cfg.mission.allow_arm, state, commander, setpoints, origin,
-                                         lambda snap: telemetry.publish("mission", snap))
+        self.mission = self._build_mission()
+        if self.mission is not None:
             sup.spawn("mission", self.mission.run)
-        else:
-            self.mission = None
         self.notifier.ready()
         log.info("companion running: autopilot link %s, %d pipelines", self.url, len(self.nav.pipelines))
         await self._stop.wait()
         await self._shutdown()
         return 0
+
+    def _build_mission(self) -> MissionRunner | None:
+        """The configured mission's runner (None without one), flying on the companion's estimate."""
+        cfg = self.cfg
+        if not cfg.mission.file:
+            return None
+        mission = load_mission(cfg.resolve(cfg.mission.file))
+        lidar = cfg.pipelines.lidar
+        bounds = load_world(cfg.resolve(lidar.map)).bounds if lidar is not None else None
+        ctx = MissionContext(
+            state=self.state, commander=self.commander, setpoints=self.setpoints, origin=self.origin,
+            estimate=self._mission_estimate, nav_health=lambda: self.health.worst("nav:"), publish=self.telemetry.publish,
+            control=cfg.control, failsafe=cfg.mission.failsafe, payload=cfg.mission.payload,
+            geofence=Geofence.from_config(cfg.mission.geofence, None if bounds is None else (bounds.min, bounds.max)))
+        if ctx.geofence is None:
+            log.warning("mission %s: no companion geofence (mission.geofence disabled, or neither its box_ned_m "
+                        "nor a lidar map); the autopilot's own fence still applies", mission.name)
+        return MissionRunner(mission, cfg.mission.allow_arm, ctx, cfg.mission.on_daemon_stop)
+
+    def _mission_estimate(self) -> PoseEstimate | None:
+        """What missions fly on: the newest fused estimate, or the autopilot's own (LOCAL_POSITION_NED)
+        when this daemon runs no navigation pipeline (e.g. a GPS vehicle)."""
+        if self.nav.pipelines:
+            return self.nav.last_estimate
+        s = self.state
+        if s.local_position_ned is None or s.local_position_time is None:
+            return None
+        return PoseEstimate(s.local_position_time, s.local_position_ned, s.attitude_euler or (0.0, 0.0, 0.0),
+                            np.zeros((6, 6)), s.local_velocity_ned, np.zeros((3, 3)), source="autopilot")
 
     def build_pipelines(self) -> list[Pipeline]:
         """The navigation pipelines of this config and their sensor drivers (one task each).
@@ -229,6 +259,8 @@ class Daemon:
         if isinstance(loop, clock.LockstepEventLoop):
             loop.release()  # the simulator no longer ticks; shutdown timeouts must still expire
         self.notifier.stopping()
+        if self.mission is not None:
+            await self.mission.on_daemon_stop(mode_timeout_s=0.4)
         self.setpoints.stop()
         await self.supervisor.stop(timeout_s=0.5)  # cancelling the link task closes the port
         self.telemetry.close(timeout_s=0.4)

@@ -67,6 +67,14 @@ class Health:
     def get(self, name: str) -> ComponentHealth | None:
         return self._components.get(name)
 
+    def worst(self, prefix: str) -> tuple[State, str]:
+        """The worst state among components named ``prefix...`` and "name: reason"; (OK, "") for none."""
+        worst: tuple[State, str] = (State.OK, "")
+        for name, c in sorted(self._components.items()):
+            if name.startswith(prefix) and c.state > worst[0]:
+                worst = (c.state, f"{name}: {c.reason}")
+        return worst
+
     @property
     def overall(self) -> State:
         return max((c.state for c in self._components.values()), default=State.OK)

@@ -81,9 +81,12 @@ def companion_url_for(vehicle_url: str) -> str:
     return {"udpin": "udpout", "tcpin": "tcp"}.get(scheme, scheme) + ":" + address
 
 
-def write_run_config(cfg: Config, mission: str | None, out_dir: Path, autopilot_url: str | None) -> Path:
-    """A copy of the config with the mission chosen, absolute paths and the matching link URL."""
+def write_run_config(cfg: Config, mission: str | None, out_dir: Path, autopilot_url: str | None,
+                     control_law: str | None = None) -> Path:
+    """A copy of the config with the mission (and control law) chosen, absolute paths and the matching link URL."""
     raw = yaml.safe_load(Path(cfg.source).read_text()) or {}
+    if control_law is not None:
+        raw.setdefault("control", {})["law"] = control_law
     mission_file = cfg.resolve(f"missions/{mission}.yaml") if mission else (
         cfg.resolve(cfg.mission.file) if cfg.mission.file else None)
     raw.setdefault("mission", {})["file"] = str(mission_file) if mission_file else None
@@ -294,7 +297,7 @@ def run_harness(args: argparse.Namespace) -> int:
               "wall clock); lockstep runs use backend: sim sensors", file=sys.stderr)
         return 2
     work = Path(tempfile.mkdtemp(prefix="companion-sitl-"))
-    run_cfg = write_run_config(cfg, args.mission, work, args.autopilot)
+    run_cfg = write_run_config(cfg, args.mission, work, args.autopilot, args.control_law)
     vehicle_log = work / "vehicle-log.json"
     mission_name = args.mission or (Path(cfg.mission.file).stem if cfg.mission.file else "none")
     session = Session()
@@ -333,7 +336,7 @@ def run_harness(args: argparse.Namespace) -> int:
         usage = session.usage
         report = build_report(
             mission=mission_name, seconds=sim_log["sim_seconds"], lockstep=bool(args.lockstep), seed=args.seed,
-            log=sim_log, telemetry=telemetry, origin=(cfg.origin.lat, cfg.origin.lon, cfg.origin.alt),
+            control_law=args.control_law or cfg.control.law, log=sim_log, telemetry=telemetry, origin=(cfg.origin.lat, cfg.origin.lon, cfg.origin.alt),
             cpu_percent=None if usage is None else 100.0 * usage[0] / max(wall, 1e-6),
             rss_mb=None if usage is None else usage[1])
         Path(args.report).write_text(json.dumps(report, indent=2) + "\n")

@@ -17,6 +17,7 @@ import numpy as np
 SCHEMA = 1
 ORIGIN_MATCH_M = 0.5
 LOST_GAP_S = 0.3  # ArduPilot calls an external-nav source unhealthy after 300 ms
+DEGRADED_SLOWDOWN = "estimate_degraded"  # the mission's failsafe kind for "slowed down", not a stop
 
 
 def _rms(x: np.ndarray) -> float:
@@ -100,7 +101,7 @@ def _stage(system: dict, name: str, key: str) -> float | None:
     return None if stage is None else stage.get(key)
 
 
-def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, log: dict,
+def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, control_law: str, log: dict,
                  telemetry: dict[str, dict], origin: tuple[float, float, float],
                  cpu_percent: float | None, rss_mb: float | None) -> dict[str, Any]:
     """The report dict (schema 1) from a vehicle log and the daemon's last telemetry."""
@@ -112,6 +113,7 @@ def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, log
         estimate["fix_rate_hz"] = (system.get("pipelines") or {}).get("lidar", {}).get("fix_rate_hz")
     tracking_rms, tracking_max = score_tracking(log)
     mission_state = telemetry.get("mission", {}).get("state")
+    failsafes = telemetry.get("mission", {}).get("failsafes") or []
     landed_disarmed = bool(log["modes"]) and not log["modes"][-1][2]
     nonfinite = stats.get("nonfinite_dropped", 0) + stats.get("nonfinite_dropped_link", 0) if stats else None
     return {
@@ -126,9 +128,13 @@ def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, log
             "nonfinite_dropped": nonfinite,
         },
         "control": {
+            "law": control_law,
             "mission_completed": mission_state == "completed" and landed_disarmed,
             "tracking_rms_m": tracking_rms,
             "tracking_max_m": tracking_max,
+            # stop / hold / land failsafes (estimate lost, geofence, pass tolerance), as the mission reported them
+            "failsafes_triggered": [f["kind"] for f in failsafes if f["kind"] != DEGRADED_SLOWDOWN],
+            "degraded_slowdowns": sum(f["kind"] == DEGRADED_SLOWDOWN for f in failsafes),
         },
         "timing": {
             "lidar_ms_p50": _stage(system, "lidar", "p50"),

@@ -45,14 +45,17 @@ GCS_COMPID = 190  # MAV_COMP_ID_MISSIONPLANNER
 # -- configs --------------------------------------------------------------------------------
 
 
-def write_config(path: Path, *, vehicle_port: int, zenoh_port: int | None = None, mission: bool = True,
+def write_config(path: Path, *, vehicle_port: int, zenoh_port: int | None = None, mission: bool | Path = True,
                  sim_state_hz: float = 0.0, mavlink: dict | None = None, telemetry: dict | None = None,
-                 vehicle_position_source: str = "gps") -> Path:
+                 vehicle_position_source: str = "gps", sections: dict[str, dict] | None = None) -> Path:
     """A daemon config on loopback: MAVLink udpout to ``vehicle_port``, zenoh on ``zenoh_port``
-    (None: telemetry disabled), the hover mission (absolute path, arming allowed) if ``mission``.
+    (None: telemetry disabled), with arming allowed and the mission file ``mission`` (True: the
+    hover mission; False: none). ``sections`` are merged into the top-level sections (e.g.
+    ``{"control": {"output": "position_only"}, "mission": {"failsafe": {...}}}``).
 
     The ``sitl`` section (used by ``companion sitl`` only) points at free ports too.
     """
+    mission_file = HOVER_MISSION if mission is True else (mission or None)
     doc: dict[str, Any] = {
         "origin": {"lat": HOME[0], "lon": HOME[1], "alt": HOME[2]},
         "vehicle": {"sysid": 1, "compid": 197},
@@ -60,12 +63,14 @@ def write_config(path: Path, *, vehicle_port: int, zenoh_port: int | None = None
                     "streams": {"sim_state": sim_state_hz}, **(mavlink or {})},
         "telemetry": ({"enabled": False} if zenoh_port is None else
                       {"listen": [f"tcp/127.0.0.1:{zenoh_port}"], **(telemetry or {})}),
-        "mission": {"file": str(HOVER_MISSION) if mission else None, "allow_arm": True},
+        "mission": {"file": str(mission_file) if mission_file else None, "allow_arm": True},
         "sitl": {"world": str(REPO / "config" / "worlds" / "arena.yaml"),
                  "vehicle_url": f"udpin:127.0.0.1:{vehicle_port}",
                  "gcs_urls": [f"udpout:127.0.0.1:{free_port()}"],
                  "position_source": vehicle_position_source, "gust_mps": 0.2},
     }
+    for section, values in (sections or {}).items():
+        doc.setdefault(section, {}).update(values)
     path.write_text(yaml.safe_dump(doc, sort_keys=False))
     return path
 
@@ -232,26 +237,36 @@ class TruthPipeline:
     step returns the newest truth sample (stamped with its capture time on the daemon clock)
     plus N(0, ``position_sigma_m``) per axis and N(0, ``angle_sigma_rad``) per Euler angle.
     Faults for the tests: ``frame="enu"`` reports ENU instead of NED (x/y swapped, z negated,
-    yaw from east), ``nan_every`` makes every n-th estimate's x NaN, ``crash_on_call`` raises.
+    yaw from east), ``nan_every`` makes every n-th estimate's x NaN, ``crash_on_call`` raises,
+    ``blackout=(t0, t1)`` emits nothing from daemon time t0 to t1 (s), ``offset=(t0, (dx, dy, dz))``
+    shifts every estimate from t0 on by that many metres (a wrong relocalization).
     """
 
     name = "test_truth"
 
     def __init__(self, truth: TruthSource, seed: int, *, frame: str = "ned", nan_every: int | None = None,
                  crash_on_call: int | None = None, position_sigma_m: float = 0.01,
-                 angle_sigma_rad: float = math.radians(0.5)) -> None:
+                 angle_sigma_rad: float = math.radians(0.5), blackout: tuple[float, float] | None = None,
+                 offset: tuple[float, tuple[float, float, float]] | None = None) -> None:
         self.truth = truth
         self.rng = np.random.default_rng(seed)
         self.frame = frame
         self.nan_every = nan_every
         self.crash_on_call = crash_on_call
+        self.blackout = blackout
+        self.offset = offset
         self.position_sigma_m = position_sigma_m
         self.angle_sigma_rad = angle_sigma_rad
         self.calls = 0
         self.emitted = 0
         self.nan_emitted = 0
         self.crash_time: float | None = None
+        self.timings: dict = {}  # no stages worth timing
         self._last_t: float | None = None
+
+    def snapshot(self) -> dict:
+        """Telemetry counters (the daemon's system stream)."""
+        return {"emitted": self.emitted, "nan_emitted": self.nan_emitted}
 
     def step(self, now: float) -> PoseEstimate | None:
         self.calls += 1
@@ -261,8 +276,12 @@ class TruthPipeline:
         sample = self.truth.latest
         if sample is None or sample.t == self._last_t:
             return None
+        if self.blackout is not None and self.blackout[0] <= now < self.blackout[1]:
+            return None
         self._last_t = sample.t
         position = sample.position_ned + self.rng.normal(0.0, self.position_sigma_m, 3)
+        if self.offset is not None and now >= self.offset[0]:
+            position = position + np.asarray(self.offset[1])
         euler = np.asarray(euler_from_quat(sample.quat)) + self.rng.normal(0.0, self.angle_sigma_rad, 3)
         if self.frame in ("enu", "enu_position"):
             position = np.array([position[1], position[0], -position[2]])

@@ -10,7 +10,7 @@ import pytest
 
 from companion.config import ConfigError, load_config
 from companion.config_reference import render
-from companion.mission import load_mission
+from companion.mission.steps import load_mission
 
 REPO = Path(__file__).resolve().parent.parent
 ORIGIN = "origin: {lat: 1.0, lon: 2.0, alt: 3.0}\n"

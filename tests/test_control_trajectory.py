@@ -4,13 +4,14 @@ snap vs minimum jerk, straight lines, yaw references and degenerate inputs."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 
 from companion.control.trajectory import Trajectory, from_segment_times, plan
-from companion.mission import load_mission
+from companion.mission.steps import load_mission
 from sitl.world import load_world
 from tests.conftest import REPO
 
@@ -19,18 +20,19 @@ V_MAX, A_MAX = 0.5, 0.5
 
 
 def patrol() -> tuple[np.ndarray, list]:
-    """The takeoff point (the arena's start pose at the 1 m takeoff height) then the positions of
-    config/missions/patrol.yaml's goto steps; and those steps."""
+    """The takeoff point (the arena's start pose at the 1 m takeoff height) then the waypoints of
+    config/missions/patrol.yaml's fly step (speeds filled in from the step); and those waypoints."""
     mission = load_mission(REPO / "config/missions/patrol.yaml")
     world = load_world(REPO / "config/worlds/arena.yaml")
     takeoff = next(s.takeoff for s in mission.steps if s.takeoff)
-    gotos = [s.goto for s in mission.steps if s.goto]
+    fly = next(s.fly for s in mission.steps if s.fly)
+    waypoints = [dataclasses.replace(w, speed_mps=w.speed_mps or fly.speed_mps) for w in fly.waypoints]
     start = [world.start[0], world.start[1], -takeoff.altitude_m]
-    return np.array([start] + [list(g.position) for g in gotos], dtype=float), gotos
+    return np.array([start] + [list(w.position) for w in waypoints], dtype=float), waypoints
 
 
-def hold_indices(gotos: list) -> tuple[int, ...]:
-    return tuple(i + 1 for i, g in enumerate(gotos) if g.hold_s > 0)
+def hold_indices(waypoints: list) -> tuple[int, ...]:
+    return tuple(i + 1 for i, w in enumerate(waypoints) if w.hold_s > 0 or w.stop)
 
 
 @pytest.fixture(scope="module", params=KINDS)
@@ -58,8 +60,8 @@ def test_passes_through_every_waypoint(patrol_traj: Trajectory) -> None:
     np.testing.assert_allclose(patrol_traj.sample_many(t).position, w, atol=1e-6)
     for i in range(1, len(w) - 1):  # from both sides of the joint
         np.testing.assert_allclose(patrol_traj.derivative(left(t[i]), 0), w[i], atol=1e-6)
-    for i, g in enumerate(gotos, start=1):  # the goto tolerance, the window and the doors included
-        assert patrol_traj.closest_approach(i) <= min(g.tolerance_m, 1e-6)
+    for i, g in enumerate(gotos, start=1):  # the window and the doors included
+        assert patrol_traj.closest_approach(i) <= 1e-6
     # and every inserted joint lies on its straight leg
     assert len(patrol_traj.joints) >= len(w)
 

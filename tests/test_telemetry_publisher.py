@@ -137,7 +137,7 @@ def test_key_space() -> None:
     assert key(1, "pose") == "uav/1/pose"
     assert key(255, "estimate_stats") == "uav/255/estimate_stats"
     assert SCHEMA_VERSION == 1
-    assert len(STREAMS) == 11
+    assert "trajectory" in STREAMS and len(STREAMS) == 12
     for bad_sysid in (0, 256, True, 1.0):
         with pytest.raises(ValueError):
             key(bad_sysid, "pose")  # type: ignore[arg-type]

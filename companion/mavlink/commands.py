@@ -10,7 +10,7 @@ from __future__ import annotations
 import asyncio
 import logging
 
-from companion.config import MavlinkConfig, StreamRatesConfig
+from companion.config import MavlinkConfig, PayloadConfig, StreamRatesConfig
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.link import MavlinkLink, mavlink
 
@@ -102,6 +102,13 @@ class Commander:
     async def takeoff(self, altitude_m: float) -> None:
         """Take off to ``altitude_m`` above home (ArduPilot GUIDED: param7 is relative)."""
         await self.command(mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, altitude_m)
+
+    async def release_payload(self, payload: PayloadConfig) -> None:
+        """Release the payload: DO_SET_SERVO to the release PWM, or DO_GRIPPER release."""
+        if payload.command == "gripper":
+            await self.command(mavlink.MAV_CMD_DO_GRIPPER, payload.gripper, mavlink.GRIPPER_ACTION_RELEASE)
+        else:
+            await self.command(mavlink.MAV_CMD_DO_SET_SERVO, payload.servo, payload.release_pwm)
 
     async def land(self) -> None:
         """Switch the autopilot to LAND."""

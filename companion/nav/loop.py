@@ -59,7 +59,7 @@ class NavLoop:
         self.rate_hz = rate_hz
         self.clock = clock
         self.jitter_ms = Timings()
-        self.last_estimate: PoseEstimate | None = None
+        self.last_estimate: PoseEstimate | None = None  # the newest with a finite position
 
     def stage_summaries(self) -> dict[str, dict[str, float | None]]:
         """{stage: {p50, p99, count}} over every pipeline's stages (ms)."""
@@ -84,8 +84,9 @@ class NavLoop:
         for pipeline in self.pipelines:
             estimate = pipeline.step(now)
             if estimate is not None:
-                self.estimate.submit(estimate)
-                self.last_estimate = estimate
+                self.estimate.submit(estimate)  # drops and reports a non-finite one
+                if np.all(np.isfinite(estimate.position_ned)):
+                    self.last_estimate = estimate  # what missions fly on
                 self.telemetry.publish("pose", {
                     "position_ned_m": estimate.position_ned, "euler_rad": estimate.euler_rad,
                     "velocity_ned_mps": estimate.velocity_ned,

@@ -24,6 +24,7 @@ STREAMS: tuple[str, ...] = (
     "setpoint",
     "estimate_stats",
     "alerts",
+    "trajectory",
 )
 
 _STREAM_SET = frozenset(STREAMS)

@@ -1,0 +1,121 @@
+"""What every mission step works with: the autopilot, the setpoint stream, the companion's
+estimate, and the failsafes shared by all airborne steps (estimate lost, pilot takeover).
+
+Frames: LOCAL_NED metres at the EKF origin; times are the daemon clock (``companion.clock``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion import clock
+from companion.config import ControlConfig, FailsafeConfig, PayloadConfig
+from companion.control.rpt import MeasuredState
+from companion.health import State
+from companion.mavlink.autopilot import AutopilotState
+from companion.mavlink.commands import Commander
+from companion.mavlink.estimate import PoseEstimate
+from companion.mavlink.origin import OriginSetter
+from companion.mavlink.setpoints import Setpoint, SetpointStream
+from companion.mission.failsafe import EstimateStatus, Geofence, classify_estimate, stopping_point
+
+log = logging.getLogger("companion.mission")
+
+RECOVERED_AFTER_S = 1.0  # an estimate back from lost must stay healthy this long before flying on
+AUTOPILOT_POSITION_MAX_AGE_S = 1.0
+
+
+class MissionFailed(Exception):
+    """The mission cannot go on; the message is the reason published on telemetry."""
+
+
+class FailsafeLanding(MissionFailed):
+    """A failsafe decided to land (the runner switches to LAND and waits for the disarm)."""
+
+
+@dataclass
+class MissionContext:
+    """The mission's view of the daemon (one per runner)."""
+
+    state: AutopilotState
+    commander: Commander
+    setpoints: SetpointStream
+    origin: OriginSetter
+    estimate: Callable[[], PoseEstimate | None]  # the companion's newest fused estimate
+    nav_health: Callable[[], tuple[State, str]]  # worst nav:* component and its reason
+    publish: Callable[[str, dict], None]  # telemetry stream, payload
+    control: ControlConfig
+    failsafe: FailsafeConfig
+    payload: PayloadConfig
+    geofence: Geofence | None
+    takeover: asyncio.Event = field(default_factory=asyncio.Event)
+    failsafes: list[dict] = field(default_factory=list)  # every failsafe that fired: kind, t, reason
+
+    def check_takeover(self) -> None:
+        if self.takeover.is_set():
+            raise MissionFailed("pilot took over")
+
+    def estimate_status(self) -> EstimateStatus:
+        return classify_estimate(clock.now(), self.estimate(), self.nav_health(), self.failsafe.estimate_timeout_s)
+
+    def measured(self) -> MeasuredState | None:
+        """The companion's estimate as the controller's input; the velocity is the estimate's or,
+        for a pipeline without one, the autopilot's. None without a (finite) estimate."""
+        est = self.estimate()
+        if est is None or not np.all(np.isfinite(est.position_ned)):
+            return None
+        velocity = est.velocity_ned
+        if velocity is None:
+            velocity = self.state.local_velocity_ned if self.autopilot_position_fresh() else None
+        if velocity is None:
+            return None
+        return MeasuredState(tuple(float(c) for c in est.position_ned), tuple(float(c) for c in velocity))
+
+    def yaw(self) -> float | None:
+        est = self.estimate()
+        return float(est.euler_rad[2]) if est is not None else None
+
+    def autopilot_position_fresh(self) -> bool:
+        t = self.state.local_position_time
+        return t is not None and clock.now() - t < AUTOPILOT_POSITION_MAX_AGE_S
+
+    def record_failsafe(self, kind: str, reason: str) -> None:
+        self.failsafes.append({"kind": kind, "t": clock.now(), "reason": reason})
+        log.warning("failsafe %s: %s", kind, reason)
+
+    def hold_on_autopilot(self, yaw_rad: float | None = None) -> np.ndarray:
+        """Brake and hold: a position target at the autopilot's own stopping point (its estimate).
+
+        Raises :class:`FailsafeLanding` if the autopilot has no fresh position either.
+        """
+        p, v = self.state.local_position_ned, self.state.local_velocity_ned
+        if p is None or v is None or not self.autopilot_position_fresh():
+            raise FailsafeLanding("no position from the autopilot either: landing")
+        target = stopping_point(p, v, self.control.limits.accel_xy_mps2 / 2)
+        self.setpoints.command(Setpoint(position_ned=target, yaw_rad=yaw_rad))
+        return target
+
+    async def ride_out_estimate_loss(self, status: EstimateStatus, yaw_rad: float | None) -> None:
+        """Estimate lost: brake and hold on the autopilot's estimate until the companion's estimate
+        is back and healthy for ``RECOVERED_AFTER_S`` (return), at most ``failsafe.lost_hold_s``;
+        then raise :class:`FailsafeLanding`."""
+        self.record_failsafe("estimate_lost", f"{status.reason}: holding on the autopilot's estimate")
+        self.hold_on_autopilot(yaw_rad)
+        started = clock.now()
+        healthy_since: float | None = None
+        while clock.now() - started < self.failsafe.lost_hold_s:
+            await asyncio.sleep(1.0 / self.control.rate_hz)
+            self.check_takeover()
+            if self.estimate_status().state == State.LOST:
+                healthy_since = None
+                continue
+            healthy_since = healthy_since if healthy_since is not None else clock.now()
+            if clock.now() - healthy_since >= RECOVERED_AFTER_S:
+                log.info("estimate back after %.1f s: flying on", clock.now() - started)
+                return
+        raise FailsafeLanding(f"estimate lost for {self.failsafe.lost_hold_s:g} s ({status.reason}): landing")

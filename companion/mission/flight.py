@@ -1,0 +1,217 @@
+"""The ``fly`` step: plan a smooth trajectory and fly it with the outer-loop controller.
+
+Every ``1 / control.rate_hz`` seconds: classify the companion's estimate (ok / degraded / lost),
+advance the trajectory time (slower while degraded, paused during holds), sample the reference,
+run the controller (RPT by default) on the companion's estimate, send the setpoint, and check
+the geofence and any window / door pass. Frames: LOCAL_NED metres, yaw radians from north.
+
+Failsafes here (``MissionContext`` has the shared ones):
+
+- estimate degraded: the trajectory time runs at ``failsafe.degraded_speed_factor`` (ramped,
+  the references stay smooth: ``companion.mission.timeline``), back to full speed when ok;
+- estimate lost: brake and hold on the autopilot's estimate; if it comes back in time the rest
+  of the waypoints are replanned from where the vehicle is, else the mission lands;
+- geofence: the planned trajectory must stay inside (else the step fails before moving); the
+  estimate leaving it stops the flight and holds (the mission fails: the pilot decides);
+- window / door pass: within 1 m of the opening the estimate must stay within the waypoint's
+  ``pass_tolerance_m`` of the reference, else the flight stops and holds.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion import clock
+from companion.config import ControlConfig
+from companion.control.pid import PidController, PidGains
+from companion.control.rpt import (ACCELERATION, VELOCITY, ControlOutput, MeasuredState, OuterLoopController,
+                                   RptController, RptLimits, RptParams, position_only_target)
+from companion.control.trajectory import Trajectory, plan
+from companion.health import State
+from companion.mavlink.setpoints import Setpoint
+from companion.mission.context import MissionContext, MissionFailed
+from companion.mission.timeline import Timeline
+from companion.mission.steps import FlyStep, Waypoint
+
+log = logging.getLogger("companion.mission")
+
+SAME_POINT_M = 0.02  # a first waypoint this close to the start is where the vehicle already is
+PASS_ZONE_M = 1.0  # the pass tolerance is enforced while the reference is this close to the opening
+TRAJECTORY_SAMPLE_S = 0.25  # spacing of the path published on the trajectory stream
+
+
+def make_controller(cfg: ControlConfig) -> OuterLoopController:
+    """The configured outer loop (RPT, or the PID baseline with the same poles) with its limits."""
+    lim = cfg.limits
+    limits = RptLimits(speed_xy_mps=lim.speed_xy_mps, accel_xy_mps2=lim.accel_xy_mps2, jerk_xy_mps3=lim.jerk_xy_mps3,
+                       climb_mps=lim.climb_mps, descent_mps=lim.descent_mps, accel_z_mps2=lim.accel_z_mps2)
+    xy = RptParams(cfg.xy.epsilon, cfg.xy.omega_n, cfg.xy.zeta, cfg.xy.k_i)
+    z = RptParams(cfg.z.epsilon, cfg.z.omega_n, cfg.z.zeta, 0.0)
+    if cfg.law == "pid":
+        return PidController(PidGains.matching(xy, ACCELERATION), PidGains.matching(z, VELOCITY), limits)
+    return RptController(xy, z, limits)
+
+
+@dataclass(frozen=True)
+class FlightPlan:
+    """A trajectory and the mission waypoints it flies through (``waypoints[i]`` is the
+    trajectory's waypoint ``i + 1``; its waypoint 0 is the start)."""
+
+    trajectory: Trajectory
+    waypoints: tuple[Waypoint, ...]
+
+    def time_of(self, i: int) -> float:
+        return float(self.trajectory.waypoint_times[i + 1])
+
+
+def plan_flight(step: FlyStep, start: np.ndarray, waypoints: tuple[Waypoint, ...], yaw_rad: float) -> FlightPlan | None:
+    """Plan from ``start`` (NED m, at rest) through ``waypoints``; None when there is nowhere to go
+    (the only waypoint is where the vehicle is). Pure CPU work (~0.2 s for the patrol)."""
+    if waypoints and np.linalg.norm(np.asarray(waypoints[0].position) - start) < SAME_POINT_M:
+        waypoints = waypoints[1:]
+    if not waypoints:
+        return None
+    points = np.array([start] + [w.position for w in waypoints], dtype=float)
+    speeds = [w.speed_mps or step.speed_mps for w in waypoints]
+    stops = [i + 1 for i, w in enumerate(waypoints[:-1]) if w.stop or w.hold_s > 0]
+    yaw_fixed = math.radians(step.yaw_deg) if step.yaw_deg is not None else None
+    trajectory = plan(points, speeds, step.accel_mps2, step.jerk_mps3, kind=step.kind, yaw_mode=step.yaw,
+                      yaw_fixed_rad=yaw_fixed, initial_yaw_rad=yaw_rad, stops=stops, corridor_m=step.corridor_m)
+    return FlightPlan(trajectory, waypoints)
+
+
+class TrajectoryFlight:
+    """Flies one ``fly`` step; progress is readable while it runs (``tracking_error_m``, ``progress``)."""
+
+    def __init__(self, step: FlyStep, ctx: MissionContext) -> None:
+        self.step = step
+        self.ctx = ctx
+        self.tracking_error_m: float | None = None
+        self.progress = 0.0
+        self.passes: dict[str, float] = {}  # opening -> closest approach of the estimate (m)
+        self.timeout_s = 0.0
+
+    async def fly(self) -> None:
+        step = self.step
+        remaining = tuple(step.waypoints)
+        deadline: float | None = None
+        while remaining:  # one pass per plan: the first, and one per recovery from a lost estimate
+            flight = await self._plan(remaining)
+            if flight is None:
+                await self._hold_at(np.asarray(remaining[0].position, dtype=float), remaining[0].hold_s)
+                return
+            if deadline is None:
+                holds = sum(w.hold_s for w in step.waypoints)
+                self.timeout_s = step.timeout_s or 2 * flight.trajectory.duration + holds + 30.0
+                deadline = clock.now() + self.timeout_s
+            remaining = await self._follow(flight, deadline)
+
+    async def _plan(self, waypoints: tuple[Waypoint, ...]) -> FlightPlan | None:
+        ctx = self.ctx
+        measured = ctx.measured()
+        if measured is None:
+            raise MissionFailed("fly: no estimate to start from")
+        start = np.asarray(measured.position_ned)
+        try:
+            flight = await clock.compute(plan_flight, self.step, start, waypoints, ctx.yaw() or 0.0)
+        except (ValueError, RuntimeError) as exc:
+            raise MissionFailed(f"fly: cannot plan a trajectory: {exc}") from exc
+        if flight is None:
+            return None
+        traj = flight.trajectory
+        path = traj.sample_many(np.arange(0.0, traj.duration, TRAJECTORY_SAMPLE_S)).position
+        path = np.vstack([path, traj.waypoints[-1]])
+        if ctx.geofence is not None:
+            why = ctx.geofence.first_violation(path)
+            if why is not None:
+                raise MissionFailed(f"fly: the trajectory leaves the geofence: {why}")
+        log.info("fly: %d waypoints, %.1f s, max %.2f m/s", len(flight.waypoints), traj.duration, traj.max_speed)
+        ctx.publish("trajectory", {"points_ned_m": path, "waypoints_ned_m": traj.waypoints, **traj.summary()})
+        return flight
+
+    async def _follow(self, flight: FlightPlan, deadline: float) -> tuple[Waypoint, ...]:
+        """Fly ``flight`` to its end (returns ``()``), or until the estimate was lost and came back
+        (returns the waypoints still ahead, to replan from where the vehicle holds)."""
+        ctx, step = self.ctx, self.step
+        controller = make_controller(ctx.control)
+        timeline = Timeline(flight.trajectory, [(flight.time_of(i), w.hold_s)
+                                                for i, w in enumerate(flight.waypoints) if w.hold_s > 0])
+        passes = [(np.asarray(w.position, dtype=float), w) for w in flight.waypoints if w.pass_tolerance_m]
+        goal = np.asarray(flight.trajectory.waypoints[-1], dtype=float)
+        degraded = False
+        period = 1.0 / ctx.control.rate_hz
+        previous = next_tick = clock.now()
+        while True:
+            ctx.check_takeover()
+            now = clock.now()
+            if now > deadline:
+                raise MissionFailed(f"fly: timed out after {self.timeout_s:.0f} s")
+            dt, previous = max(now - previous, 1e-3), now
+            status = ctx.estimate_status()
+            if status.state == State.LOST:
+                await ctx.ride_out_estimate_loss(status, timeline.reference()[1])
+                return tuple(w for i, w in enumerate(flight.waypoints) if flight.time_of(i) > timeline.tau)
+            if (status.state == State.DEGRADED) != degraded:
+                degraded = not degraded
+                if degraded:
+                    ctx.record_failsafe("estimate_degraded", f"{status.reason}: slowing to "
+                                        f"{ctx.failsafe.degraded_speed_factor:g} of the speed")
+            timeline.advance(dt, ctx.failsafe.degraded_speed_factor if degraded else 1.0)
+            reference, yaw = timeline.reference()
+            measured = ctx.measured()  # None only for a pipeline without velocity and no autopilot velocity
+            if measured is not None:
+                self._check(measured, np.asarray(reference.position_ned), passes)  # before sending anything
+                self._send(controller.step(dt, reference, measured), yaw)
+                self.progress = timeline.tau / flight.trajectory.duration
+                error_to_goal = float(np.linalg.norm(np.asarray(measured.position_ned) - goal))
+                if timeline.finished and error_to_goal <= step.arrival_tolerance_m:
+                    ctx.setpoints.command(Setpoint(position_ned=goal, yaw_rad=yaw))
+                    return ()
+            next_tick += period
+            await asyncio.sleep(max(0.0, next_tick - clock.now()))
+
+    def _send(self, output: ControlOutput, yaw_rad: float) -> None:
+        ctx = self.ctx
+        if ctx.control.output == "position_only":
+            g = ctx.control.autopilot_gains
+            target = position_only_target(output, pos_gain_xy=g.pos_xy_p, vel_gain_xy=g.vel_xy_p, pos_gain_z=g.pos_z_p)
+            ctx.setpoints.command(Setpoint(position_ned=np.array(target), yaw_rad=yaw_rad))
+        else:
+            ctx.setpoints.command(Setpoint(**output.setpoint_fields(), yaw_rad=yaw_rad))
+
+    def _check(self, measured: MeasuredState, reference: np.ndarray,
+               passes: list[tuple[np.ndarray, Waypoint]]) -> None:
+        """Tracking error, geofence and window / door passes; a breach raises :class:`MissionFailed`
+        after commanding a hold."""
+        ctx = self.ctx
+        p = np.asarray(measured.position_ned)
+        error = float(np.linalg.norm(p - reference))
+        self.tracking_error_m = error
+        if ctx.geofence is not None:
+            why = ctx.geofence.violation(p)
+            if why is not None:
+                self._stop("geofence", f"geofence breach: {why}")
+        for point, waypoint in passes:
+            name = waypoint.label
+            self.passes[name] = min(self.passes.get(name, math.inf), float(np.linalg.norm(p - point)))
+            tolerance = waypoint.pass_tolerance_m or 0.0
+            if float(np.linalg.norm(reference - point)) < PASS_ZONE_M and error > tolerance:
+                self._stop("pass_tolerance", f"pass {name}: {error:.2f} m off the trajectory "
+                           f"(tolerance {tolerance:g} m)")
+
+    def _stop(self, kind: str, reason: str) -> None:
+        self.ctx.record_failsafe(kind, f"{reason}: stopping and holding")
+        self.ctx.hold_on_autopilot(self.ctx.yaw())
+        raise MissionFailed(reason)
+
+    async def _hold_at(self, position: np.ndarray, seconds: float) -> None:
+        self.ctx.setpoints.command(Setpoint(position_ned=position, yaw_rad=self.ctx.yaw()))
+        end = clock.now() + seconds
+        while clock.now() < end:
+            self.ctx.check_takeover()
+            await asyncio.sleep(0.05)

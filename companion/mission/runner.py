@@ -1,0 +1,243 @@
+"""The mission runner: flies the steps of one mission file once (steps: companion/mission/steps.py).
+
+Outcomes (``status``): ``completed``; ``aborted`` when the pilot changed mode (the setpoint
+stream stopped at that instant: no fighting the pilot); ``failed`` with the reason otherwise.
+A failed mission leaves an airborne vehicle holding position on the autopilot's estimate (the
+hold setpoint keeps streaming, so PX4 stays in OFFBOARD and ArduPilot in GUIDED) unless a
+failsafe decided to land: then the runner switches to LAND and waits for the disarm. While
+airborne, every step watches the estimate: lost -> brake and hold on the autopilot's estimate
+for at most ``failsafe.lost_hold_s``, then LAND (``MissionContext.ride_out_estimate_loss``).
+The daemon stopping in flight leaves a hold target and switches to LAND (``mission.on_daemon_stop``,
+:meth:`MissionRunner.on_daemon_stop`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import Callable
+
+from companion import clock
+from companion.health import State
+from companion.mavlink.commands import CommandFailed
+from companion.mavlink.setpoints import Setpoint
+from companion.mission.context import FailsafeLanding, MissionContext, MissionFailed
+from companion.mission.flight import TrajectoryFlight
+from companion.mission.steps import (ArmStep, FlyStep, HoldStep, LandStep, Mission, MissionStep, PayloadDropStep,
+                                     TakeoffStep, WaitReadyStep)
+
+log = logging.getLogger("companion.mission")
+
+OFFBOARD_PRESTREAM_S = 1.0  # PX4 refuses OFFBOARD unless setpoints already stream (> 2 Hz)
+FAILSAFE_LAND_TIMEOUT_S = 120.0
+TAKEOFF_REACHED_M = 0.1  # the take-off is done within this of the altitude ...
+TAKEOFF_SETTLED_MPS = 0.1  # ... climbing no faster than this
+
+
+class MissionRunner:
+    """Flies one mission once; publishes its progress on the ``mission`` stream."""
+
+    def __init__(self, mission: Mission, allow_arm: bool, ctx: MissionContext, on_stop: str = "land") -> None:
+        self.mission = mission
+        self.allow_arm = allow_arm
+        self.on_stop = on_stop  # mission.on_daemon_stop
+        self.ctx = ctx
+        self.status = "pending"
+        self.step_index = -1
+        self.reason = ""
+        self.flight: TrajectoryFlight | None = None
+        self._airborne = False
+        self._takeoff_altitude: float | None = None
+        ctx.setpoints.on_takeover = lambda mode: ctx.takeover.set()
+
+    def snapshot(self) -> dict:
+        steps = self.mission.steps
+        kind = steps[self.step_index].kind if 0 <= self.step_index < len(steps) else None
+        flight = self.flight
+        done = max(self.step_index, 0) + (flight.progress if flight is not None and kind == "fly" else 0.0)
+        failsafes = self.ctx.failsafes
+        return {"name": self.mission.name, "state": self.status, "step": self.step_index, "step_kind": kind,
+                "steps": len(steps), "reason": self.reason,
+                "progress": 1.0 if self.status == "completed" else done / len(steps),
+                "tracking_error_m": flight.tracking_error_m if flight is not None and kind == "fly" else None,
+                "passes": flight.passes if flight is not None else {},
+                "failsafe": failsafes[-1]["kind"] if failsafes else None, "failsafes": failsafes}
+
+    async def run(self) -> None:
+        """Fly the mission (once; a restart after the end does nothing)."""
+        if self.status in ("completed", "failed", "aborted"):
+            await asyncio.Event().wait()
+        try:
+            for index, step in enumerate(self.mission.steps):
+                self.step_index = index
+                self._set("running")
+                await self._run_step(step)
+        except FailsafeLanding as exc:
+            self._set("failed", str(exc))
+            await self._failsafe_land()
+        except MissionFailed as exc:
+            self._end_failed(str(exc))
+        else:
+            self._set("completed")
+        await asyncio.Event().wait()
+
+    async def on_daemon_stop(self, mode_timeout_s: float) -> None:
+        """The daemon is stopping: if the mission commands the vehicle in flight, leave it safe.
+
+        A position target at the autopilot's stopping point first (whatever feed-forward was
+        streaming must not carry the vehicle on), then, with ``on_daemon_stop: land``, LAND,
+        waiting at most ``mode_timeout_s`` for the COMMAND_ACK.
+        """
+        ctx = self.ctx
+        if not (self._airborne and ctx.state.armed and ctx.setpoints.commanding and not ctx.takeover.is_set()):
+            return
+        try:
+            ctx.hold_on_autopilot(ctx.yaw())
+        except FailsafeLanding:
+            pass  # no autopilot position to hold at: LAND regardless of the setting
+        else:
+            if self.on_stop == "hold":
+                log.warning("daemon stopping in flight: left holding in %s", ctx.state.mode)
+                return
+        log.warning("daemon stopping in flight: switching to LAND")
+        ctx.setpoints.expect_mode("LAND")
+        try:
+            await asyncio.wait_for(ctx.commander.land(), mode_timeout_s)
+        except (TimeoutError, CommandFailed) as exc:
+            log.error("LAND on daemon stop: %s", exc or "no COMMAND_ACK in time")
+
+    # -- outcome ----------------------------------------------------------------------------
+
+    def _set(self, status: str, reason: str = "") -> None:
+        self.status, self.reason = status, reason
+        if status in ("failed", "aborted"):
+            log.error("mission %s %s: %s", self.mission.name, status, reason)
+        else:
+            log.info("mission %s: %s step %d", self.mission.name, status, self.step_index)
+        self.ctx.publish("mission", self.snapshot())
+
+    def _end_failed(self, reason: str) -> None:
+        ctx = self.ctx
+        if ctx.takeover.is_set():
+            self._set("aborted", "pilot took over")
+            return
+        if self._airborne and ctx.state.armed:
+            try:
+                if not ctx.failsafes or ctx.failsafes[-1]["kind"] not in ("geofence", "pass_tolerance"):
+                    ctx.hold_on_autopilot(ctx.yaw())  # (those two already hold where they braked)
+            except FailsafeLanding as exc:
+                self._set("failed", f"{reason}; {exc}")
+                asyncio.get_running_loop().create_task(self._failsafe_land(), name="failsafe-land")
+                return
+        else:
+            ctx.setpoints.stop()
+        self._set("failed", reason)
+
+    async def _failsafe_land(self) -> None:
+        try:
+            await self._land(LandStep(timeout_s=FAILSAFE_LAND_TIMEOUT_S))
+        except (MissionFailed, CommandFailed) as exc:
+            log.error("failsafe landing: %s", exc)
+        self.ctx.publish("mission", self.snapshot())
+
+    # -- steps ------------------------------------------------------------------------------
+
+    async def _run_step(self, step: MissionStep) -> None:
+        self.ctx.check_takeover()
+        kind = step.kind
+        try:
+            await getattr(self, f"_{kind}")(getattr(step, kind))
+        except CommandFailed as exc:
+            raise MissionFailed(f"{kind}: {exc}") from exc
+
+    async def _wait_for(self, condition: Callable[[], bool], timeout_s: float, what: str) -> None:
+        """Poll ``condition``; while airborne an estimate loss is ridden out (the timeout pauses)."""
+        ctx = self.ctx
+        deadline = clock.now() + timeout_s
+        while not condition():
+            ctx.check_takeover()
+            if self._airborne:
+                status = ctx.estimate_status()
+                if status.state == State.LOST:
+                    started = clock.now()
+                    await ctx.ride_out_estimate_loss(status, ctx.yaw())
+                    deadline += clock.now() - started
+            if clock.now() > deadline:
+                raise MissionFailed(f"timed out after {timeout_s:g} s waiting for {what}")
+            await asyncio.sleep(0.05)
+
+    async def _wait_ready(self, step: WaitReadyStep) -> None:
+        ctx = self.ctx
+        await self._wait_for(lambda: ctx.origin.confirmed and ctx.autopilot_position_fresh()
+                             and ctx.estimate_status().state != State.LOST, step.timeout_s,
+                             "a confirmed origin, an autopilot position and a fresh estimate")
+
+    async def _mode(self, name: str) -> None:
+        ctx = self.ctx
+        if name == "OFFBOARD":
+            ctx.hold_on_autopilot(ctx.yaw())
+            await asyncio.sleep(OFFBOARD_PRESTREAM_S)
+        ctx.setpoints.expect_mode(name)
+        await ctx.commander.set_mode(name)
+        await self._wait_for(lambda: ctx.state.mode == name, 3.0, f"mode {name}")
+
+    async def _arm(self, step: ArmStep) -> None:
+        ctx = self.ctx
+        if not self.allow_arm:
+            raise MissionFailed("arming is not allowed by the config (mission.allow_arm: false)")
+        deadline = clock.now() + step.timeout_s
+        while True:  # a refusal (pre-arm check) is retried every second until the timeout
+            try:
+                await ctx.commander.arm()
+                break
+            except CommandFailed:
+                if clock.now() + 1.0 > deadline:
+                    raise
+                log.info("arming refused (see the autopilot's PreArm message); retrying")
+                await asyncio.sleep(1.0)
+        await self._wait_for(lambda: ctx.state.armed, max(1.0, deadline - clock.now()), "the armed state")
+
+    async def _takeoff(self, step: TakeoffStep) -> None:
+        ctx = self.ctx
+        await ctx.commander.takeoff(step.altitude_m)
+        self._airborne = True
+        self._takeoff_altitude = step.altitude_m
+
+        def reached() -> bool:  # and settled: a trajectory planned from here starts at rest
+            p, v = ctx.state.local_position_ned, ctx.state.local_velocity_ned
+            return (p is not None and v is not None and ctx.autopilot_position_fresh()
+                    and abs(-p[2] - step.altitude_m) < TAKEOFF_REACHED_M and abs(v[2]) < TAKEOFF_SETTLED_MPS)
+        await self._wait_for(reached, step.timeout_s, f"{step.altitude_m:g} m altitude")
+
+    async def _hold(self, step: HoldStep) -> None:
+        """Hold the current position target, or (right after the take-off) where the autopilot is,
+        at the take-off height."""
+        ctx = self.ctx
+        current = ctx.setpoints.current
+        if current is not None and current.position_ned is not None:
+            ctx.setpoints.command(Setpoint(position_ned=current.position_ned, yaw_rad=current.yaw_rad))
+        else:
+            target = ctx.hold_on_autopilot(ctx.yaw())
+            if self._takeoff_altitude is not None:
+                target[2] = -self._takeoff_altitude
+                ctx.setpoints.command(Setpoint(position_ned=target, yaw_rad=ctx.yaw()))
+        end = clock.now() + step.seconds
+        await self._wait_for(lambda: clock.now() >= end, step.seconds + 1.0, "the end of the hold")
+
+    async def _fly(self, step: FlyStep) -> None:
+        self.flight = TrajectoryFlight(step, self.ctx)
+        await self.flight.fly()
+
+    async def _payload_drop(self, step: PayloadDropStep) -> None:
+        await self._hold(HoldStep(seconds=0.0))
+        await self.ctx.commander.release_payload(self.ctx.payload)
+        log.info("payload released")
+        await self._hold(HoldStep(seconds=step.hold_s))
+
+    async def _land(self, step: LandStep) -> None:
+        ctx = self.ctx
+        ctx.setpoints.stop()
+        ctx.setpoints.expect_mode("LAND")
+        await ctx.commander.land()
+        self._airborne = False
+        await self._wait_for(lambda: not ctx.state.armed, step.timeout_s, "touchdown and disarm")
