@@ -113,7 +113,7 @@ def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, con
         estimate["fix_rate_hz"] = (system.get("pipelines") or {}).get("lidar", {}).get("fix_rate_hz")
     tracking_rms, tracking_max = score_tracking(log)
     mission_state = telemetry.get("mission", {}).get("state")
-    failsafes = telemetry.get("mission", {}).get("failsafes") or []
+    failsafes = telemetry.get("mission", {}).get("failsafe_counts") or {}
     landed_disarmed = bool(log["modes"]) and not log["modes"][-1][2]
     nonfinite = stats.get("nonfinite_dropped", 0) + stats.get("nonfinite_dropped_link", 0) if stats else None
     return {
@@ -133,8 +133,8 @@ def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, con
             "tracking_rms_m": tracking_rms,
             "tracking_max_m": tracking_max,
             # stop / hold / land failsafes (estimate lost, geofence, pass tolerance), as the mission reported them
-            "failsafes_triggered": [f["kind"] for f in failsafes if f["kind"] != DEGRADED_SLOWDOWN],
-            "degraded_slowdowns": sum(f["kind"] == DEGRADED_SLOWDOWN for f in failsafes),
+            "failsafes_triggered": sorted(kind for kind in failsafes if kind != DEGRADED_SLOWDOWN),
+            "degraded_slowdowns": failsafes.get(DEGRADED_SLOWDOWN, 0),
         },
         "timing": {
             "lidar_ms_p50": _stage(system, "lidar", "p50"),

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -26,6 +27,7 @@ from companion.mission.failsafe import EstimateStatus, Geofence, classify_estima
 
 log = logging.getLogger("companion.mission")
 
+RECENT_FAILSAFES = 20  # the mission stream carries the last ones (and counts of all)
 RECOVERED_AFTER_S = 1.0  # an estimate back from lost must stay healthy this long before flying on
 AUTOPILOT_POSITION_MAX_AGE_S = 1.0
 
@@ -54,7 +56,8 @@ class MissionContext:
     payload: PayloadConfig
     geofence: Geofence | None
     takeover: asyncio.Event = field(default_factory=asyncio.Event)
-    failsafes: list[dict] = field(default_factory=list)  # every failsafe that fired: kind, t, reason
+    failsafes: deque[dict] = field(default_factory=lambda: deque(maxlen=RECENT_FAILSAFES))  # kind, t, reason
+    failsafe_counts: dict[str, int] = field(default_factory=dict)  # kind -> how often it fired
 
     def check_takeover(self) -> None:
         if self.takeover.is_set():
@@ -86,6 +89,7 @@ class MissionContext:
 
     def record_failsafe(self, kind: str, reason: str) -> None:
         self.failsafes.append({"kind": kind, "t": clock.now(), "reason": reason})
+        self.failsafe_counts[kind] = self.failsafe_counts.get(kind, 0) + 1
         log.warning("failsafe %s: %s", kind, reason)
 
     def hold_on_autopilot(self, yaw_rad: float | None = None) -> np.ndarray:

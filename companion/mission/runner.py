@@ -60,8 +60,9 @@ class MissionRunner:
                 "steps": len(steps), "reason": self.reason,
                 "progress": 1.0 if self.status == "completed" else done / len(steps),
                 "tracking_error_m": flight.tracking_error_m if flight is not None and kind == "fly" else None,
-                "passes": flight.passes if flight is not None else {},
-                "failsafe": failsafes[-1]["kind"] if failsafes else None, "failsafes": failsafes}
+                "passes": dict(flight.passes) if flight is not None else {},  # a copy: the publisher encodes later
+                "failsafe": failsafes[-1]["kind"] if failsafes else None, "failsafes": list(failsafes),
+                "failsafe_counts": dict(self.ctx.failsafe_counts)}
 
     async def run(self) -> None:
         """Fly the mission (once; a restart after the end does nothing)."""
@@ -103,8 +104,10 @@ class MissionRunner:
         ctx.setpoints.expect_mode("LAND")
         try:
             await asyncio.wait_for(ctx.commander.land(), mode_timeout_s)
-        except (TimeoutError, CommandFailed) as exc:
-            log.error("LAND on daemon stop: %s", exc or "no COMMAND_ACK in time")
+        except TimeoutError:
+            log.error("LAND on daemon stop: no COMMAND_ACK within %.1f s", mode_timeout_s)
+        except CommandFailed as exc:
+            log.error("LAND on daemon stop: %s", exc)
 
     # -- outcome ----------------------------------------------------------------------------
 
