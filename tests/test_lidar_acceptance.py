@@ -1,10 +1,12 @@
-"""Issue acceptance for the two-lidar localization: lockstep, seeded SITL runs of config/sitl.yaml
-(two simulated Hokuyos, no GPS, the autopilot fusing the companion's estimate), scored by the
-flight report against simulator ground truth.
+"""Issue acceptance for the two-lidar localization and for flight control: lockstep, seeded SITL
+runs of config/sitl.yaml (two simulated Hokuyos, no GPS, the autopilot fusing the companion's
+estimate, trajectories flown with the RPT controller), scored by the flight report against
+simulator ground truth.
 
-Thresholds are the issue's (survey-points: position and height RMS <= 3 cm, yaw RMS <= 0.5 deg,
-no lost time; the paper reports 4-13 cm). Runs are deterministic for a seed, so these are
-behaviour checks, not timing checks; speed figures live in `companion bench`.
+Thresholds are the issues' (survey-points: position and height RMS <= 3 cm, yaw RMS <= 0.5 deg,
+no lost time, the paper reports 4-13 cm; patrol: tracking RMS <= 0.10 m, max <= 0.25 m,
+estimate RMS <= 0.05 m, no failsafe). Runs are deterministic for a seed, so these are behaviour
+checks, not timing checks; speed figures live in `companion bench`.
 """
 
 from __future__ import annotations
@@ -45,7 +47,7 @@ def missions_beside_the_config(tmp_path: Path) -> None:
 
 
 def test_survey_points_meets_the_accuracy_targets_against_truth(tmp_path: Path) -> None:
-    r = fly(tmp_path, "survey-points", 110)
+    r = fly(tmp_path, "survey-points", 140)
     est, ap = r["estimate"], r["autopilot"]
     assert r["control"]["mission_completed"]
     assert ap["external_nav_in_use"] and ap["origin_confirmed"]
@@ -58,12 +60,17 @@ def test_survey_points_meets_the_accuracy_targets_against_truth(tmp_path: Path) 
     assert est["fix_rate_hz"] >= 10.0  # the paper's 10 Hz; a UTM-30LX gives 40
 
 
-def test_patrol_flies_every_room_on_the_lidar_estimate(tmp_path: Path) -> None:
+def test_patrol_flies_every_room_on_the_lidar_estimate_with_the_rpt_controller(tmp_path: Path) -> None:
     r = fly(tmp_path, "patrol", 150)
-    assert r["control"]["mission_completed"]
+    control = r["control"]
+    assert control["mission_completed"] and control["law"] == "rpt"
     assert r["autopilot"]["external_nav_in_use"]
-    assert r["estimate"]["position_rms_m"] <= 0.03
+    assert control["tracking_rms_m"] <= 0.10
+    assert control["tracking_max_m"] <= 0.25
+    assert control["failsafes_triggered"] == []
+    assert r["estimate"]["position_rms_m"] <= 0.03  # the issue asks 0.05; the localization issue 0.03
     assert r["estimate"]["lost_seconds"] == 0.0
+    assert r["autopilot"]["setpoint_hz"] >= 45.0  # the 50 Hz control loop streams its setpoints
 
 
 def test_an_unknown_start_pose_is_found_by_global_relocalization(tmp_path: Path) -> None:
