@@ -172,8 +172,8 @@ class MissionRunner:
     async def _wait_ready(self, step: WaitReadyStep) -> None:
         ctx = self.ctx
         await self._wait_for(lambda: ctx.origin.confirmed and ctx.autopilot_position_fresh()
-                             and ctx.estimate_status().state != State.LOST, step.timeout_s,
-                             "a confirmed origin, an autopilot position and a fresh estimate")
+                             and ctx.estimate_status().state == State.OK, step.timeout_s,
+                             "a confirmed origin, an autopilot position and a healthy estimate")
 
     async def _mode(self, name: str) -> None:
         ctx = self.ctx

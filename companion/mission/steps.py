@@ -1,7 +1,7 @@
 """Mission files (config/missions/*.yaml): ``name`` plus ``steps``, each step a mapping with one key.
 
 - ``wait_ready: {timeout_s}``: the origin is confirmed, the autopilot reports a position and
-  the companion has a fresh estimate;
+  the companion's estimate is healthy (fresh, every navigation component ok);
 - ``mode: NAME``: switch flight mode (GUIDED on ArduPilot; OFFBOARD on PX4, after streaming a
   hold setpoint for a second first, as PX4 requires);
 - ``arm: {timeout_s}``: arm, only if the config's ``mission.allow_arm`` is true;
