@@ -260,6 +260,7 @@ class Daemon:
             loop.release()  # the simulator no longer ticks; shutdown timeouts must still expire
         self.notifier.stopping()
         if self.mission is not None:
+            await self.supervisor.cancel("mission")  # nothing may command after the hold below
             await self.mission.on_daemon_stop(mode_timeout_s=0.4)
         self.setpoints.stop()
         await self.supervisor.stop(timeout_s=0.5)  # cancelling the link task closes the port

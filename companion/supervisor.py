@@ -78,6 +78,13 @@ class Supervisor:
         """{name: {restarts, last_error}} for telemetry."""
         return {n: {"restarts": r.restarts, "last_error": r.last_error} for n, r in self.tasks.items()}
 
+    async def cancel(self, name: str, timeout_s: float = 0.2) -> None:
+        """Cancel task ``name`` (no restart) and wait (bounded) for it to finish; no-op if unknown."""
+        record = self.tasks.get(name)
+        if record is not None and record.task is not None:
+            record.task.cancel()
+            await asyncio.wait([record.task], timeout=timeout_s)
+
     async def stop(self, timeout_s: float = 1.0) -> None:
         """Cancel every task and wait (bounded) for them to finish."""
         tasks = [r.task for r in self.tasks.values() if r.task is not None]

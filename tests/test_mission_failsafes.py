@@ -135,6 +135,39 @@ def test_a_short_estimate_loss_is_ridden_out_and_the_rest_of_the_trajectory_repl
     np.testing.assert_allclose(truth_at(log, mode_entries(log, "LAND")[0])[:2], [8.0, 0.0], atol=GPS_TOLERANCE_M)
 
 
+def test_a_loss_during_a_hold_resumes_the_rest_of_the_hold_then_the_remaining_waypoints(
+        tmp_path: Path, procs: Processes) -> None:
+    steps = [{"fly": {"speed_mps": 0.5, "waypoints": [{"position": [2.0, 0.0, -1.0], "hold_s": 6.0},
+                                                       {"position": [2.0, 2.0, -1.0]}]}},
+             {"land": {"timeout_s": 30}}]
+    daemon, log = fly(tmp_path, procs, steps, 60, blackout=(14.0, 15.0))  # arrives at the first about 12 s
+    mission = daemon.mission
+    assert mission.status == "completed", mission.snapshot()
+    lost = mission.ctx.failsafes[0]
+    assert [f["kind"] for f in mission.ctx.failsafes] == ["estimate_lost"]
+    # the loss came during the hold at the first waypoint, and the vehicle stayed there afterwards
+    # for the rest of the hold before flying to the second one
+    at_first = [t for t in np.arange(10.0, 60.0, 0.25) if np.hypot(*(truth_at(log, t)[:2] - [2.0, 0.0])) < 0.3]
+    assert at_first[0] < lost["t"] < at_first[-1]
+    assert at_first[-1] - at_first[0] >= 6.0 + 1.0  # the whole hold, plus the ride-out
+    np.testing.assert_allclose(truth_at(log, mode_entries(log, "LAND")[0])[:2], [2.0, 2.0], atol=GPS_TOLERANCE_M)
+
+
+def test_tracking_off_through_an_opening_stops_and_holds_before_it(tmp_path: Path, procs: Processes) -> None:
+    jump_at = 18.0  # the estimate moves 0.3 m sideways: the vehicle is off the line through the opening
+    steps = [{"fly": {"speed_mps": 0.5, "waypoints": [
+        {"position": [4.0, 0.0, -1.0], "pass_tolerance_m": 0.15, "name": "door"}, {"position": [6.0, 0.0, -1.0]}]}},
+        {"land": {"timeout_s": 30}}]
+    daemon, log = fly(tmp_path, procs, steps, 30, offset=(jump_at, (0.0, 0.3, 0.0)))
+    mission = daemon.mission
+    assert mission.status == "failed" and "pass door" in mission.reason, mission.snapshot()
+    assert [f["kind"] for f in mission.ctx.failsafes] == ["pass_tolerance"]
+    stopped = mission.ctx.failsafes[0]["t"]
+    assert stopped >= jump_at and 2.5 < truth_at(log, stopped)[0] < 4.0  # on entering the 1 m zone before it
+    assert not mode_entries(log, "LAND") and log["modes"][-1][2]  # holding, still flying
+    assert truth_at(log, log["sim_seconds"])[0] < 4.0  # it did not go through
+
+
 def test_a_geofence_breach_stops_the_flight_and_holds_without_landing(tmp_path: Path, procs: Processes) -> None:
     fence = {"box_ned_m": [[-1.0, -1.0], [9.0, 1.0]], "inset_m": 0.3}
     jump_at = 18.0  # the estimate jumps 10 m north (a wrong relocalization): outside the fence

@@ -14,7 +14,7 @@ from companion.control.trajectory import plan
 from companion.health import State
 from companion.mavlink.estimate import PoseEstimate
 from companion.mission.failsafe import Geofence, classify_estimate, stopping_point
-from companion.mission.flight import plan_flight
+from companion.mission.flight import TrajectoryFlight, plan_flight
 from companion.mission.steps import FlyStep, Waypoint, load_mission
 from companion.mission.timeline import Timeline, TimeWarp
 from companion.schema import SchemaError
@@ -96,7 +96,7 @@ def test_time_warp_scales_velocity_and_acceleration_like_the_chain_rule() -> Non
 def test_the_timeline_pauses_at_a_hold_at_rest_and_finishes_at_the_end() -> None:
     traj = plan([[0, 0, -1], [2, 0, -1], [2, 2, -1]], 0.5, 0.5, stops=[1])
     t_stop = float(traj.waypoint_times[1])
-    timeline = Timeline(traj, [(t_stop, 1.0)])
+    timeline = Timeline(traj, {0: (t_stop, 1.0)})
     steps = 0
     while not timeline.holding:
         timeline.advance(0.02, 1.0)
@@ -120,17 +120,33 @@ def test_stopping_point_is_the_braking_distance_ahead_at_the_same_height() -> No
 
 # -- planning a fly step -----------------------------------------------------------------------
 
-def test_a_flight_plan_stops_at_holds_and_stops_and_skips_a_first_waypoint_already_reached() -> None:
-    step = FlyStep(waypoints=[Waypoint((1.0, 1.0, -1.0)), Waypoint((3.0, 1.0, -1.0), stop=True),
+def test_a_flight_plan_stops_at_holds_and_stops_and_keeps_per_leg_speeds() -> None:
+    step = FlyStep(waypoints=[Waypoint((3.0, 1.0, -1.0), stop=True),
                               Waypoint((3.0, 3.0, -1.0), speed_mps=0.2, hold_s=2.0), Waypoint((1.0, 3.0, -1.0))])
-    flight = plan_flight(step, np.array([1.0, 1.005, -1.0]), tuple(step.waypoints), 0.0)
-    assert flight is not None and len(flight.waypoints) == 3  # the first waypoint is where the vehicle is
+    flight = plan_flight(step, np.array([1.0, 1.0, -1.0]), tuple(step.waypoints), 0.0)
+    assert len(flight.waypoints) == 3
     traj = flight.trajectory
     assert {1, 2} <= set(traj.stops)
     np.testing.assert_allclose(traj.sample(flight.time_of(1)).velocity, 0.0, atol=1e-9)
     assert traj.segment_peaks[1, 0] <= 0.2 + 1e-9  # the slow leg
-    assert plan_flight(FlyStep(waypoints=[Waypoint((1.0, 1.0, -1.0))]), np.array([1.0, 1.0, -1.0]),
-                       (Waypoint((1.0, 1.0, -1.0)),), 0.0) is None
+
+
+def test_after_a_recovered_loss_the_held_waypoint_the_ones_ahead_and_the_last_are_left_to_fly() -> None:
+    a, b, c = Waypoint((3.0, 1.0, -1.0)), Waypoint((3.0, 3.0, -1.0), hold_s=4.0), Waypoint((1.0, 3.0, -1.0))
+    flight = plan_flight(FlyStep(waypoints=[a, b, c]), np.array([1.0, 1.0, -1.0]), (a, b, c), 0.0)
+    timeline = Timeline(flight.trajectory, {1: (flight.time_of(1), 4.0)})
+    while timeline.tau < flight.time_of(0) + 0.5:  # past a: b and c are ahead
+        timeline.advance(0.02, 1.0)
+    assert TrajectoryFlight._left_to_fly(flight, timeline) == (b, c)
+    while not timeline.holding:
+        timeline.advance(0.02, 1.0)
+    for _ in range(50):  # 1 s of b's 4 s hold
+        timeline.advance(0.02, 1.0)
+    left = TrajectoryFlight._left_to_fly(flight, timeline)
+    assert [w.position for w in left] == [b.position, c.position] and left[0].hold_s == pytest.approx(3.0)
+    while not timeline.finished:
+        timeline.advance(0.02, 1.0)
+    assert TrajectoryFlight._left_to_fly(flight, timeline) == (c,)  # the end: arrive there all the same
 
 
 # -- mission files -----------------------------------------------------------------------------
@@ -149,6 +165,8 @@ def test_the_shipped_missions_load(name: str) -> None:
     ("name: m\nsteps:\n  - fly:\n      waypoints:\n        - {position: [1, 2, -1], speed_mps: 9}\n",
      "mission.yaml:5: steps[0].fly.waypoints[0].speed_mps: must be within [0.05, 5]"),
     ("name: m\nsteps:\n  - goto: {position: [1, 2, -1]}\n", "mission.yaml:3: steps[0].goto"),
+    ("name: m\nsteps:\n  - fly:\n      waypoints:\n        - {position: [1, 2, -1]}\n        - {position: [1, 2, -1]}\n",
+     "mission.yaml:6: steps[0].fly.waypoints[1].position: repeats waypoints[0]"),
 ])
 def test_a_mission_file_with_errors_is_rejected_with_file_key_and_line(tmp_path: Path, text: str, where: str) -> None:
     path = tmp_path / "mission.yaml"

@@ -112,9 +112,10 @@ reference, and the RPT x, y acceleration references (plus the rate of the z velo
 reference) as the acceleration feed-forward. The autopilot keeps its own position/velocity
 loop closed around the same reference on its EKF (which fuses our estimate) and adds the RPT
 output as feed-forward: the RPT feedback (with its integral, on the companion's estimate) and
-the autopilot's act on the same error, so the vehicle tracks at least as stiffly as either
-alone, and if the stream stops the last target is a position on the trajectory (ArduPilot drops
-the feed-forward after its 3 s GUIDED timeout and holds there; PX4 leaves OFFBOARD). The
+the autopilot's act on the same error (the closed-loop poles are then no longer exactly eq.
+16's; the SITL report measures the result). If the stream stops, ArduPilot moves the last
+target on with its velocity and acceleration until its GUIDED timeout (3 s) and then holds;
+PX4 leaves OFFBOARD (the mission's orderly stop sends a hold target first). The
 report's tracking error is then the distance of the true vehicle from the reference it was
 sent. :func:`position_only_target` is the fallback for an autopilot or mode that only takes
 positions (mask 3576): it inverts the autopilot's linear cascade so that it demands the RPT

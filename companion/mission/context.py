@@ -30,6 +30,7 @@ log = logging.getLogger("companion.mission")
 RECENT_FAILSAFES = 20  # the mission stream carries the last ones (and counts of all)
 RECOVERED_AFTER_S = 1.0  # an estimate back from lost must stay healthy this long before flying on
 AUTOPILOT_POSITION_MAX_AGE_S = 1.0
+EKF_HORIZONTAL_POSITION = 0x08 | 0x10  # EKF_STATUS_REPORT / ESTIMATOR_STATUS: POS_HORIZ_REL | POS_HORIZ_ABS
 
 
 class MissionFailed(Exception):
@@ -56,6 +57,7 @@ class MissionContext:
     payload: PayloadConfig
     geofence: Geofence | None
     takeover: asyncio.Event = field(default_factory=asyncio.Event)
+    airborne: bool = False  # from the take-off command to the land command: the estimate is watched
     failsafes: deque[dict] = field(default_factory=lambda: deque(maxlen=RECENT_FAILSAFES))  # kind, t, reason
     failsafe_counts: dict[str, int] = field(default_factory=dict)  # kind -> how often it fired
 
@@ -95,19 +97,46 @@ class MissionContext:
     def hold_on_autopilot(self, yaw_rad: float | None = None) -> np.ndarray:
         """Brake and hold: a position target at the autopilot's own stopping point (its estimate).
 
-        Raises :class:`FailsafeLanding` if the autopilot has no fresh position either.
+        Raises :class:`FailsafeLanding` if the autopilot has no fresh position either, or its EKF
+        flags (once reported) say it has no horizontal position.
         """
         p, v = self.state.local_position_ned, self.state.local_velocity_ned
         if p is None or v is None or not self.autopilot_position_fresh():
             raise FailsafeLanding("no position from the autopilot either: landing")
+        flags = self.state.ekf_flags
+        if flags and not flags & EKF_HORIZONTAL_POSITION:
+            raise FailsafeLanding(f"the autopilot's EKF has no horizontal position either (flags {flags:#x}): landing")
         target = stopping_point(p, v, self.control.limits.accel_xy_mps2 / 2)
         self.setpoints.command(Setpoint(position_ned=target, yaw_rad=yaw_rad))
         return target
 
+    async def wait_for(self, condition: Callable[[], bool], timeout_s: float, what: str,
+                       after_ride_out: Callable[[], None] | None = None) -> None:
+        """Poll ``condition`` every 50 ms until true; :class:`MissionFailed` after ``timeout_s``.
+
+        While ``airborne``, a lost estimate is ridden out on the way (the timeout pauses meanwhile)
+        and ``after_ride_out`` then restores what the step was commanding.
+        """
+        deadline = clock.now() + timeout_s
+        while not condition():
+            self.check_takeover()
+            if self.airborne:
+                status = self.estimate_status()
+                if status.state == State.LOST:
+                    started = clock.now()
+                    await self.ride_out_estimate_loss(status, self.yaw())
+                    deadline += clock.now() - started
+                    if after_ride_out is not None:
+                        after_ride_out()
+            if clock.now() > deadline:
+                raise MissionFailed(f"timed out after {timeout_s:g} s waiting for {what}")
+            await asyncio.sleep(0.05)
+
     async def ride_out_estimate_loss(self, status: EstimateStatus, yaw_rad: float | None) -> None:
         """Estimate lost: brake and hold on the autopilot's estimate until the companion's estimate
-        is back and healthy for ``RECOVERED_AFTER_S`` (return), at most ``failsafe.lost_hold_s``;
-        then raise :class:`FailsafeLanding`."""
+        is back (not lost: fresh and finite; it may still be degraded, which slows the flight) for
+        ``RECOVERED_AFTER_S`` (return), at most ``failsafe.lost_hold_s``; then raise
+        :class:`FailsafeLanding`."""
         self.record_failsafe("estimate_lost", f"{status.reason}: holding on the autopilot's estimate")
         self.hold_on_autopilot(yaw_rad)
         started = clock.now()

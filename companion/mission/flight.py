@@ -20,6 +20,7 @@ Failsafes here (``MissionContext`` has the shared ones):
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import math
 from dataclasses import dataclass
@@ -30,7 +31,7 @@ from companion import clock
 from companion.config import ControlConfig
 from companion.control.pid import PidController, PidGains
 from companion.control.rpt import (ACCELERATION, VELOCITY, ControlOutput, MeasuredState, OuterLoopController,
-                                   RptController, RptLimits, RptParams, position_only_target)
+                                   Reference, RptController, RptLimits, RptParams, position_only_target)
 from companion.control.trajectory import Trajectory, plan
 from companion.health import State
 from companion.mavlink.setpoints import Setpoint
@@ -42,6 +43,7 @@ log = logging.getLogger("companion.mission")
 
 SAME_POINT_M = 0.02  # a first waypoint this close to the start is where the vehicle already is
 PASS_ZONE_M = 1.0  # the pass tolerance is enforced while the reference is this close to the opening
+MOVING_MPS = 0.05  # slower than this the reference has no direction: the whole error counts
 TRAJECTORY_SAMPLE_S = 0.25  # spacing of the path published on the trajectory stream
 
 
@@ -69,13 +71,9 @@ class FlightPlan:
         return float(self.trajectory.waypoint_times[i + 1])
 
 
-def plan_flight(step: FlyStep, start: np.ndarray, waypoints: tuple[Waypoint, ...], yaw_rad: float) -> FlightPlan | None:
-    """Plan from ``start`` (NED m, at rest) through ``waypoints``; None when there is nowhere to go
-    (the only waypoint is where the vehicle is). Pure CPU work (~0.2 s for the patrol)."""
-    if waypoints and np.linalg.norm(np.asarray(waypoints[0].position) - start) < SAME_POINT_M:
-        waypoints = waypoints[1:]
-    if not waypoints:
-        return None
+def plan_flight(step: FlyStep, start: np.ndarray, waypoints: tuple[Waypoint, ...], yaw_rad: float) -> FlightPlan:
+    """Plan from ``start`` (NED m, at rest; not at the first waypoint) through ``waypoints``.
+    Pure CPU work (~0.2 s for the patrol); ValueError / RuntimeError when it cannot be planned."""
     points = np.array([start] + [w.position for w in waypoints], dtype=float)
     speeds = [w.speed_mps or step.speed_mps for w in waypoints]
     stops = [i + 1 for i, w in enumerate(waypoints[:-1]) if w.stop or w.hold_s > 0]
@@ -95,34 +93,34 @@ class TrajectoryFlight:
         self.progress = 0.0
         self.passes: dict[str, float] = {}  # opening -> closest approach of the estimate (m)
         self.timeout_s = 0.0
+        self._deadline = math.inf
 
     async def fly(self) -> None:
-        step = self.step
-        remaining = tuple(step.waypoints)
-        deadline: float | None = None
-        while remaining:  # one pass per plan: the first, and one per recovery from a lost estimate
-            flight = await self._plan(remaining)
-            if flight is None:
-                await self._hold_at(np.asarray(remaining[0].position, dtype=float), remaining[0].hold_s)
-                return
-            if deadline is None:
-                holds = sum(w.hold_s for w in step.waypoints)
-                self.timeout_s = step.timeout_s or 2 * flight.trajectory.duration + holds + 30.0
-                deadline = clock.now() + self.timeout_s
-            remaining = await self._follow(flight, deadline)
+        """Plan and fly; after a lost estimate came back, replan what is left from where the vehicle holds."""
+        remaining = tuple(self.step.waypoints)
+        while remaining:
+            measured = self.ctx.measured()
+            if measured is None:
+                raise MissionFailed("fly: no estimate to start from")
+            first = remaining[0]
+            if np.linalg.norm(np.asarray(first.position) - np.asarray(measured.position_ned)) < SAME_POINT_M:
+                await self._hold_at(np.asarray(first.position, dtype=float), first.hold_s)  # already there
+                remaining = remaining[1:]
+                continue
+            flight = await self._plan(np.asarray(measured.position_ned), remaining)
+            if self._deadline == math.inf:
+                holds = sum(w.hold_s for w in self.step.waypoints)
+                self.timeout_s = (self.step.timeout_s or flight.trajectory.duration / self.ctx.failsafe.degraded_speed_factor
+                                  + holds + 30.0)
+                self._deadline = clock.now() + self.timeout_s
+            remaining = await self._follow(flight)
 
-    async def _plan(self, waypoints: tuple[Waypoint, ...]) -> FlightPlan | None:
+    async def _plan(self, start: np.ndarray, waypoints: tuple[Waypoint, ...]) -> FlightPlan:
         ctx = self.ctx
-        measured = ctx.measured()
-        if measured is None:
-            raise MissionFailed("fly: no estimate to start from")
-        start = np.asarray(measured.position_ned)
         try:
             flight = await clock.compute(plan_flight, self.step, start, waypoints, ctx.yaw() or 0.0)
         except (ValueError, RuntimeError) as exc:
             raise MissionFailed(f"fly: cannot plan a trajectory: {exc}") from exc
-        if flight is None:
-            return None
         traj = flight.trajectory
         path = traj.sample_many(np.arange(0.0, traj.duration, TRAJECTORY_SAMPLE_S)).position
         path = np.vstack([path, traj.waypoints[-1]])
@@ -134,13 +132,14 @@ class TrajectoryFlight:
         ctx.publish("trajectory", {"points_ned_m": path, "waypoints_ned_m": traj.waypoints, **traj.summary()})
         return flight
 
-    async def _follow(self, flight: FlightPlan, deadline: float) -> tuple[Waypoint, ...]:
+    async def _follow(self, flight: FlightPlan) -> tuple[Waypoint, ...]:
         """Fly ``flight`` to its end (returns ``()``), or until the estimate was lost and came back
-        (returns the waypoints still ahead, to replan from where the vehicle holds)."""
+        (returns what is left to fly: the waypoint being held with the rest of its hold, the
+        waypoints the reference had not reached, and at least the last one, to arrive there)."""
         ctx, step = self.ctx, self.step
         controller = make_controller(ctx.control)
-        timeline = Timeline(flight.trajectory, [(flight.time_of(i), w.hold_s)
-                                                for i, w in enumerate(flight.waypoints) if w.hold_s > 0])
+        timeline = Timeline(flight.trajectory, {i: (flight.time_of(i), w.hold_s)
+                                                for i, w in enumerate(flight.waypoints) if w.hold_s > 0})
         passes = [(np.asarray(w.position, dtype=float), w) for w in flight.waypoints if w.pass_tolerance_m]
         goal = np.asarray(flight.trajectory.waypoints[-1], dtype=float)
         degraded = False
@@ -149,13 +148,15 @@ class TrajectoryFlight:
         while True:
             ctx.check_takeover()
             now = clock.now()
-            if now > deadline:
+            if now > self._deadline:
                 raise MissionFailed(f"fly: timed out after {self.timeout_s:.0f} s")
             dt, previous = max(now - previous, 1e-3), now
             status = ctx.estimate_status()
             if status.state == State.LOST:
+                started = clock.now()
                 await ctx.ride_out_estimate_loss(status, timeline.reference()[1])
-                return tuple(w for i, w in enumerate(flight.waypoints) if flight.time_of(i) > timeline.tau)
+                self._deadline += clock.now() - started
+                return self._left_to_fly(flight, timeline)
             if (status.state == State.DEGRADED) != degraded:
                 degraded = not degraded
                 if degraded:
@@ -165,15 +166,26 @@ class TrajectoryFlight:
             reference, yaw = timeline.reference()
             measured = ctx.measured()  # None only for a pipeline without velocity and no autopilot velocity
             if measured is not None:
-                self._check(measured, np.asarray(reference.position_ned), passes)  # before sending anything
+                self._check(measured, reference, passes)  # before sending anything from this estimate
                 self._send(controller.step(dt, reference, measured), yaw)
                 self.progress = timeline.tau / flight.trajectory.duration
                 error_to_goal = float(np.linalg.norm(np.asarray(measured.position_ned) - goal))
                 if timeline.finished and error_to_goal <= step.arrival_tolerance_m:
                     ctx.setpoints.command(Setpoint(position_ned=goal, yaw_rad=yaw))
                     return ()
-            next_tick += period
-            await asyncio.sleep(max(0.0, next_tick - clock.now()))
+            next_tick = max(next_tick + period, clock.now())  # after a stall: no burst to catch up
+            await asyncio.sleep(next_tick - clock.now())
+
+    @staticmethod
+    def _left_to_fly(flight: FlightPlan, timeline: Timeline) -> tuple[Waypoint, ...]:
+        waypoints = flight.waypoints
+        held = timeline.held
+        left = [w for i, w in enumerate(waypoints) if flight.time_of(i) > timeline.tau and i != held]
+        if held is not None:
+            left.insert(0, dataclasses.replace(waypoints[held], hold_s=timeline.hold_left))
+        if not left:  # the reference was at the end: still arrive there
+            left = [dataclasses.replace(waypoints[-1], hold_s=0.0)]
+        return tuple(left)
 
     def _send(self, output: ControlOutput, yaw_rad: float) -> None:
         ctx = self.ctx
@@ -184,24 +196,30 @@ class TrajectoryFlight:
         else:
             ctx.setpoints.command(Setpoint(**output.setpoint_fields(), yaw_rad=yaw_rad))
 
-    def _check(self, measured: MeasuredState, reference: np.ndarray,
+    def _check(self, measured: MeasuredState, reference: Reference,
                passes: list[tuple[np.ndarray, Waypoint]]) -> None:
         """Tracking error, geofence and window / door passes; a breach raises :class:`MissionFailed`
-        after commanding a hold."""
+        after commanding a hold. Through an opening the error that counts is the one across the
+        path (lagging along it does not bring the vehicle nearer the frame)."""
         ctx = self.ctx
         p = np.asarray(measured.position_ned)
-        error = float(np.linalg.norm(p - reference))
-        self.tracking_error_m = error
+        r = np.asarray(reference.position_ned)
+        error = p - r
+        self.tracking_error_m = float(np.linalg.norm(error))
         if ctx.geofence is not None:
             why = ctx.geofence.violation(p)
             if why is not None:
                 self._stop("geofence", f"geofence breach: {why}")
+        v = np.asarray(reference.velocity_ned)
+        speed = float(np.linalg.norm(v))
+        across = error - (error @ v) * v / speed**2 if speed > MOVING_MPS else error
         for point, waypoint in passes:
             name = waypoint.label
             self.passes[name] = min(self.passes.get(name, math.inf), float(np.linalg.norm(p - point)))
             tolerance = waypoint.pass_tolerance_m or 0.0
-            if float(np.linalg.norm(reference - point)) < PASS_ZONE_M and error > tolerance:
-                self._stop("pass_tolerance", f"pass {name}: {error:.2f} m off the trajectory "
+            off = float(np.linalg.norm(across))
+            if float(np.linalg.norm(r - point)) < PASS_ZONE_M and off > tolerance:
+                self._stop("pass_tolerance", f"pass {name}: {off:.2f} m off the trajectory "
                            f"(tolerance {tolerance:g} m)")
 
     def _stop(self, kind: str, reason: str) -> None:
@@ -212,6 +230,4 @@ class TrajectoryFlight:
     async def _hold_at(self, position: np.ndarray, seconds: float) -> None:
         self.ctx.setpoints.command(Setpoint(position_ned=position, yaw_rad=self.ctx.yaw()))
         end = clock.now() + seconds
-        while clock.now() < end:
-            self.ctx.check_takeover()
-            await asyncio.sleep(0.05)
+        await self.ctx.wait_for(lambda: clock.now() >= end, seconds + 1.0, "the end of the hold")

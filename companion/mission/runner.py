@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-from collections.abc import Callable
 
 from companion import clock
 from companion.health import State
@@ -46,7 +45,6 @@ class MissionRunner:
         self.step_index = -1
         self.reason = ""
         self.flight: TrajectoryFlight | None = None
-        self._airborne = False
         self._takeoff_altitude: float | None = None
         ctx.setpoints.on_takeover = lambda mode: ctx.takeover.set()
 
@@ -65,8 +63,9 @@ class MissionRunner:
                 "failsafe_counts": dict(self.ctx.failsafe_counts)}
 
     async def run(self) -> None:
-        """Fly the mission (once; a restart after the end does nothing)."""
-        if self.status in ("completed", "failed", "aborted"):
+        """Fly the mission once. It is never restarted: a bug in a step ends the mission as failed
+        (holding, if airborne), and a run after that (a supervisor restart) only waits."""
+        if self.status != "pending":
             await asyncio.Event().wait()
         try:
             for index, step in enumerate(self.mission.steps):
@@ -77,7 +76,10 @@ class MissionRunner:
             self._set("failed", str(exc))
             await self._failsafe_land()
         except MissionFailed as exc:
-            self._end_failed(str(exc))
+            await self._end_failed(str(exc))
+        except Exception as exc:  # a bug: never re-fly from step 0 in the air
+            log.exception("mission %s: step %d crashed", self.mission.name, self.step_index)
+            await self._end_failed(f"internal error in step {self.step_index}: {type(exc).__name__}: {exc}")
         else:
             self._set("completed")
         await asyncio.Event().wait()
@@ -90,7 +92,7 @@ class MissionRunner:
         waiting at most ``mode_timeout_s`` for the COMMAND_ACK.
         """
         ctx = self.ctx
-        if not (self._airborne and ctx.state.armed and ctx.setpoints.commanding and not ctx.takeover.is_set()):
+        if not (ctx.airborne and ctx.state.armed and ctx.setpoints.commanding and not ctx.takeover.is_set()):
             return
         try:
             ctx.hold_on_autopilot(ctx.yaw())
@@ -119,21 +121,23 @@ class MissionRunner:
             log.info("mission %s: %s step %d", self.mission.name, status, self.step_index)
         self.ctx.publish("mission", self.snapshot())
 
-    def _end_failed(self, reason: str) -> None:
+    async def _end_failed(self, reason: str) -> None:
         ctx = self.ctx
         if ctx.takeover.is_set():
+            ctx.setpoints.stop()  # (stopped at the takeover already; a step may have commanded since)
             self._set("aborted", "pilot took over")
             return
-        if self._airborne and ctx.state.armed:
-            try:
-                if not ctx.failsafes or ctx.failsafes[-1]["kind"] not in ("geofence", "pass_tolerance"):
-                    ctx.hold_on_autopilot(ctx.yaw())  # (those two already hold where they braked)
-            except FailsafeLanding as exc:
-                self._set("failed", f"{reason}; {exc}")
-                asyncio.get_running_loop().create_task(self._failsafe_land(), name="failsafe-land")
-                return
-        else:
+        if not (ctx.airborne and ctx.state.armed):
             ctx.setpoints.stop()
+            self._set("failed", reason)
+            return
+        try:
+            if not ctx.failsafes or ctx.failsafes[-1]["kind"] not in ("geofence", "pass_tolerance"):
+                ctx.hold_on_autopilot(ctx.yaw())  # (those two already hold where they braked)
+        except FailsafeLanding as exc:
+            self._set("failed", f"{reason}; {exc}")
+            await self._failsafe_land()
+            return
         self._set("failed", reason)
 
     async def _failsafe_land(self) -> None:
@@ -153,25 +157,9 @@ class MissionRunner:
         except CommandFailed as exc:
             raise MissionFailed(f"{kind}: {exc}") from exc
 
-    async def _wait_for(self, condition: Callable[[], bool], timeout_s: float, what: str) -> None:
-        """Poll ``condition``; while airborne an estimate loss is ridden out (the timeout pauses)."""
-        ctx = self.ctx
-        deadline = clock.now() + timeout_s
-        while not condition():
-            ctx.check_takeover()
-            if self._airborne:
-                status = ctx.estimate_status()
-                if status.state == State.LOST:
-                    started = clock.now()
-                    await ctx.ride_out_estimate_loss(status, ctx.yaw())
-                    deadline += clock.now() - started
-            if clock.now() > deadline:
-                raise MissionFailed(f"timed out after {timeout_s:g} s waiting for {what}")
-            await asyncio.sleep(0.05)
-
     async def _wait_ready(self, step: WaitReadyStep) -> None:
         ctx = self.ctx
-        await self._wait_for(lambda: ctx.origin.confirmed and ctx.autopilot_position_fresh()
+        await self.ctx.wait_for(lambda: ctx.origin.confirmed and ctx.autopilot_position_fresh()
                              and ctx.estimate_status().state == State.OK, step.timeout_s,
                              "a confirmed origin, an autopilot position and a healthy estimate")
 
@@ -182,7 +170,7 @@ class MissionRunner:
             await asyncio.sleep(OFFBOARD_PRESTREAM_S)
         ctx.setpoints.expect_mode(name)
         await ctx.commander.set_mode(name)
-        await self._wait_for(lambda: ctx.state.mode == name, 3.0, f"mode {name}")
+        await self.ctx.wait_for(lambda: ctx.state.mode == name, 3.0, f"mode {name}")
 
     async def _arm(self, step: ArmStep) -> None:
         ctx = self.ctx
@@ -198,24 +186,30 @@ class MissionRunner:
                     raise
                 log.info("arming refused (see the autopilot's PreArm message); retrying")
                 await asyncio.sleep(1.0)
-        await self._wait_for(lambda: ctx.state.armed, max(1.0, deadline - clock.now()), "the armed state")
+        await self.ctx.wait_for(lambda: ctx.state.armed, max(1.0, deadline - clock.now()), "the armed state")
 
     async def _takeoff(self, step: TakeoffStep) -> None:
         ctx = self.ctx
         await ctx.commander.takeoff(step.altitude_m)
-        self._airborne = True
+        ctx.airborne = True
         self._takeoff_altitude = step.altitude_m
 
         def reached() -> bool:  # and settled: a trajectory planned from here starts at rest
             p, v = ctx.state.local_position_ned, ctx.state.local_velocity_ned
             return (p is not None and v is not None and ctx.autopilot_position_fresh()
                     and abs(-p[2] - step.altitude_m) < TAKEOFF_REACHED_M and abs(v[2]) < TAKEOFF_SETTLED_MPS)
-        await self._wait_for(reached, step.timeout_s, f"{step.altitude_m:g} m altitude")
+
+        def climb_on() -> None:  # the hold of a ride-out replaced the take-off: climb as a position target
+            target = ctx.hold_on_autopilot(ctx.yaw())
+            target[2] = -step.altitude_m
+            ctx.setpoints.command(Setpoint(position_ned=target, yaw_rad=ctx.yaw()))
+        await ctx.wait_for(reached, step.timeout_s, f"{step.altitude_m:g} m altitude", after_ride_out=climb_on)
 
     async def _hold(self, step: HoldStep) -> None:
         """Hold the current position target, or (right after the take-off) where the autopilot is,
         at the take-off height."""
         ctx = self.ctx
+        ctx.check_takeover()
         current = ctx.setpoints.current
         if current is not None and current.position_ned is not None:
             ctx.setpoints.command(Setpoint(position_ned=current.position_ned, yaw_rad=current.yaw_rad))
@@ -225,7 +219,7 @@ class MissionRunner:
                 target[2] = -self._takeoff_altitude
                 ctx.setpoints.command(Setpoint(position_ned=target, yaw_rad=ctx.yaw()))
         end = clock.now() + step.seconds
-        await self._wait_for(lambda: clock.now() >= end, step.seconds + 1.0, "the end of the hold")
+        await self.ctx.wait_for(lambda: clock.now() >= end, step.seconds + 1.0, "the end of the hold")
 
     async def _fly(self, step: FlyStep) -> None:
         self.flight = TrajectoryFlight(step, self.ctx)
@@ -233,6 +227,7 @@ class MissionRunner:
 
     async def _payload_drop(self, step: PayloadDropStep) -> None:
         await self._hold(HoldStep(seconds=0.0))
+        self.ctx.check_takeover()  # never release after the pilot took over
         await self.ctx.commander.release_payload(self.ctx.payload)
         log.info("payload released")
         await self._hold(HoldStep(seconds=step.hold_s))
@@ -242,5 +237,5 @@ class MissionRunner:
         ctx.setpoints.stop()
         ctx.setpoints.expect_mode("LAND")
         await ctx.commander.land()
-        self._airborne = False
-        await self._wait_for(lambda: not ctx.state.armed, step.timeout_s, "touchdown and disarm")
+        ctx.airborne = False
+        await self.ctx.wait_for(lambda: not ctx.state.armed, step.timeout_s, "touchdown and disarm")

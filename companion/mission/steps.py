@@ -27,6 +27,7 @@ from typing import Literal
 from companion.schema import load_file, meta
 
 Vec3 = tuple[float, float, float]
+REPEATED_M = 0.02  # consecutive waypoints closer than this are one point (a trajectory cannot join them)
 
 
 @dataclass
@@ -91,6 +92,10 @@ class FlyStep:
             return "waypoints", "needs at least one waypoint"
         if self.yaw == "fixed" and self.yaw_deg is None:
             return "yaw_deg", "yaw: fixed needs yaw_deg"
+        for i in range(1, len(self.waypoints)):
+            a, b = self.waypoints[i - 1].position, self.waypoints[i].position
+            if sum((x - y) ** 2 for x, y in zip(a, b)) < REPEATED_M ** 2:
+                return f"waypoints[{i}].position", f"repeats waypoints[{i - 1}] (hold there with hold_s instead)"
         return None
 
 

@@ -46,13 +46,14 @@ class TimeWarp:
 
 
 class Timeline:
-    """Trajectory time for one flight: the warp, and the holds ``[(tau of the waypoint, seconds)]``."""
+    """Trajectory time for one flight: the warp, and the holds ``{waypoint index: (tau there, seconds)}``."""
 
-    def __init__(self, trajectory: Trajectory, holds: list[tuple[float, float]], ramp_per_s: float = 0.5) -> None:
+    def __init__(self, trajectory: Trajectory, holds: dict[int, tuple[float, float]], ramp_per_s: float = 0.5) -> None:
         self.trajectory = trajectory
         self.warp = TimeWarp(ramp_per_s)
-        self._holds = sorted(holds)
-        self._hold_left = 0.0
+        self._holds = sorted((tau, seconds, index) for index, (tau, seconds) in holds.items())
+        self.held: int | None = None  # the waypoint being held
+        self.hold_left = 0.0  # s
 
     @property
     def tau(self) -> float:
@@ -60,7 +61,7 @@ class Timeline:
 
     @property
     def holding(self) -> bool:
-        return self._hold_left > 0.0
+        return self.held is not None
 
     @property
     def finished(self) -> bool:
@@ -70,12 +71,14 @@ class Timeline:
     def advance(self, dt: float, rate: float) -> None:
         """Move on ``dt`` clock seconds at (a rate heading for) ``rate``; stop at the next hold."""
         if self.holding:
-            self._hold_left -= dt
+            self.hold_left -= dt
             self.warp.pause()
+            if self.hold_left <= 0.0:
+                self.held, self.hold_left = None, 0.0
             return
         self.warp.advance(dt, rate)
         if self._holds and self.warp.tau >= self._holds[0][0]:
-            self.warp.tau, self._hold_left = self._holds.pop(0)
+            self.warp.tau, self.hold_left, self.held = self._holds.pop(0)
 
     def reference(self) -> tuple[Reference, float]:
         """The controller's reference now, and the yaw reference (rad)."""
