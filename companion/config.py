@@ -114,7 +114,17 @@ class TelemetryConfig:
     gossip_scouting: bool = field(default=False, metadata=meta("zenoh gossip scouting."))
     queue_size: int = field(default=256, metadata=meta("Bounded publish queue; the oldest message is dropped when full.", (8, 100000)))
     pose_hz: float = field(default=20.0, metadata=meta("Pose/velocity publish rate.", (1, 50)))
-    status_hz: float = field(default=1.0, metadata=meta("Health, link, autopilot, system and rates publish rate.", (0.2, 10)))
+    scan_hz: float = field(default=5.0, metadata=meta(
+        "Horizontal scan (binary) with its extracted lines and matched corners: publish rate. The map follows every 2 s.", (2, 10)))
+    setpoint_hz: float = field(default=10.0, metadata=meta("Setpoint publish rate while commanding.", (1, 50)))
+    status_hz: float = field(default=1.0, metadata=meta(
+        "Health, link, autopilot, system, estimate_stats, rates and mission publish rate.", (0.2, 10)))
+    dashboard_mode: Literal["peer", "client"] = field(default="peer", metadata=meta(
+        "zenoh mode of `companion dashboard` (client: through a zenoh router)."))
+    dashboard_connect: list[str] = field(default_factory=list, metadata=meta(
+        "Endpoints `companion dashboard` connects to: the daemon's listen endpoint as the ground laptop reaches it "
+        "(e.g. tcp/192.168.1.10:7447) or a router. Empty: the `listen` endpoints, 0.0.0.0 and [::] read as "
+        "loopback (a dashboard on the same machine, as with `companion sitl`)."))
 
 
 @dataclass

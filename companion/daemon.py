@@ -37,6 +37,7 @@ from companion.nav.lidar_pipeline import LidarPipeline
 from companion.nav.loop import NavLoop, Pipeline
 from companion.sdnotify import Notifier, WatchdogGate, run_watchdog
 from companion.supervisor import Supervisor
+from companion.telemetry.lidar_streams import MAP_PERIOD_S, LidarTelemetry
 from companion.telemetry.publisher import TelemetryPublisher
 from companion.telemetry.session import open_session
 from drivers.base import LidarDriver, ScanBackend
@@ -205,10 +206,24 @@ class Daemon:
                 self.session = open_session(t.mode, t.listen, t.connect, t.multicast_scouting, t.gossip_scouting)
             except Exception as exc:  # zenoh.ZError: bad endpoint, port in use
                 self.health.report("telemetry", State.DEGRADED, f"zenoh session failed: {exc}")
-        rates = {"pose": t.pose_hz, "velocity": t.pose_hz}
+        rates = {"pose": t.pose_hz, "velocity": t.pose_hz, "map": 1.0 / MAP_PERIOD_S}
         # loop.time (not clock.now): the publisher's worker thread reads the clock too.
-        return TelemetryPublisher(self.session, self.cfg.vehicle.sysid, t.queue_size, rates,
-                                  clock=asyncio.get_running_loop().time)
+        publisher = TelemetryPublisher(self.session, self.cfg.vehicle.sysid, t.queue_size, rates,
+                                       clock=asyncio.get_running_loop().time)
+        if self.session is not None:
+            self._start_stream_tasks()
+        return publisher
+
+    def _start_stream_tasks(self) -> None:
+        """Supervised tasks for the streams faster than status: the setpoint, and the lidar streams.
+
+        Tasks start when run() first awaits, after it has built the nav loop and the setpoint
+        stream they read.
+        """
+        t = self.cfg.telemetry
+        self.supervisor.spawn("telemetry:setpoint", lambda: every(1.0 / t.setpoint_hz, self._publish_setpoint))
+        if self.cfg.pipelines.lidar is not None:
+            self.supervisor.spawn("telemetry:lidar", lambda: every(1.0 / t.scan_hz, self._lidar_telemetry().publish))
 
     def _on_autopilot_found(self) -> None:
         asyncio.get_running_loop().create_task(self.commander.request_streams(), name="request-streams")
@@ -248,10 +263,18 @@ class Daemon:
         t.publish("rates", {"streams": t.stats()})
         if self.mission is not None:
             t.publish("mission", self.mission.snapshot())
-        if self.setpoints.current is not None:
-            sp = self.setpoints.current
-            t.publish("setpoint", {"type_mask": sp.type_mask, "position_ned_m": sp.position_ned,
-                                   "velocity_ned_mps": sp.velocity_ned, "acceleration_ned_mps2": sp.acceleration_ned})
+
+    def _publish_setpoint(self) -> None:
+        """The setpoint being sent, while commanding."""
+        sp = self.setpoints.current
+        if sp is not None:
+            self.telemetry.publish("setpoint", {
+                "type_mask": sp.type_mask, "position_ned_m": sp.position_ned, "velocity_ned_mps": sp.velocity_ned,
+                "acceleration_ned_mps2": sp.acceleration_ned})
+
+    def _lidar_telemetry(self) -> LidarTelemetry:
+        """The lidar streams of the nav loop's lidar pipeline."""
+        return LidarTelemetry(self.telemetry, next(p for p in self.nav.pipelines if isinstance(p, LidarPipeline)))
 
     async def _shutdown(self) -> None:
         log.info("shutting down")
@@ -270,6 +293,13 @@ class Daemon:
             closer.start()
             closer.join(timeout=0.4)
         log.info("stopped")
+
+
+async def every(period_s: float, action: Callable[[], None]) -> None:
+    """Call ``action()`` every ``period_s`` seconds of the daemon clock, the first time after one period."""
+    while True:
+        await asyncio.sleep(period_s)
+        action()
 
 
 def process_usage(started_monotonic: float) -> dict[str, float]:

@@ -137,12 +137,12 @@ def test_key_space() -> None:
     assert key(1, "pose") == "uav/1/pose"
     assert key(255, "estimate_stats") == "uav/255/estimate_stats"
     assert SCHEMA_VERSION == 1
-    assert "trajectory" in STREAMS and len(STREAMS) == 12
+    assert {"trajectory", "scan", "lines", "corners", "map"} <= set(STREAMS) and len(STREAMS) == 16
     for bad_sysid in (0, 256, True, 1.0):
         with pytest.raises(ValueError):
             key(bad_sysid, "pose")  # type: ignore[arg-type]
     with pytest.raises(ValueError):
-        key(1, "scan")
+        key(1, "pointcloud")
 
 
 def test_zenoh_config_is_explicit(endpoint: str) -> None:
@@ -271,7 +271,7 @@ def test_rate_limit_counts_rate_limited_not_drops(open_peer: OpenPeer) -> None:
         assert telemetry.stats()["velocity"]["rate_limited"] == 0
     finally:
         telemetry.close()
-    for bad in ({"scan": 1.0}, {"pose": 0.0}, {"pose": math.nan}):
+    for bad in ({"pointcloud": 1.0}, {"pose": 0.0}, {"pose": math.nan}):
         with pytest.raises(ValueError):
             TelemetryPublisher(None, sysid=1, max_rate_hz=bad)
 
@@ -342,9 +342,11 @@ def test_disabled_publisher_only_counts() -> None:
         "rate_limited": 0,
         "errors": 0,
         "last_publish_t": None,
+        "age_s": None,
+        "rate_hz": 0.0,
     }
     with pytest.raises(ValueError):
-        telemetry.publish("scan", {})
+        telemetry.publish("pointcloud", {})
     with pytest.raises(ValueError):
         telemetry.publish("pose", {"t": 1.0})
     telemetry.close()
@@ -361,3 +363,38 @@ def test_encode_json_converts_numpy_and_non_finite() -> None:
     assert doc == {"v": 1, "t": 12.5, "a": [[1, 2], [3, 4]], "b": [None], "3": None}
     with pytest.raises(TypeError):
         encode_json(0.0, {"when": object()})
+
+
+def test_rate_limit_keeps_the_configured_rate_of_a_faster_loop() -> None:
+    clock = _ManualClock()
+    telemetry = TelemetryPublisher(None, sysid=1, max_rate_hz={"pose": 20.0}, clock=clock)
+    accepted: list[float] = []
+    for tick in range(500):  # a 50 Hz nav loop for 10 s offers every cycle
+        clock.t = tick / 50
+        limited = telemetry.stats()["pose"]["rate_limited"]
+        due = telemetry.due("pose")
+        telemetry.publish("pose", {})
+        if telemetry.stats()["pose"]["rate_limited"] == limited:
+            accepted.append(clock.t)
+        assert due == (accepted[-1:] == [clock.t])  # due() foretells publish() and counts nothing
+    assert 199 <= len(accepted) <= 201  # 20 Hz, not every third tick (16.7 Hz)
+    assert min(np.diff(accepted)) >= 0.025 - 1e-9  # never closer than half a period
+
+
+def test_rates_report_message_rate_and_age(open_peer: OpenPeer) -> None:
+    clock = _ManualClock(10.0)
+    telemetry = TelemetryPublisher(open_peer(), sysid=1, clock=clock)
+    try:
+        for i in range(11):  # 10 Hz for 1 s
+            clock.t = 10.0 + i / 10
+            telemetry.publish("setpoint", {"i": i})
+            _wait_for(lambda: telemetry.stats()["setpoint"]["published"] == i + 1)
+        clock.t = 11.5
+        stats = telemetry.stats()["setpoint"]
+        assert stats["rate_hz"] == pytest.approx(10.0)
+        assert stats["age_s"] == pytest.approx(0.5)
+        clock.t = 20.0  # silent for longer than the window
+        assert telemetry.stats()["setpoint"]["rate_hz"] == 0.0
+    finally:
+        telemetry.close()
+

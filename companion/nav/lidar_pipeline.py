@@ -33,7 +33,7 @@ from companion.mavlink.estimate import PoseEstimate
 from companion.nav.fusion import FusionFilter, to_pose_estimate
 from companion.nav.height import HeightEstimator
 from companion.nav.loop import Timings
-from companion.nav.planar import Mount2D, PlanarLocalizer
+from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer
 from drivers.scan import Scan
 from sitl.world import World
 
@@ -60,6 +60,16 @@ class LidarPipelineStats:
         if self.first_fix_t is None or self.last_fix_t is None or self.last_fix_t <= self.first_fix_t:
             return None
         return (self.planar_fixes - 1) / (self.last_fix_t - self.first_fix_t)
+
+
+@dataclass(frozen=True)
+class ProcessedScan:
+    """The newest horizontal scan the localizer processed, as telemetry reads it (never mutated)."""
+
+    scan: Scan
+    roll: float  # body attitude the scan was levelled with, rad
+    pitch: float
+    fix: PlanarFix | None  # what the localizer made of it; None: no pose known (relocalizing)
 
 
 def planar_mount(mount: MountConfig) -> Mount2D:
@@ -97,6 +107,7 @@ class LidarPipeline:
         self._imu_t: float | None = None
         self._scan_yaw: float | None = None  # autopilot yaw at the previous horizontal scan
         self._reset_counter = 0
+        self.last_horizontal: ProcessedScan | None = None  # read-only, for telemetry
         health.report("nav:lidar", State.LOST, "waiting for scans")
 
     # -- inputs (driver callbacks) ------------------------------------------------------
@@ -149,6 +160,7 @@ class LidarPipeline:
         started = time.perf_counter()
         fix = self.localizer.update(scan, roll=roll, pitch=pitch, yaw_delta=yaw_delta)
         elapsed = (time.perf_counter() - started) * 1e3
+        self.last_horizontal = ProcessedScan(scan, roll, pitch, fix)
         if fix is None:
             self.health.report("nav:lidar", State.LOST, self.localizer.last_reason or "no pose: relocalizing")
             return elapsed

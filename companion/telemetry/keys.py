@@ -3,8 +3,9 @@
 Every stream is published on ``uav/<sysid>/<stream>``, where ``sysid`` is the vehicle's
 MAVLink system id (1..255). JSON payloads are objects carrying ``"v": SCHEMA_VERSION``,
 ``"t"`` (the daemon's monotonic clock in seconds when the message was produced) and the
-stream's fields. ``SCHEMA_VERSION`` increases when a field is removed or changes meaning;
-adding a field, or a stream with another encoding, does not change it.
+stream's fields; ``scan`` is binary instead (companion/telemetry/scan_codec.py).
+``SCHEMA_VERSION`` increases when a field is removed or changes meaning; adding a field, or a
+stream with another encoding, does not change it.
 """
 
 from __future__ import annotations
@@ -25,6 +26,10 @@ STREAMS: tuple[str, ...] = (
     "estimate_stats",
     "alerts",
     "trajectory",
+    "scan",
+    "lines",
+    "corners",
+    "map",
 )
 
 _STREAM_SET = frozenset(STREAMS)

@@ -4,8 +4,9 @@ Navigation code calls :meth:`TelemetryPublisher.publish` from the asyncio loop. 
 stamps the message with the daemon's clock, applies the stream's optional rate limit and
 appends to a bounded in-memory queue (dropping the oldest message when full); it never touches
 the network. A daemon worker thread owns every zenoh publisher: it takes messages from the
-queue, encodes them as JSON and puts them. A stuck or failing zenoh therefore costs telemetry,
-never navigation time. Payload layout and key space: docs/telemetry.md.
+queue, encodes them (JSON, or the binary scan encoding for ``scan``) and puts them. A stuck or
+failing zenoh therefore costs telemetry, never navigation time. Payload layout and key space:
+docs/telemetry.md.
 """
 
 from __future__ import annotations
@@ -17,27 +18,36 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import zenoh
 
 from companion.telemetry.keys import SCHEMA_VERSION, STREAMS, key
+from companion.telemetry.rate import RateWindow
+from companion.telemetry.scan_codec import SCAN_ENCODING, encode_scan
 
 logger = logging.getLogger("companion.telemetry")
 
 ERROR_LOG_INTERVAL_S = 60.0
 """A failing stream is logged at most once per this many seconds of the publisher's clock."""
 
+JSON_ENCODING = "application/json"
+ENCODINGS: dict[str, tuple[Callable[[float, dict[str, Any]], bytes], str]] = {
+    "scan": (encode_scan, SCAN_ENCODING),
+}
+"""(encoder, zenoh encoding) of the streams that are not JSON; the encoder turns (t, payload) into bytes."""
+
 
 @dataclass(slots=True)
 class _StreamState:
     """Counters and rate-limit state of one stream. Times are on the publisher's clock (s)."""
 
+    stream: str
     key: str
     min_interval_s: float  # 0.0 when the stream has no rate limit
-    last_accepted_t: float | None = None
+    next_due_t: float | None = None  # earliest time the rate limit accepts the next message
     offered: int = 0
     published: int = 0
     dropped: int = 0
@@ -45,6 +55,7 @@ class _StreamState:
     errors: int = 0
     last_publish_t: float | None = None
     last_error_log_t: float | None = None
+    publish_times: RateWindow = field(default_factory=RateWindow)
 
 
 class TelemetryPublisher:
@@ -58,7 +69,9 @@ class TelemetryPublisher:
       queued message goes, whichever its stream) or :meth:`close` ran out of time;
     * ``errors``: messages whose encoding or zenoh put raised;
     * ``published``: messages handed to zenoh (delivery to subscribers is best effort);
-    * ``last_publish_t``: clock time (s) the last put returned, ``None`` before the first.
+    * ``last_publish_t``: clock time (s) the last put returned, ``None`` before the first;
+    * ``age_s``: seconds since then, ``None`` before the first;
+    * ``rate_hz``: messages published per second over the last 5 s (``RATE_WINDOW_S``).
 
     With ``session=None`` telemetry is disabled: :meth:`publish` validates, rate-limits and
     counts ``offered``/``rate_limited``, and nothing is queued. The same holds after
@@ -81,8 +94,10 @@ class TelemetryPublisher:
             sysid: the vehicle's MAVLink system id (1..255), the ``<sysid>`` of every key.
             queue_size: maximum number of messages waiting for the worker, all streams
                 together.
-            max_rate_hz: optional maximum rate per stream in Hz; a message arriving less than
-                ``1 / rate`` seconds after the stream's last accepted one is refused.
+            max_rate_hz: optional maximum rate per stream in Hz. Accepted messages follow a
+                schedule of one per ``1 / rate`` seconds (so a 50 Hz producer limited to 20 Hz
+                gets 20 Hz, not every third tick); a message before the stream's next slot is
+                refused, and none is accepted within half a period of the previous one.
             clock: the daemon's monotonic clock in seconds; it stamps ``"t"`` and drives the
                 rate limits, ``last_publish_t`` and error-log throttling.
 
@@ -100,6 +115,7 @@ class TelemetryPublisher:
                 raise ValueError(f"max_rate_hz[{stream!r}] must be finite and > 0, got {hz!r}")
         self._streams = {
             stream: _StreamState(
+                stream=stream,
                 key=key(sysid, stream),
                 min_interval_s=1.0 / rates[stream] if stream in rates else 0.0,
             )
@@ -141,13 +157,12 @@ class TelemetryPublisher:
         now = self._clock()
         with self._cv:
             state.offered += 1
-            if (
-                state.last_accepted_t is not None
-                and now - state.last_accepted_t < state.min_interval_s
-            ):
+            if state.next_due_t is not None and now < state.next_due_t:
                 state.rate_limited += 1
                 return
-            state.last_accepted_t = now
+            interval = state.min_interval_s
+            state.next_due_t = (now + interval if state.next_due_t is None
+                                else max(state.next_due_t + interval, now + interval / 2))
             if self._worker is None or self._closing:
                 return
             if len(self._queue) >= self._queue_size:
@@ -156,8 +171,19 @@ class TelemetryPublisher:
             self._queue.append((state, now, payload))
             self._cv.notify()
 
+    def due(self, stream: str) -> bool:
+        """Whether a message of ``stream`` offered now would pass the stream's rate limit.
+
+        Lets a producer skip building a costly payload; counts nothing. Always True for a
+        stream without a rate limit.
+        """
+        state = self._streams[stream]
+        with self._cv:
+            return state.next_due_t is None or self._clock() >= state.next_due_t
+
     def stats(self) -> dict[str, dict[str, int | float | None]]:
         """Snapshot of every stream's counters (see the class docstring), keyed by stream."""
+        now = self._clock()
         with self._cv:
             return {
                 stream: {
@@ -167,6 +193,8 @@ class TelemetryPublisher:
                     "rate_limited": s.rate_limited,
                     "errors": s.errors,
                     "last_publish_t": s.last_publish_t,
+                    "age_s": None if s.last_publish_t is None else max(0.0, now - s.last_publish_t),
+                    "rate_hz": s.publish_times.rate_hz(now),
                 }
                 for stream, s in self._streams.items()
             }
@@ -226,12 +254,13 @@ class TelemetryPublisher:
     ) -> None:
         """Encode one message and put it on its stream's publisher (declared on first use)."""
         try:
-            data = encode_json(t, payload)
+            encode, encoding = ENCODINGS.get(state.stream, (encode_json, JSON_ENCODING))
+            data = encode(t, payload)
             publisher = publishers.get(state.key)
             if publisher is None:
                 publisher = session.declare_publisher(
                     state.key,
-                    encoding=zenoh.Encoding.APPLICATION_JSON,
+                    encoding=zenoh.Encoding(encoding),
                     congestion_control=zenoh.CongestionControl.DROP,
                 )
                 publishers[state.key] = publisher
@@ -252,8 +281,11 @@ class TelemetryPublisher:
                     exc,
                 )
             return
-        state.published += 1
-        state.last_publish_t = self._clock()
+        now = self._clock()
+        with self._cv:  # stats() reads these from another thread
+            state.published += 1
+            state.last_publish_t = now
+            state.publish_times.add(now)
 
 
 def encode_json(t: float, payload: dict[str, Any]) -> bytes:

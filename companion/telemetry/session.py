@@ -22,6 +22,7 @@ def zenoh_config(
     connect: list[str],
     multicast_scouting: bool,
     gossip_scouting: bool,
+    reconnect_period_s: float | None = None,
 ) -> zenoh.Config:
     """Build a zenoh configuration with every networking choice explicit.
 
@@ -32,6 +33,8 @@ def zenoh_config(
         connect: endpoints of peers or routers to connect to, e.g. ``["tcp/192.168.1.10:7447"]``.
         multicast_scouting: discover peers by UDP multicast (224.0.0.224:7446).
         gossip_scouting: learn further peers from the peers already connected.
+        reconnect_period_s: retry an unreachable or lost ``connect`` endpoint every this many
+            seconds; None keeps zenoh's default (1 s, doubling up to 4 s).
 
     Raises:
         zenoh.ZError: an unknown mode or a malformed endpoint (zenoh validates both).
@@ -42,6 +45,10 @@ def zenoh_config(
     config.insert_json5("connect/endpoints", json.dumps(list(connect)))
     config.insert_json5("scouting/multicast/enabled", json.dumps(multicast_scouting))
     config.insert_json5("scouting/gossip/enabled", json.dumps(gossip_scouting))
+    if reconnect_period_s is not None:
+        period_ms = max(1, round(reconnect_period_s * 1e3))
+        config.insert_json5("connect/retry", json.dumps(
+            {"period_init_ms": period_ms, "period_max_ms": period_ms, "period_increase_factor": 1.0}))
     return config
 
 
@@ -51,6 +58,7 @@ def open_session(
     connect: list[str],
     multicast_scouting: bool,
     gossip_scouting: bool,
+    reconnect_period_s: float | None = None,
 ) -> zenoh.Session:
     """Open a zenoh session configured by :func:`zenoh_config` (same arguments).
 
@@ -62,7 +70,7 @@ def open_session(
         zenoh.ZError: invalid configuration, a listen endpoint that cannot be bound, or
             (client mode) no reachable router.
     """
-    config = zenoh_config(mode, listen, connect, multicast_scouting, gossip_scouting)
+    config = zenoh_config(mode, listen, connect, multicast_scouting, gossip_scouting, reconnect_period_s)
     session = zenoh.open(config)
     logger.info(
         "zenoh %s session open: listen=%s connect=%s multicast_scouting=%s gossip_scouting=%s",

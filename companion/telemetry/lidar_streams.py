@@ -1,0 +1,90 @@
+"""The lidar streams: the horizontal scan, the lines and corners extracted from it, the map.
+
+What an operator needs to see whether the localization is right: the scan placed on the map
+with the pose the localizer fixed for it, the walls it found, which corners it saw and which
+known corners they matched. Built from the lidar pipeline's newest processed scan
+(:attr:`~companion.nav.lidar_pipeline.LidarPipeline.last_horizontal`) outside the nav cycle,
+at ``telemetry.scan_hz``: the lines and corners are extracted again from that scan with the
+localizer's own levelling and parameters (~0.3 ms for 1081 beams), so the pipeline keeps no
+telemetry state. Payloads: docs/telemetry.md.
+
+Frames: ``*_m`` vectors of ``lines`` and ``corners`` are in the levelled body frame (x forward,
+y right, metres, rotated from the world by the yaw only); ``pose`` [x north m, y east m, yaw
+rad] places that frame in the world (LOCAL_NED); ``*_ned_m`` vectors are world coordinates.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from companion.nav.corners import find_corners
+from companion.nav.lidar_pipeline import LidarPipeline, ProcessedScan
+from companion.nav.lines import extract_lines
+from companion.nav.planar import PlanarLocalizer, rotation
+from companion.telemetry.publisher import TelemetryPublisher
+
+MAP_PERIOD_S = 2.0
+"""The map is static: it is re-published this often so that a listener joining late gets it."""
+
+
+class LidarTelemetry:
+    """Publishes the lidar streams of one pipeline; call :meth:`publish` periodically."""
+
+    def __init__(self, publisher: TelemetryPublisher, pipeline: LidarPipeline) -> None:
+        self.publisher = publisher
+        self.pipeline = pipeline
+        self._published: ProcessedScan | None = None
+
+    def publish(self) -> None:
+        """The newest processed scan with its lines and corners (once per scan), and the map
+        when it is due (every MAP_PERIOD_S)."""
+        record = self.pipeline.last_horizontal
+        localizer = self.pipeline.localizer
+        if record is not None and record is not self._published:
+            self._published = record
+            for stream, payload in scan_payloads(record, localizer).items():
+                self.publisher.publish(stream, payload)
+        if self.publisher.due("map"):
+            self.publisher.publish("map", map_payload(localizer))
+
+
+def scan_payloads(record: ProcessedScan, localizer: PlanarLocalizer) -> dict[str, dict[str, Any]]:
+    """{stream: payload} of ``scan``, ``lines`` and ``corners`` for one processed scan."""
+    scan, fix = record.scan, record.fix
+    pose = None if fix is None else (fix.x, fix.y, fix.yaw)
+    head = {"sensor": scan.sensor_id, "t_capture": scan.t_capture, "sequence": scan.sequence, "pose": pose}
+    mount = localizer.mount
+    points, ok, ranges = localizer.level_points(scan, record.roll, record.pitch)
+    lines = extract_lines(points, ok, localizer.params.lines, ranges)
+    corners = find_corners(lines, localizer.params.corners)
+    matched = [] if pose is None else matched_corners(corners.xy, pose, localizer.map, localizer.params.gate_m)
+    return {
+        "scan": {**head, "sweep_s": scan.sweep_s, "angles_rad": scan.angles_rad, "ranges_m": scan.ranges_m,
+                 "valid": scan.valid, "mount": (mount.x_m, mount.y_m, mount.yaw_rad)},
+        "lines": {**head, "segments_m": np.hstack((lines.start, lines.end))},
+        "corners": {**head, "observed_m": corners.xy, "matched": matched,
+                    "state": None if fix is None else fix.state, "fix_matched": 0 if fix is None else fix.matched},
+    }
+
+
+def matched_corners(observed_m: np.ndarray, pose: tuple[float, float, float], known_ned_m: np.ndarray,
+                    gate_m: float) -> list[dict[str, Any]]:
+    """Each observed corner (levelled body frame, metres) that lands within ``gate_m`` of a
+    known map corner when placed in the world with ``pose``: {observed index, that corner}."""
+    if observed_m.shape[0] == 0 or known_ned_m.shape[0] == 0:
+        return []
+    world = np.array(pose[:2]) + observed_m @ rotation(pose[2]).T
+    distance = np.linalg.norm(world[:, None, :] - known_ned_m[None, :, :], axis=2)
+    nearest = distance.argmin(axis=1)
+    return [{"observed": i, "map_ned_m": known_ned_m[j].tolist()} for i, j in enumerate(nearest)
+            if distance[i, j] <= gate_m]
+
+
+def map_payload(localizer: PlanarLocalizer) -> dict[str, Any]:
+    """The map the localizer uses: wall segments at the scan height (doors and windows cut
+    out), known corners, and the wall angle."""
+    walls = np.zeros((0, 4)) if localizer.walls is None else localizer.walls
+    return {"walls_ned_m": walls, "corners_ned_m": localizer.map, "wall_angle_deg": math.degrees(localizer.wall_angle)}
