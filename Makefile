@@ -6,6 +6,8 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 PYTEST_ARGS ?=
+DEMO_MISSION ?= patrol
+DEMO_PORT ?= 8080
 
 .PHONY: demo test bench venv system-deps clean
 
@@ -18,14 +20,16 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
-# Debian tools the tests use for real (not mocks): systemd-analyze verifies the unit file.
+# Debian tools the tests use for real (not mocks): systemd-analyze verifies the unit file,
+# headless chromium drives the dashboard page.
 system-deps:
-	@command -v systemd-analyze >/dev/null 2>&1 || { \
-	  echo "installing Debian package: systemd (for systemd-analyze)"; \
-	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq systemd >/dev/null; }
+	@command -v systemd-analyze >/dev/null 2>&1 && command -v chromium >/dev/null 2>&1 || { \
+	  echo "installing Debian packages: systemd (for systemd-analyze), chromium (for the dashboard tests)"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq systemd chromium >/dev/null; }
 
+# The simulated vehicle flying a mission, with the live dashboard (it prints the URL).
 demo: $(STAMP)
-	$(BIN)/companion sitl
+	$(BIN)/companion sitl --mission $(DEMO_MISSION) --dashboard $(DEMO_PORT)
 
 test: $(STAMP) system-deps
 	$(BIN)/python -m pytest $(PYTEST_ARGS)

@@ -44,6 +44,23 @@ def _telemetry_stage() -> Callable[[], object]:
     return lambda: encode_json(1.0, payload)
 
 
+def _lidar_streams_stage() -> Callable[[], object]:
+    from companion.dashboard.bench import arena_scan
+    from companion.telemetry.lidar_streams import scan_payloads
+
+    record, localizer = arena_scan()
+    return lambda: scan_payloads(record, localizer)
+
+
+def _scan_encode_stage() -> Callable[[], object]:
+    from companion.dashboard.bench import arena_scan
+    from companion.telemetry.lidar_streams import scan_payloads
+    from companion.telemetry.scan_codec import encode_scan
+
+    payload = scan_payloads(*arena_scan())["scan"]
+    return lambda: encode_scan(1.0, payload)
+
+
 def _sitl_physics_stage() -> Callable[[], object]:
     from sitl.copter import SimulatedCopter
 
@@ -56,8 +73,13 @@ STAGES: dict[str, Callable[[], Callable[[], object]]] = {
     "link.vision_position_estimate (check + encode)": _estimate_output_stage,
     "link.setpoint (encode)": _setpoint_stage,
     "telemetry.pose (JSON encode)": _telemetry_stage,
+    "telemetry.scan, lines, corners payloads": _lidar_streams_stage,
+    "telemetry.scan (binary encode, 1081 beams)": _scan_encode_stage,
     "sitl.copter step (1/400 s)": _sitl_physics_stage,
 }
+
+
+DASHBOARD_SECONDS = 10.0  # measured run of the dashboard chain
 
 
 def _row(name: str, median: float, p99: float) -> None:
@@ -65,8 +87,10 @@ def _row(name: str, median: float, p99: float) -> None:
 
 
 def run_bench(repeat: int) -> int:
-    """Print every stage's median and p99 in ms: link, telemetry, SITL, lidar pipeline, fusion."""
+    """Print every stage's median and p99 in ms: link, telemetry, SITL, lidar pipeline, fusion;
+    then the dashboard's publish-to-browser latency and CPU."""
     from companion.control.bench_control import control_figures, run_control_bench
+    from companion.dashboard.bench import print_dashboard_figures
     from companion.nav.bench_fusion import run_fusion_bench
     from companion.nav.bench_stages import run_stage_bench
 
@@ -86,6 +110,7 @@ def run_bench(repeat: int) -> int:
         _row(name, median, p99)
     for name, value in control_figures().items():
         print(f"  {name}: {_figure(value)}")
+    print_dashboard_figures(DASHBOARD_SECONDS)
     return 0
 
 

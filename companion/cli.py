@@ -1,4 +1,4 @@
-"""`companion` command line: run, check-config, sitl, bench, config-reference."""
+"""`companion` command line: run, check-config, sitl, dashboard, bench, config-reference."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import asyncio
 import sys
 from pathlib import Path
 
-from companion.config import ConfigError, load_config
+from companion.config import Config, ConfigError, load_config
 from companion.logsetup import setup_logging
 
 EXIT_CONFIG_ERROR = 2
@@ -18,16 +18,25 @@ def repo_config_dir() -> Path:
     return Path(__file__).resolve().parent.parent / "config"
 
 
-def _cmd_run(args: argparse.Namespace) -> int:
-    from companion.clock import LockstepEventLoop
-    from companion.daemon import Daemon
-
+def _config_with_logging(args: argparse.Namespace) -> Config | None:
+    """The config file ``args.config`` with logging set up as it (or --log-level) says; None
+    when the file is invalid (the error is printed)."""
     try:
         cfg = load_config(args.config)
     except ConfigError as exc:
         print(f"companion: {exc}", file=sys.stderr)
-        return EXIT_CONFIG_ERROR
+        return None
     setup_logging(args.log_level or cfg.logging.level)
+    return cfg
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from companion.clock import LockstepEventLoop
+    from companion.daemon import Daemon
+
+    cfg = _config_with_logging(args)
+    if cfg is None:
+        return EXIT_CONFIG_ERROR
     daemon = Daemon(cfg, args.mavlink)
     try:
         if args.lockstep:
@@ -68,6 +77,15 @@ def _cmd_sitl(args: argparse.Namespace) -> int:
     return run_harness(args)
 
 
+def _cmd_dashboard(args: argparse.Namespace) -> int:
+    from companion.dashboard.app import run_dashboard
+
+    cfg = _config_with_logging(args)
+    if cfg is None:
+        return EXIT_CONFIG_ERROR
+    return run_dashboard(cfg.telemetry, args.host, args.port, announce=lambda line: print(line, flush=True))
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from companion.bench import run_bench
 
@@ -106,7 +124,16 @@ def build_parser() -> argparse.ArgumentParser:
     sitl.add_argument("--report", help="write the truth-scored flight report (JSON) here")
     sitl.add_argument("--control-law", choices=["rpt", "pid"], help="fly trajectories with this law (overrides control.law)")
     sitl.add_argument("--autopilot", help="use an external autopilot SITL at this pymavlink URL instead of the built-in vehicle")
+    sitl.add_argument("--dashboard", type=int, nargs="?", const=8080, metavar="PORT",
+                      help="also serve the live telemetry page on 127.0.0.1:PORT (default 8080) and print its URL")
     sitl.set_defaults(func=_cmd_sitl)
+
+    dash = sub.add_parser("dashboard", help="live telemetry page for a ground laptop (read-only; joins zenoh)")
+    dash.add_argument("-c", "--config", default=str(repo_config_dir() / "sitl.yaml"),
+                      help="config whose telemetry section says where to connect (default: config/sitl.yaml)")
+    dash.add_argument("--host", default="127.0.0.1", help="address to serve the page on (default: loopback only)")
+    dash.add_argument("--port", type=int, default=8080, help="HTTP port (0: any free port; default 8080)")
+    dash.set_defaults(func=_cmd_dashboard)
 
     bench = sub.add_parser("bench", help="per-stage timings (median, p99) of every pipeline present")
     bench.add_argument("--repeat", type=int, default=2000)

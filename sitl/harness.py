@@ -5,6 +5,9 @@ The harness writes a run config derived from the given one (mission, absolute pa
 zenoh telemetry on loopback TCP), listens to that telemetry as a zenoh peer, and at the end
 scores the run against the vehicle's ground truth (sitl/report.py).
 
+With ``--dashboard PORT`` it also starts ``companion dashboard`` on that loopback port, joined
+to the daemon's telemetry, and prints the page's URL.
+
 With ``sitl.scip_sensors`` (real time only) it also starts ``python -m sitl.scip_bridge``
 before the daemon: the bridge gets its own vehicle link (an extra ``--gcs`` on a free loopback
 UDP port) for SIM_STATE truth and serves those sensors over SCIP 2.0 on their
@@ -32,6 +35,7 @@ from pathlib import Path
 import yaml
 
 from companion.config import Config, ConfigError, load_config
+from companion.dashboard.app import spawn_dashboard
 from companion.telemetry.keys import KEY_PREFIX
 from sitl.report import build_report
 from sitl.world import load_world
@@ -226,6 +230,8 @@ class Session:
     daemon: subprocess.Popen | None = None
     bridge: subprocess.Popen | None = None  # the SCIP bridge (sitl.scip_sensors)
     bridge_rc: int | None = None  # its exit code; 1 if it ended during the run
+    dashboard: subprocess.Popen | None = None  # `companion dashboard` (--dashboard)
+    dashboard_url: str | None = None
     listener: TelemetryListener | None = None
     started: float = field(default_factory=time.monotonic)
     usage: tuple[float, float] | None = None  # daemon (CPU s, peak RSS MB)
@@ -258,6 +264,8 @@ class Session:
         if self.bridge is not None:
             rc = _terminate(self.bridge, "SCIP bridge", interrupted)
             self.bridge_rc = (rc or 1) if bridge_ended_early else rc
+        if self.dashboard is not None:
+            _terminate(self.dashboard, "dashboard", interrupted)
         if self.listener:
             self.listener.close()
         return daemon_rc, vehicle_rc, telemetry
@@ -280,6 +288,11 @@ def _start(session: Session, cfg: Config, args: argparse.Namespace, run_cfg: Pat
     session.daemon = subprocess.Popen(daemon_cmd)
     if cfg.telemetry.enabled:
         session.listener = TelemetryListener(cfg.telemetry.listen, cfg.vehicle.sysid)
+    if args.dashboard is not None:
+        try:
+            session.dashboard, session.dashboard_url = spawn_dashboard(run_cfg, args.dashboard)
+        except RuntimeError as exc:
+            raise StartFailure(str(exc)) from None
 
 
 def run_harness(args: argparse.Namespace) -> int:
@@ -311,6 +324,8 @@ def run_harness(args: argparse.Namespace) -> int:
                   f"{'lockstep' if args.lockstep else 'real time'}, seed {args.seed}); "
                   f"telemetry on zenoh {', '.join(cfg.telemetry.listen)}; GCS links {', '.join(cfg.sitl.gcs_urls)}"
                   f"{bridge}", flush=True)
+            if session.dashboard_url is not None:
+                print(f"companion sitl: dashboard at {session.dashboard_url}", flush=True)
             session.wait(args.seconds)
         except KeyboardInterrupt:
             interrupted = True

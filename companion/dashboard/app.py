@@ -1,0 +1,119 @@
+"""`companion dashboard`: join zenoh as the config's telemetry section says, serve the page.
+
+The dashboard is a zenoh peer (or client, ``telemetry.dashboard_mode``) that listens nowhere
+and connects to ``telemetry.dashboard_connect``, or to the daemon's ``listen`` endpoints read
+as loopback when that is empty (so ``companion dashboard -c config/sitl.yaml`` joins a running
+``companion sitl``). It retries a lost endpoint every second, so a daemon that restarts is
+back on the page within about a second of publishing again. It subscribes to every vehicle
+(``uav/*/*``) and publishes nothing: there is no command path.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import re
+import select
+import signal
+import subprocess
+import sys
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+import zenoh
+
+from companion.config import TelemetryConfig
+from companion.dashboard.hub import SUBSCRIPTION, TelemetryHub
+from companion.dashboard.web import DashboardServer, is_loopback
+from companion.telemetry.session import open_session
+
+log = logging.getLogger("companion.dashboard")
+
+RECONNECT_PERIOD_S = 1.0
+STATUS_PERIOD_S = 1.0
+CLOSE_TIMEOUT_S = 1.0
+READY_TIMEOUT_S = 15.0
+_WILDCARD = re.compile(r"^(?P<proto>[a-z]+)/(?P<host>0\.0\.0\.0|\[::\])(?=:)")
+
+
+def dashboard_endpoints(telemetry: TelemetryConfig) -> list[str]:
+    """Where the dashboard connects: ``dashboard_connect``, else the ``listen`` endpoints with
+    the wildcard addresses 0.0.0.0 and [::] replaced by 127.0.0.1 and [::1]."""
+    if telemetry.dashboard_connect:
+        return list(telemetry.dashboard_connect)
+    loopback = {"0.0.0.0": "127.0.0.1", "[::]": "[::1]"}
+    return [_WILDCARD.sub(lambda m: f"{m['proto']}/{loopback[m['host']]}", e) for e in telemetry.listen]
+
+
+def page_url(host: str, port: int) -> str:
+    """The URL to open for a server bound to ``host``:``port``."""
+    if host in ("0.0.0.0", "::", ""):
+        host = "127.0.0.1"
+    return f"http://[{host}]:{port}/" if ":" in host else f"http://{host}:{port}/"
+
+
+def spawn_dashboard(config: Path, port: int, timeout_s: float = READY_TIMEOUT_S,
+                    extra_args: tuple[str, ...] = ()) -> tuple[subprocess.Popen, str]:
+    """Start ``companion dashboard -c CONFIG --port PORT`` (0: any free port) as a process and
+    wait until it serves; (the process, the page's URL as it announced it).
+
+    Raises:
+        RuntimeError: it exited or announced nothing within ``timeout_s`` (it is then killed).
+    """
+    proc = subprocess.Popen([sys.executable, "-m", "companion.cli", *extra_args, "dashboard", "-c", str(config),
+                             "--port", str(port)], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    ready = select.select([proc.stdout], [], [], timeout_s)[0]
+    match = re.search(r"http://\S+/", proc.stdout.readline()) if ready else None
+    if match is None:
+        proc.kill()
+        proc.wait()
+        raise RuntimeError(f"companion dashboard did not start serving on port {port} within {timeout_s:g} s")
+    return proc, match[0]
+
+
+def run_dashboard(telemetry: TelemetryConfig, host: str, port: int, announce: Callable[[str], None] = print) -> int:
+    """Run until SIGINT or SIGTERM; ``announce`` gets the one-line start message with the URL.
+
+    Returns the exit code: 0, or 1 when zenoh or the HTTP port cannot be opened.
+    """
+    try:
+        return asyncio.run(_serve(telemetry, host, port, announce))
+    except (zenoh.ZError, OSError) as exc:
+        log.error("dashboard: %s", exc)
+        return 1
+
+
+async def _serve(telemetry: TelemetryConfig, host: str, port: int, announce: Callable[[str], None]) -> int:
+    loop = asyncio.get_running_loop()
+    endpoints = dashboard_endpoints(telemetry)
+    mode = telemetry.dashboard_mode
+    session = await loop.run_in_executor(None, lambda: open_session(
+        mode, [], endpoints, telemetry.multicast_scouting, telemetry.gossip_scouting, RECONNECT_PERIOD_S))
+    hub = TelemetryHub(loop)
+    subscriber = session.declare_subscriber(SUBSCRIPTION, hub.on_sample)
+    server = DashboardServer(hub, host, port)
+    try:
+        bound = await server.start()
+        exposure = "" if is_loopback(host) else " (reachable from the network: read-only)"
+        announce(f"companion dashboard: {page_url(host, bound)}{exposure}; zenoh {mode}, connecting to "
+                 f"{', '.join(endpoints) or 'nothing'}")
+        stop = asyncio.Event()
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.add_signal_handler(sig, stop.set)
+        facts = {"mode": mode, "connect": endpoints}
+        while not stop.is_set():
+            links = len(list(session.info.peers_zid())) + len(list(session.info.routers_zid()))
+            hub.publish_status({"zenoh": {**facts, "links": links}})
+            try:
+                await asyncio.wait_for(stop.wait(), STATUS_PERIOD_S)
+            except TimeoutError:
+                pass
+    finally:
+        await server.stop()
+        subscriber.undeclare()
+        closer = threading.Thread(target=session.close, daemon=True)  # never hang the exit on zenoh
+        closer.start()
+        closer.join(CLOSE_TIMEOUT_S)
+    return 0
