@@ -7,9 +7,11 @@ import math
 import numpy as np
 import pytest
 
+from companion.config import LidarPipelineConfig
 from companion.nav.bench_stages import DEFAULT_WORLD, make_mount, run_stage_bench, synthetic_scan
 from companion.nav.corners import find_corners
 from companion.nav.heading import HeadingResult, track_heading, wall_mod
+from companion.nav.lidar_pipeline import planar_params
 from companion.nav.lines import LineSet, extract_lines
 from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer
 from drivers.lidar_models import UTM_30LX
@@ -304,3 +306,8 @@ def test_heading_result_is_reported(arena: World, geometry: WorldGeometry) -> No
     result = track_heading(levelled_lines(geometry, 2.0, 2.0, 0.1, np.random.default_rng(15)), 0.1, A45)
     assert isinstance(result, HeadingResult) and result.measured and result.lines_used >= 3
     assert 0 < result.variance < math.radians(0.1) ** 2 and result.consensus == pytest.approx(1.0)
+
+
+def test_the_configured_correspondence_gate_reaches_the_localizer() -> None:
+    cfg = LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v", correspondence_gate_m=0.3)
+    assert planar_params(cfg).gate_m == 0.3

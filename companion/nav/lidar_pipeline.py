@@ -33,7 +33,7 @@ from companion.mavlink.estimate import PoseEstimate
 from companion.nav.fusion import FusionFilter, to_pose_estimate
 from companion.nav.height import HeightEstimator
 from companion.nav.loop import Timings
-from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer
+from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer, PlanarParams
 from drivers.scan import Scan
 from sitl.world import World
 
@@ -72,6 +72,11 @@ class ProcessedScan:
     fix: PlanarFix | None  # what the localizer made of it; None: no pose known (relocalizing)
 
 
+def planar_params(cfg: LidarPipelineConfig) -> PlanarParams:
+    """The localizer's thresholds from the config (the rest keep the defaults of companion/nav)."""
+    return PlanarParams(gate_m=cfg.correspondence_gate_m)
+
+
 def planar_mount(mount: MountConfig) -> Mount2D:
     """The horizontal scanner's 2-D mount; it must be mounted level (roll, pitch 0)."""
     roll, pitch, yaw = mount.rpy_deg
@@ -97,7 +102,7 @@ class LidarPipeline:
         mount = planar_mount(horizontal)
         self.localizer = PlanarLocalizer(world_map.corner_array(), world_map.wall_angle_deg, mount,
                                          walls=world_map.segments_at(RELOCALIZATION_SCAN_HEIGHT_M),
-                                         initial_pose=initial)
+                                         params=planar_params(cfg), initial_pose=initial)
         self.height = HeightEstimator(tuple(vertical.position_m), tuple(math.radians(a) for a in vertical.rpy_deg))
         self.fusion = FusionFilter()
         self.stats = LidarPipelineStats()
