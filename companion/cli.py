@@ -118,7 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
     sitl = sub.add_parser("sitl", help="simulated vehicle + daemon over loopback; optional scored report")
     sitl.add_argument("-c", "--config", default=str(repo_config_dir() / "sitl.yaml"), help="daemon config (default: config/sitl.yaml)")
     sitl.add_argument("--mission", help="mission name: missions/NAME.yaml beside the config file (default: the config's mission)")
-    sitl.add_argument("--seconds", type=float, help="simulated seconds to run (default: until Ctrl-C)")
+    sitl.add_argument("--seconds", type=float, help="simulated seconds to run (default: until Ctrl-C; with --report, "
+                                                    "until the mission is over)")
     sitl.add_argument("--lockstep", action="store_true", help="deterministic simulated clock")
     sitl.add_argument("--seed", type=int, default=0)
     sitl.add_argument("--report", help="write the truth-scored flight report (JSON) here")

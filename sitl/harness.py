@@ -183,6 +183,7 @@ def process_cpu_rss(pid: int) -> tuple[float, float] | None:
 
 
 SELF_EXIT_GRACE_S = 2.0  # after Ctrl-C, which the whole foreground group receives
+MISSION_END_GRACE_S = 1.0  # --report without --seconds: the run ends this long (wall) after the mission
 
 
 def _terminate(proc: subprocess.Popen, name: str, interrupted: bool = False) -> int:
@@ -236,10 +237,18 @@ class Session:
     started: float = field(default_factory=time.monotonic)
     usage: tuple[float, float] | None = None  # daemon (CPU s, peak RSS MB)
 
-    def wait(self, seconds: float | None) -> None:
-        """Until the vehicle ends the run (--seconds), the daemon dies, or (external autopilot) time is up."""
+    def wait(self, seconds: float | None, until_mission_end: bool = False) -> None:
+        """Until the vehicle ends the run (--seconds), the daemon dies, (external autopilot) time
+        is up, or, with ``until_mission_end``, the mission is over (completed, failed or aborted)
+        and MISSION_END_GRACE_S more have passed."""
         assert self.daemon is not None
+        ended_at: float | None = None
         while True:
+            if until_mission_end and ended_at is None and self.listener is not None:
+                state = self.listener.snapshot().get("mission", {}).get("state")
+                ended_at = time.monotonic() if state in ("completed", "failed", "aborted") else None
+            if ended_at is not None and time.monotonic() - ended_at > MISSION_END_GRACE_S:
+                return
             if self.vehicle is not None and self.vehicle.poll() is not None:
                 return
             if self.daemon.poll() is not None:
@@ -326,7 +335,7 @@ def run_harness(args: argparse.Namespace) -> int:
                   f"{bridge}", flush=True)
             if session.dashboard_url is not None:
                 print(f"companion sitl: dashboard at {session.dashboard_url}", flush=True)
-            session.wait(args.seconds)
+            session.wait(args.seconds, until_mission_end=args.report is not None and args.seconds is None)
         except KeyboardInterrupt:
             interrupted = True
         except StartFailure as exc:

@@ -105,3 +105,15 @@ def test_another_seed_gives_other_tracking_figures(reports: dict[str, dict]) -> 
     assert other["mission_completed"] is True
     assert other["tracking_rms_m"] != first["tracking_rms_m"]
     assert other["tracking_max_m"] != first["tracking_max_m"]
+
+
+def test_without_seconds_a_report_run_ends_when_the_mission_is_over(sitl_config: Path) -> None:
+    report = sitl_config.parent / "report-until-mission-end.json"
+    proc = subprocess.run(
+        [sys.executable, "-m", "companion.cli", "sitl", "--mission", "hover", "--lockstep", "--seed", "1",
+         "--report", str(report), "-c", str(sitl_config)],
+        cwd=REPO, capture_output=True, text=True, timeout=90)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    result = json.loads(report.read_text())
+    assert result["control"]["mission_completed"] is True
+    assert 15.0 < result["seconds"] < 60.0  # the hover takes about 20 s of simulation
