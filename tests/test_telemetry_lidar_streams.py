@@ -115,6 +115,12 @@ def test_matched_corners_need_a_map_corner_within_the_gate() -> None:
     assert matched_corners(np.zeros((0, 2)), (2.0, 2.0, 0.0), known, 0.5) == []
 
 
+def test_two_observed_corners_never_match_the_same_map_corner_as_in_the_localizer() -> None:
+    known = np.array([[5.0, 0.0]])
+    observed = np.array([[3.0, -2.0], [3.1, -2.0]])  # both within the gate of the one map corner
+    assert matched_corners(observed, (2.0, 2.0, 0.0), known, 0.5) == [{"observed": 0, "map_ned_m": [5.0, 0.0]}]
+
+
 def test_scan_travels_binary_with_its_zenoh_encoding() -> None:
     endpoint = f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"
     sender = open_session("peer", [endpoint], [], False, False)

@@ -18,6 +18,7 @@ import zenoh
 
 from companion.telemetry.keys import SCHEMA_VERSION, STREAMS, key
 from companion.telemetry.publisher import TelemetryPublisher, encode_json
+from companion.telemetry.rate import RateWindow
 from companion.telemetry.session import open_session, zenoh_config
 
 pytestmark = pytest.mark.timeout(30)
@@ -389,12 +390,23 @@ def test_rates_report_message_rate_and_age(open_peer: OpenPeer) -> None:
             clock.t = 10.0 + i / 10
             telemetry.publish("setpoint", {"i": i})
             _wait_for(lambda: telemetry.stats()["setpoint"]["published"] == i + 1)
-        clock.t = 11.5
+        clock.t = 11.05
+        assert telemetry.stats()["setpoint"]["rate_hz"] == pytest.approx(10.0)
+        clock.t = 11.5  # silent for 5 of its intervals: stopped, the rate falls
         stats = telemetry.stats()["setpoint"]
-        assert stats["rate_hz"] == pytest.approx(10.0)
+        assert stats["rate_hz"] == pytest.approx(10 / 1.5)
         assert stats["age_s"] == pytest.approx(0.5)
         clock.t = 20.0  # silent for longer than the window
         assert telemetry.stats()["setpoint"]["rate_hz"] == 0.0
     finally:
         telemetry.close()
 
+
+def test_a_stream_that_stops_reads_a_falling_rate_not_its_old_one() -> None:
+    window = RateWindow(window_s=5.0)
+    for i in range(50):  # 10 Hz for 5 s
+        window.add(i * 0.1)
+    assert window.rate_hz(4.95) == pytest.approx(10.0)
+    assert window.rate_hz(7.0) < 6.0  # 2 s of silence: 28 intervals over 4.9 s
+    assert window.rate_hz(9.0) < window.rate_hz(7.0)
+    assert window.rate_hz(10.0) == 0.0  # all out of the window

@@ -88,8 +88,9 @@ def measure_dashboard(seconds: float, work_dir: Path | None = None) -> Dashboard
                                           "telemetry": {"listen": [f"tcp/127.0.0.1:{zenoh_port}"]}}))
         session = open_session("peer", [f"tcp/127.0.0.1:{zenoh_port}"], [], False, False)
         publisher = TelemetryPublisher(session, sysid=1, clock=time.monotonic)
-        dashboard, url = spawn_dashboard(config, 0, extra_args=("--log-level", "warning"))
+        dashboard = None
         try:
+            dashboard, url = spawn_dashboard(config, 0, extra_args=("--log-level", "warning"))
             with HeadlessChromium() as browser:
                 browser.open(url)
                 browser.evaluate(PROBE)
@@ -103,8 +104,9 @@ def measure_dashboard(seconds: float, work_dir: Path | None = None) -> Dashboard
                 received = browser.evaluate("window.latencyProbe")
         finally:
             publisher.close()
-            dashboard.terminate()
-            dashboard.wait(10)
+            if dashboard is not None:
+                dashboard.terminate()
+                dashboard.wait(10)
             session.close()
     wall_minus_monotonic = time.time() - time.monotonic()  # both clocks of this machine
     latencies = [browser_ms - (t + wall_minus_monotonic) * 1e3 for t, browser_ms in received if t >= start_t]

@@ -56,9 +56,13 @@ class HeadlessChromium:
         os.close(from_browser_w)
         self._buffer = b""
         self._next_id = 0
-        target = self._command("Target.createTarget", {"url": "about:blank"})["targetId"]
-        self._session = self._command("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
-        self._command("Page.enable", session=True)
+        try:
+            target = self._command("Target.createTarget", {"url": "about:blank"})["targetId"]
+            self._session = self._command("Target.attachToTarget", {"targetId": target, "flatten": True})["sessionId"]
+            self._command("Page.enable", session=True)
+        except BaseException:  # no __exit__ will run: do not leave the browser and its profile behind
+            self.close()
+            raise
 
     def __enter__(self) -> HeadlessChromium:
         return self

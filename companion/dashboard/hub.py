@@ -32,7 +32,7 @@ from typing import Any
 
 import zenoh
 
-from companion.telemetry.keys import KEY_PREFIX
+from companion.telemetry.keys import KEY_PREFIX, STREAMS
 from companion.telemetry.rate import RateWindow
 from companion.telemetry.scan_codec import SCAN_ENCODING, decode_scan
 
@@ -42,6 +42,7 @@ INBOX_SIZE = 1024  # samples waiting for the loop, all keys together
 OUTBOX_SIZE = 256  # events waiting for one browser (one per key; each recent alert is one)
 ALERT_HISTORY = 50  # alerts a joining browser gets (the alerts stream is a list, not a state)
 SUBSCRIPTION = f"{KEY_PREFIX}/*/*"
+KNOWN_STREAMS = frozenset(STREAMS)
 
 
 class Browser:
@@ -133,8 +134,8 @@ class TelemetryHub:
 
     def _receive(self, key: str, encoding: str, payload: bytes, rx: float) -> None:
         parts = key.split("/")
-        if len(parts) != 3 or not parts[1].isdigit():
-            return
+        if len(parts) != 3 or not (parts[1].isascii() and parts[1].isdigit()) or parts[2] not in KNOWN_STREAMS:
+            return  # not a vehicle stream of this schema: neither cached nor counted
         sysid, stream = int(parts[1]), parts[2]
         stats = self._stats.setdefault((sysid, stream), StreamStats())
         stats.count += 1

@@ -253,7 +253,7 @@ class PlanarLocalizer:
         gate = self.params.gate_m if gate_m is None else gate_m
         rot = rotation(heading.yaw)
         world = corners.xy @ rot.T  # R q for every corner (eq. 5 without the position)
-        obs, idx = _associate(xy + world, self.map, gate)
+        obs, idx = associate(xy + world, self.map, gate)
         if obs.size == 0:
             return Match(np.asarray(xy, dtype=float), self._cov, 0, 0.0)
         disp = self.map[idx] - (xy + world[obs])  # eq. 8: map corner minus observed corner
@@ -430,8 +430,9 @@ def _with_yaw(heading: HeadingResult, yaw: float) -> HeadingResult:
                          heading.lines_used, heading.consensus, heading.limit_rad)
 
 
-def _associate(predicted: np.ndarray, landmarks: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
-    """(observed indices, map indices) of mutual nearest neighbours closer than ``gate``."""
+def associate(predicted: np.ndarray, landmarks: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
+    """(observed indices, map indices) of mutual nearest neighbours closer than ``gate`` (the
+    localizer's association; telemetry shows the same)."""
     if landmarks.shape[0] == 0 or predicted.shape[0] == 0:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
     diff = predicted[:, None, :] - landmarks[None, :, :]

@@ -23,7 +23,7 @@ import numpy as np
 from companion.nav.corners import find_corners
 from companion.nav.lidar_pipeline import LidarPipeline, ProcessedScan
 from companion.nav.lines import extract_lines
-from companion.nav.planar import PlanarLocalizer, rotation
+from companion.nav.planar import PlanarLocalizer, associate, rotation
 from companion.telemetry.publisher import TelemetryPublisher
 
 MAP_PERIOD_S = 2.0
@@ -72,15 +72,12 @@ def scan_payloads(record: ProcessedScan, localizer: PlanarLocalizer) -> dict[str
 
 def matched_corners(observed_m: np.ndarray, pose: tuple[float, float, float], known_ned_m: np.ndarray,
                     gate_m: float) -> list[dict[str, Any]]:
-    """Each observed corner (levelled body frame, metres) that lands within ``gate_m`` of a
-    known map corner when placed in the world with ``pose``: {observed index, that corner}."""
-    if observed_m.shape[0] == 0 or known_ned_m.shape[0] == 0:
-        return []
-    world = np.array(pose[:2]) + observed_m @ rotation(pose[2]).T
-    distance = np.linalg.norm(world[:, None, :] - known_ned_m[None, :, :], axis=2)
-    nearest = distance.argmin(axis=1)
-    return [{"observed": i, "map_ned_m": known_ned_m[j].tolist()} for i, j in enumerate(nearest)
-            if distance[i, j] <= gate_m]
+    """The observed corners (levelled body frame, metres) that the localizer's association
+    (mutual nearest neighbours within ``gate_m``) pairs with a known map corner when placed in
+    the world with ``pose``: {observed index, that corner}."""
+    world = np.array(pose[:2]) + np.asarray(observed_m).reshape(-1, 2) @ rotation(pose[2]).T
+    observed, known = associate(world, known_ned_m, gate_m)
+    return [{"observed": int(i), "map_ned_m": known_ned_m[j].tolist()} for i, j in zip(observed, known)]
 
 
 def map_payload(localizer: PlanarLocalizer) -> dict[str, Any]:

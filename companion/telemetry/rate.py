@@ -11,7 +11,9 @@ RATE_WINDOW_S = 5.0
 class RateWindow:
     """Event times of one stream; :meth:`rate_hz` is the mean rate over the last window:
     (events - 1) / (newest - oldest) of the events in it, so a steady 1 Hz stream reads
-    1.0 (not 0.8 or 1.2 by where the window falls); 0.0 with fewer than two events.
+    1.0 (not 0.8 or 1.2 by where the window falls); 0.0 with fewer than two events. A stream
+    that stops (nothing for two of its intervals) reads (events - 1) / (now - oldest), falling
+    to 0 as its events leave the window.
 
     Keeps at most ``capacity`` times, so rates above ``capacity / window_s`` Hz read low; the
     default holds 100 Hz over the 5 s window. Not thread-safe: callers hold their own lock.
@@ -30,6 +32,10 @@ class RateWindow:
         start = now - self.window_s
         while self._times and self._times[0] <= start:
             self._times.popleft()
-        if len(self._times) < 2 or self._times[-1] <= self._times[0]:
+        n = len(self._times)
+        if n < 2 or self._times[-1] <= self._times[0]:
             return 0.0
-        return (len(self._times) - 1) / (self._times[-1] - self._times[0])
+        span = self._times[-1] - self._times[0]
+        if now - self._times[-1] > 2.0 * span / (n - 1):  # stopped: count the silence too
+            span = now - self._times[0]
+        return (n - 1) / span

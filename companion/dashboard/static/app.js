@@ -151,7 +151,11 @@ function renderBadges(v) {
 
 function renderScan(v) {
   const scan = v.data("scan");
-  if (!scan) return;
+  if (!scan) {  // e.g. a vehicle without a horizontal lidar: show nothing rather than another's scan
+    page.scan.clear();
+    $("scan-info").textContent = "no scan from this vehicle";
+    return;
+  }
   const corners = page.scan.render(scan, v.data("lines"), v.data("corners"));
   const lines = v.data("lines")?.sequence === scan.sequence ? v.data("lines").segments_m.length : "?";
   $("scan-info").textContent = `${scan.sensor} #${scan.sequence}: ${scan.ranges_mm.filter((r) => r).length} returns, `

@@ -51,6 +51,13 @@ class ScanLayer {
     this.observed = svg("g", { class: "observed" }, parent);
   }
 
+  /** Remove what was drawn (another vehicle chosen, without a scan yet). */
+  clear() {
+    this.dots.setAttribute("d", "");
+    this.lines.replaceChildren();
+    this.observed.replaceChildren();
+  }
+
   /** Draw `scan` (its own sequence's lines and corners only, so the three always agree). */
   draw(scan, lines, corners) {
     this.sensor.setAttribute("transform", placeAt(scan.mount));
@@ -187,6 +194,11 @@ export class ScanView {
     this.layer = new ScanLayer(g);
     svg("polygon", { points: VEHICLE_SHAPE }, svg("g", { class: "vehicle" }, g));
     this.radius = 0;
+  }
+
+  /** Nothing to show: an empty view. */
+  clear() {
+    this.layer.clear();
   }
 
   /** Draw the scan; returns its corners message when it belongs to the scan (else null). */
