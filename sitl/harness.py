@@ -137,6 +137,32 @@ def free_udp_port() -> int:
         return sock.getsockname()[1]
 
 
+def ports_in_use(cfg: Config, builtin_vehicle: bool) -> list[str]:
+    """The loopback ports this run would listen on that something else holds already: the
+    vehicle's UDP port and the daemon's zenoh TCP endpoints. Two runs on the same ports would
+    silently talk to each other (pymavlink's udpin shares its port); better to refuse."""
+    taken = []
+    if builtin_vehicle and cfg.sitl.vehicle_url.startswith("udpin:"):
+        host, port = cfg.sitl.vehicle_url.split(":")[1:3]
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            try:
+                sock.bind((host, int(port)))
+            except OSError:
+                taken.append(f"UDP {host}:{port} (sitl.vehicle_url)")
+    for endpoint in cfg.telemetry.listen if cfg.telemetry.enabled else []:
+        proto, _, address = endpoint.partition("/")
+        host, _, port = address.rpartition(":")
+        if proto != "tcp" or not port.isdigit():
+            continue
+        with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET, socket.SOCK_STREAM) as sock:
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # TIME_WAIT is fine, a listener is not
+            try:
+                sock.bind((host.strip("[]"), int(port)))
+            except OSError:
+                taken.append(f"TCP {address} (telemetry.listen)")
+    return taken
+
+
 def scip_bridge_command(cfg: Config, args: argparse.Namespace, vehicle_url: str) -> list[str]:
     """``python -m sitl.scip_bridge`` serving ``sitl.scip_sensors`` (validated by Config) from
     the vehicle link ``vehicle_url``: model, mount and TCP port of each from its config."""
@@ -317,6 +343,11 @@ def run_harness(args: argparse.Namespace) -> int:
     if cfg.sitl.scip_sensors and (args.lockstep or args.autopilot is not None):
         print("companion: sitl.scip_sensors needs the built-in vehicle in real time (the SCIP bridge runs on the "
               "wall clock); lockstep runs use backend: sim sensors", file=sys.stderr)
+        return 2
+    taken = ports_in_use(cfg, builtin_vehicle=args.autopilot is None)
+    if taken:
+        print(f"companion: in use already (another `companion sitl` running?): {', '.join(taken)}; "
+              "stop it, or give this run other ports in a copy of the config", file=sys.stderr)
         return 2
     work = Path(tempfile.mkdtemp(prefix="companion-sitl-"))
     run_cfg = write_run_config(cfg, args.mission, work, args.autopilot, args.control_law)

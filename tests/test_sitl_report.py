@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import REPO, free_port
-from tests.sitl_helpers import write_config
+from tests.sitl_helpers import write_config, write_sitl_config
 
 SCHEMA_1 = {
     "schema": None, "mission": None, "seconds": None, "lockstep": None, "seed": None,
@@ -117,3 +117,16 @@ def test_without_seconds_a_report_run_ends_when_the_mission_is_over(sitl_config:
     result = json.loads(report.read_text())
     assert result["control"]["mission_completed"] is True
     assert 15.0 < result["seconds"] < 60.0  # the hover takes about 20 s of simulation
+
+
+def test_a_second_run_on_the_same_ports_is_refused(tmp_path: Path) -> None:
+    vehicle_port, zenoh_port = free_port(), free_port(socket.SOCK_STREAM)
+    config = write_sitl_config(tmp_path / "sitl.yaml", vehicle_port=vehicle_port, gcs_port=free_port(),
+                               zenoh_port=zenoh_port, mission=None)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as other_vehicle:
+        other_vehicle.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as pymavlink's udpin does
+        other_vehicle.bind(("127.0.0.1", vehicle_port))
+        proc = subprocess.run([sys.executable, "-m", "companion.cli", "sitl", "-c", str(config), "--seconds", "1"],
+                              cwd=REPO, capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 2
+    assert f"UDP 127.0.0.1:{vehicle_port} (sitl.vehicle_url)" in proc.stderr
