@@ -94,8 +94,9 @@ class MissionContext:
         self.failsafe_counts[kind] = self.failsafe_counts.get(kind, 0) + 1
         log.warning("failsafe %s: %s", kind, reason)
 
-    def hold_on_autopilot(self, yaw_rad: float | None = None) -> np.ndarray:
-        """Brake and hold: a position target at the autopilot's own stopping point (its estimate).
+    def hold_on_autopilot(self, yaw_rad: float | None = None, height_m: float | None = None) -> np.ndarray:
+        """Brake and hold: a position target at the autopilot's own stopping point (its estimate),
+        at ``height_m`` above the origin if given (e.g. the take-off height), else where it is.
 
         Raises :class:`FailsafeLanding` if the autopilot has no fresh position either, or its EKF
         flags (once reported) say it has no horizontal position.
@@ -107,6 +108,8 @@ class MissionContext:
         if flags and not flags & EKF_HORIZONTAL_POSITION:
             raise FailsafeLanding(f"the autopilot's EKF has no horizontal position either (flags {flags:#x}): landing")
         target = stopping_point(p, v, self.control.limits.accel_xy_mps2 / 2)
+        if height_m is not None:
+            target[2] = -height_m
         self.setpoints.command(Setpoint(position_ned=target, yaw_rad=yaw_rad))
         return target
 

@@ -200,9 +200,7 @@ class MissionRunner:
                     and abs(-p[2] - step.altitude_m) < TAKEOFF_REACHED_M and abs(v[2]) < TAKEOFF_SETTLED_MPS)
 
         def climb_on() -> None:  # the hold of a ride-out replaced the take-off: climb as a position target
-            target = ctx.hold_on_autopilot(ctx.yaw())
-            target[2] = -step.altitude_m
-            ctx.setpoints.command(Setpoint(position_ned=target, yaw_rad=ctx.yaw()))
+            ctx.hold_on_autopilot(ctx.yaw(), height_m=step.altitude_m)
         await ctx.wait_for(reached, step.timeout_s, f"{step.altitude_m:g} m altitude", after_ride_out=climb_on)
 
     async def _hold(self, step: HoldStep) -> None:
@@ -214,10 +212,7 @@ class MissionRunner:
         if current is not None and current.position_ned is not None:
             ctx.setpoints.command(Setpoint(position_ned=current.position_ned, yaw_rad=current.yaw_rad))
         else:
-            target = ctx.hold_on_autopilot(ctx.yaw())
-            if self._takeoff_altitude is not None:
-                target[2] = -self._takeoff_altitude
-                ctx.setpoints.command(Setpoint(position_ned=target, yaw_rad=ctx.yaw()))
+            ctx.hold_on_autopilot(ctx.yaw(), height_m=self._takeoff_altitude)
         end = clock.now() + step.seconds
         await self.ctx.wait_for(lambda: clock.now() >= end, step.seconds + 1.0, "the end of the hold")
 
