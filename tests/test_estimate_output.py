@@ -40,7 +40,7 @@ def run_with_link(body) -> list:
     async def main() -> None:
         health = Health(FakeClock())
         link = MavlinkLink(MavlinkConfig(), VehicleConfig(), f"udpout:127.0.0.1:{port}", health)
-        link._open()
+        await link._open()
         try:
             await body(link, health)
         finally:

@@ -1,11 +1,17 @@
-"""The companion's MAVLink connection to its autopilot (pymavlink, MAVLink 2).
+"""The companion's MAVLink connection to its autopilot (MAVLink 2, pymavlink's codec).
 
-One :class:`MavlinkLink` owns the connection: it opens it (retrying with backoff when a serial
-device is unplugged or a TCP peer is down), reads it without blocking the event loop,
-dispatches messages to subscribers, sends the 1 Hz HEARTBEAT as MAV_TYPE_ONBOARD_CONTROLLER,
-recognises the autopilot (ArduPilot or PX4) from its HEARTBEAT, notices link loss and
-autopilot reboots, and answers TIMESYNC (which also drives the clock in lockstep, see
-companion/clock.py).
+One :class:`MavlinkLink` owns the connection: it opens it without blocking the event loop
+(``companion.mavlink.transport``: TCP, UDP, serial), reopens it with backoff when it ends (a TCP
+peer closed, a serial device unplugged, a dead TCP peer found by keepalive), reads it without
+blocking, dispatches messages to subscribers, sends the 1 Hz HEARTBEAT as
+MAV_TYPE_ONBOARD_CONTROLLER, recognises the autopilot (ArduPilot or PX4) from its HEARTBEAT,
+notices link loss and autopilot reboots, and answers TIMESYNC (which also drives the clock in
+lockstep, see companion/clock.py).
+
+An autopilot that merely stops talking (hung, paused, rebooting on a serial line) makes the
+link *lost* (health, ``connected``) but the port stays open: closing a TCP connection to a
+paused ArduPilot SITL would only make it fail when it resumes. Bytes that do not parse are
+counted (``parse_errors``) and skipped.
 
 :meth:`MavlinkLink.send` is the single exit to the autopilot: a message with any non-finite
 float field is dropped there, counted and logged, so a NaN never reaches the autopilot.
@@ -30,8 +36,13 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 from companion import clock  # noqa: E402
 from companion.config import MavlinkConfig, VehicleConfig  # noqa: E402
 from companion.health import Health, State  # noqa: E402
+from companion.mavlink.transport import Transport, TransportClosed, open_transport, parse_url  # noqa: E402
 
 log = logging.getLogger("companion.mavlink")
+
+CONNECT_TIMEOUT_S = 2.0  # a TCP peer that does not accept within this is retried later
+REOPEN_BACKOFF_S = (0.25, 2.0)  # first and longest wait before reopening an ended port
+SIGNING_EPOCH = 1420070400  # MAVLink 2 signing timestamps count 10 us units from 2015-01-01
 
 Handler = Callable[[mavlink.MAVLink_message], None]
 
@@ -47,6 +58,7 @@ class LinkStats:
     messages_tx: int = 0
     nonfinite_dropped: int = 0
     send_errors: int = 0
+    parse_errors: int = 0  # undecodable bytes or frames (noise, a wrong baud rate, a hostile peer)
     reconnects: int = 0
     autopilot_reboots: int = 0
 
@@ -89,7 +101,10 @@ class MavlinkLink:
         self.stats = LinkStats()
         self.autopilot: str | None = None  # "ArduPilot", "PX4" or None until a HEARTBEAT arrives
         self.last_heartbeat: float | None = None  # daemon clock, seconds
-        self._conn: mavutil.mavfile | None = None
+        self._transport: Transport | None = None
+        self._codec: mavlink.MAVLink | None = None
+        self._ended = asyncio.Event()  # the open port ended (EOF, I/O error): reopen it
+        self._heartbeats = 0  # autopilot HEARTBEATs received, ever
         self._handlers: dict[str, list[Handler]] = defaultdict(list)
         self._on_connect: list[Callable[[], None]] = []
         self._connected = False
@@ -125,13 +140,17 @@ class MavlinkLink:
             self.stats.nonfinite_dropped += 1
             log.error("dropped %s with non-finite %s: never sent to the autopilot", msg.get_type(), ", ".join(bad))
             return False
-        if self._conn is None:
+        if self._codec is None or self._transport is None:
             return False
+        dropped_before = self._transport.dropped_writes
         try:
-            self._conn.mav.send(msg)
-        except OSError as exc:
+            self._codec.send(msg)
+        except TransportClosed as exc:
             self.stats.send_errors += 1
-            log.warning("send %s failed: %s", msg.get_type(), exc)
+            self._port_ended(f"send {msg.get_type()}: {exc}")
+            return False
+        if self._transport.dropped_writes != dropped_before:
+            self.stats.send_errors += 1  # the kernel's buffer is full (a stalled peer): dropped whole
             return False
         self.stats.messages_tx += 1
         return True
@@ -141,68 +160,86 @@ class MavlinkLink:
         return self.ids.autopilot_sysid, self.ids.autopilot_compid
 
     async def run(self) -> None:
-        """Open the port (with backoff), then read, heartbeat and watch the link until cancelled."""
-        backoff = 0.5
+        """Open the port (with backoff), then read, heartbeat and watch the link until cancelled.
+
+        A port that ends is reopened after a wait that doubles from ``REOPEN_BACKOFF_S[0]`` to
+        ``REOPEN_BACKOFF_S[1]``; it starts short again once the autopilot has answered on a port.
+        """
+        backoff = REOPEN_BACKOFF_S[0]
         while True:
             try:
-                self._open()
-            except (OSError, ValueError) as exc:
-                self.health.report("link", State.LOST, f"cannot open {self.url}: {exc}")
-                log.warning("cannot open %s: %s; retrying in %.1f s", self.url, exc, backoff)
+                await self._open()
+            except (OSError, ValueError, TimeoutError) as exc:
+                reason = str(exc) or type(exc).__name__
+                self.health.report("link", State.LOST, f"cannot open {self.url}: {reason}")
+                log.warning("cannot open %s: %s; retrying in %.2g s", self.url, reason, backoff)
                 await asyncio.sleep(backoff)
-                backoff = min(backoff * 2, 10.0)
+                backoff = min(backoff * 2, REOPEN_BACKOFF_S[1])
                 continue
-            backoff = 0.5
+            heartbeats_before = self._heartbeats
             try:
                 await self._serve()
             finally:
                 self._close()
+            if self._heartbeats != heartbeats_before:
+                backoff = REOPEN_BACKOFF_S[0]
             self.stats.reconnects += 1
-            await asyncio.sleep(0.5)
+            log.warning("reopening the port %s in %.2g s", self.url, backoff)
+            await asyncio.sleep(backoff)
+            backoff = min(backoff * 2, REOPEN_BACKOFF_S[1])
 
     # -- connection lifecycle ---------------------------------------------------------------
 
-    def _open(self) -> None:
-        conn = mavutil.mavlink_connection(
-            self.url, source_system=self.ids.sysid, source_component=self.ids.compid,
-            dialect="ardupilotmega", autoreconnect=False, baud=921600,
-            retries=0)  # no blocking retry loop inside pymavlink: run() retries with backoff
-        conn.mav.robust_parsing = True
+    async def _open(self) -> None:
+        transport = await open_transport(self.url, CONNECT_TIMEOUT_S)
+        codec = mavlink.MAVLink(transport, srcSystem=self.ids.sysid, srcComponent=self.ids.compid)
+        codec.robust_parsing = True
         if self.signing_key is not None:
-            conn.setup_signing(self.signing_key, sign_outgoing=True)
-        if conn.fd is None:
-            conn.close()
-            raise OSError(f"{self.url} has no pollable file descriptor")
-        self._conn = conn
-        asyncio.get_running_loop().add_reader(conn.fd, self._on_readable)
+            codec.signing.secret_key = self.signing_key
+            codec.signing.sign_outgoing = True
+            codec.signing.link_id = 1
+            codec.signing.timestamp = int(max(time.time() - SIGNING_EPOCH, 0) * 100_000)
+        self._transport, self._codec = transport, codec
+        self._ended.clear()
+        asyncio.get_running_loop().add_reader(transport.fd, self._on_readable)
         log.info("MAVLink port open: %s (sysid %d compid %d)", self.url, self.ids.sysid, self.ids.compid)
 
     def _close(self) -> None:
-        conn, self._conn = self._conn, None
-        if conn is None:
+        transport, self._transport, self._codec = self._transport, None, None
+        if transport is None:
             return
         try:
-            asyncio.get_running_loop().remove_reader(conn.fd)
+            asyncio.get_running_loop().remove_reader(transport.fd)
         except (ValueError, OSError):
             pass
-        conn.close()
+        transport.close()
         self._set_connected(False, "port closed")
 
+    def _port_ended(self, reason: str) -> None:
+        """The port failed (EOF, I/O error): stop reading; :meth:`run` reopens it."""
+        if self._transport is not None and not self._ended.is_set():
+            log.warning("%s: %s", self.url, reason)
+            try:
+                asyncio.get_running_loop().remove_reader(self._transport.fd)
+            except (ValueError, OSError):
+                pass
+            self._ended.set()
+
     async def _serve(self) -> None:
-        """Heartbeat and link watch until the port fails (serial/TCP: or stays silent)."""
+        """Heartbeat and link watch until the port ends."""
         period = 1.0 / self.cfg.heartbeat_hz
-        reopen = not self.url.startswith(("udpin:", "udpout:", "udp:"))
-        lost_since = clock.now()
-        while self._conn is not None:
+        while not self._ended.is_set():
             self._send_heartbeat()
             now = clock.now()
             if self._connected and now - (self.last_heartbeat or 0.0) > self.cfg.link_timeout_s:
                 self._set_connected(False, f"no autopilot HEARTBEAT for {self.cfg.link_timeout_s:g} s")
-                lost_since = now
-            if not self._connected and reopen and now - lost_since > 2 * self.cfg.link_timeout_s:
-                log.warning("no autopilot on %s; reopening the port", self.url)
-                return
-            await self._until_next_heartbeat(period)
+            ended = asyncio.ensure_future(self._ended.wait())
+            beat = asyncio.ensure_future(self._until_next_heartbeat(period))
+            try:
+                await asyncio.wait({ended, beat}, return_when=asyncio.FIRST_COMPLETED)
+            finally:
+                ended.cancel()
+                beat.cancel()
 
     async def _until_next_heartbeat(self, period: float) -> None:
         """Wait ``period`` seconds of daemon time between two HEARTBEATs.
@@ -233,17 +270,26 @@ class MavlinkLink:
     # -- reading ----------------------------------------------------------------------------
 
     def _on_readable(self) -> None:
-        conn = self._conn
-        while conn is not None and not self._paused:
-            try:
-                msg = conn.recv_msg()
-            except Exception as exc:  # OSError, or pyserial's SerialException on unplug
-                log.warning("read from %s failed: %s", self.url, exc)
-                self._close()
-                return
-            if msg is None:
-                return
-            if isinstance(asyncio.get_running_loop(), clock.LockstepEventLoop):
+        transport, codec = self._transport, self._codec
+        if transport is None or codec is None or self._paused or self._ended.is_set():
+            return
+        try:
+            data = transport.read()
+        except TransportClosed as exc:
+            self._port_ended(str(exc))
+            return
+        if not data:
+            return
+        try:
+            messages = codec.parse_buffer(data) or []
+        except Exception as exc:  # pymavlink raises more than MAVError on crafted frames
+            self.stats.parse_errors += 1
+            log.debug("undecodable bytes from %s: %s", self.url, exc)
+            codec.buf, codec.buf_index = bytearray(), 0
+            return
+        lockstep = isinstance(asyncio.get_running_loop(), clock.LockstepEventLoop)
+        for msg in messages:
+            if lockstep:
                 self._batch_until_tick(msg)
             else:
                 self._dispatch(msg)
@@ -266,6 +312,7 @@ class MavlinkLink:
     def _dispatch(self, msg: mavlink.MAVLink_message) -> None:
         msg_type = msg.get_type()
         if msg_type == "BAD_DATA":
+            self.stats.parse_errors += 1
             return
         self.stats.messages_rx += 1
         if msg.get_srcSystem() != self.ids.autopilot_sysid:
@@ -282,6 +329,7 @@ class MavlinkLink:
         if msg.get_srcComponent() != self.ids.autopilot_compid or msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID:
             return
         self.last_heartbeat = clock.now()
+        self._heartbeats += 1
         name = AUTOPILOT_NAMES.get(msg.autopilot, f"autopilot type {msg.autopilot}")
         if name != self.autopilot:
             self.autopilot = name
