@@ -156,7 +156,7 @@ class ControlLimitsConfig:
 
 @dataclass
 class AutopilotGainsConfig:
-    """The autopilot's own position-loop gains, used only by ``control.output: position_only``."""
+    """The autopilot's own position-loop gains, used by ``control.output`` position_only and pos_vel."""
 
     pos_xy_p: float = field(default=1.0, metadata=meta("ArduPilot PSC_POSXY_P / PX4 MPC_XY_P, 1/s.", (0.1, 10)))
     vel_xy_p: float = field(default=2.0, metadata=meta("ArduPilot PSC_VELXY_P / PX4 MPC_XY_VEL_P_ACC, 1/s.", (0.1, 20)))
@@ -171,16 +171,19 @@ class ControlConfig:
     law: Literal["rpt", "pid"] = field(default="rpt", metadata=meta(
         "rpt: the paper's robust and perfect tracking law; pid: the baseline with the same closed-loop poles and no "
         "feed-forward (for comparison flights)."))
-    output: Literal["pos_vel_acc", "position_only"] = field(default="pos_vel_acc", metadata=meta(
+    output: Literal["auto", "pos_vel_acc", "pos_vel", "position_only"] = field(default="auto", metadata=meta(
         "pos_vel_acc: reference position + velocity (z: the controller's) + the controller's acceleration as "
-        "feed-forward (type_mask 3072); position_only: a position target that makes the autopilot's own loop "
-        "demand the controller's output (type_mask 3576), for autopilots or modes that take positions only."))
+        "feed-forward (type_mask 3072); pos_vel: the same with the acceleration folded into the velocity through "
+        "the autopilot's velocity gain (type_mask 3520, for firmware without acceleration targets: ArduPilot Copter "
+        "< 4.1); position_only: a position target that makes the autopilot's own loop demand the controller's "
+        "output (type_mask 3576), for autopilots or modes that take positions only; auto: pos_vel_acc where the "
+        "firmware (AUTOPILOT_VERSION) takes it, else pos_vel."))
     xy: RptAxisConfig = field(default_factory=RptAxisConfig, metadata=meta("x and y channels (paper: 1, 0.99, 0.707, 0.25)."))
     z: RptAxisConfig = field(default_factory=lambda: RptAxisConfig(omega_n=0.559, zeta=2.0, k_i=0.0), metadata=meta(
         "z channel (paper: epsilon 1, omega_n 0.559, zeta 2)."))
     limits: ControlLimitsConfig = field(default_factory=ControlLimitsConfig, metadata=meta("Output limits."))
     autopilot_gains: AutopilotGainsConfig = field(default_factory=AutopilotGainsConfig, metadata=meta(
-        "The autopilot's position-loop gains (position_only output)."))
+        "The autopilot's position-loop gains (position_only and pos_vel outputs)."))
 
 
 @dataclass
@@ -230,6 +233,29 @@ class MissionConfig:
         "its own estimate, e.g. GPS)."))
 
 
+def _sitl_error_sources() -> dict[str, float]:
+    # Motor-on IMU noise and sensor biases, as a flying multicopter's IMU sees them (ArduPilot's
+    # default_params/copter.parm zeroes them for repeatable autotests).
+    return {"SIM_ACC_RND": 0.5, "SIM_GYR_RND": 0.5, "SIM_ACC_BIAS_X": 0.05, "SIM_ACC_BIAS_Y": -0.03,
+            "SIM_ACC_BIAS_Z": 0.04}
+
+
+@dataclass
+class ArduPilotSitlConfig:
+    """ArduPilot SITL as the vehicle of `companion sitl` (or `--ardupilot PATH`), instead of the built-in one."""
+
+    binary: str | None = field(default=None, metadata=meta(
+        "ArduPilot SITL executable (e.g. ../shared/ardupilot/arducopter), relative to this file; null = the built-in "
+        "vehicle. `companion sitl --ardupilot PATH` overrides it."))
+    model: str = field(default="+", metadata=meta("SITL --model (frame): + or x quad, hexa, ..."))
+    defaults: str | None = field(default=None, metadata=meta(
+        "ArduPilot default parameter file for the model, relative to this file; null = the .parm beside the binary "
+        "named after it (copter.parm for arducopter)."))
+    parameters: dict[str, float] = field(default_factory=_sitl_error_sources, metadata=meta(
+        "Parameters the harness sets after the companion's own (error sources of the simulated sensors: SIM_ACC_RND, "
+        "SIM_GYR_RND, biases, wind). The barometer's are always zeroed: it is the truth altimeter."))
+
+
 @dataclass
 class SitlConfig:
     """Used only by `companion sitl` (the harness), never by the daemon on a vehicle."""
@@ -251,6 +277,8 @@ class SitlConfig:
         "Sensors (names in `sensors`: lidars with backend real, settings.host 127.0.0.1, settings.model "
         "UTM-30LX or URG-04LX, one settings.tcp_port each) that the SCIP bridge (python -m sitl.scip_bridge) "
         "emulates from the vehicle's ground truth, so the real Hokuyo driver runs end to end. Real time only."))
+    ardupilot: ArduPilotSitlConfig = field(default_factory=ArduPilotSitlConfig, metadata=meta(
+        "ArduPilot SITL as the vehicle (real time only)."))
 
 
 @dataclass

@@ -23,12 +23,12 @@ from companion import clock
 from companion.config import Config, SensorConfig
 from companion.health import ComponentHealth, Health, State
 from companion.mavlink.autopilot import AutopilotState
-from companion.mavlink.checklist import expected_parameters
 from companion.mavlink.commands import Commander
 from companion.mavlink.estimate import EstimateSender, PoseEstimate
 from companion.mavlink.link import MavlinkLink, load_signing_key, mavlink
 from companion.mavlink.origin import OriginSetter
 from companion.mavlink.setpoints import SetpointStream
+from companion.mavlink.streams import StreamNegotiator
 from companion.mission.context import MissionContext
 from companion.mission.failsafe import Geofence
 from companion.mission.runner import MissionRunner
@@ -70,6 +70,7 @@ class Daemon:
         self.started_wall = time.monotonic()
         self.drivers: dict[str, LidarDriver] = {}
         self.truth: TruthSource | None = None  # ground truth, only for simulated sensors
+        self._first_contact = True
         self._stop = asyncio.Event()
 
     def request_stop(self) -> None:
@@ -90,6 +91,7 @@ class Daemon:
         self.state = state = AutopilotState(link)
         self.commander = commander = Commander(link, state, cfg.mavlink)
         self.origin = origin = OriginSetter(link, state, commander, cfg.origin, self.health)
+        self.streams = streams = StreamNegotiator(link, state, commander, cfg.mavlink.streams, self.health)
         self.telemetry = telemetry = self._open_telemetry()
         self.estimate = EstimateSender(link, cfg.mavlink.estimate_rate_hz, self.health, clock.now,
                                        on_alert=self.statustext)
@@ -103,6 +105,7 @@ class Daemon:
         sup = self.supervisor
         sup.spawn("link", link.run)
         sup.spawn("origin", origin.run)
+        sup.spawn("streams", streams.run)
         sup.spawn("setpoints", setpoints.run)
         sup.spawn("nav", self.nav.run)
         sup.spawn("status", self._publish_status)
@@ -226,9 +229,11 @@ class Daemon:
             self.supervisor.spawn("telemetry:lidar", lambda: every(1.0 / t.scan_hz, self._lidar_telemetry().publish))
 
     def _on_autopilot_found(self) -> None:
-        asyncio.get_running_loop().create_task(self.commander.request_streams(), name="request-streams")
-        log.info("autopilot %s: the companion expects these parameters: %s", self.link.autopilot,
-                 "; ".join(f"{k}={v}" for k, v in expected_parameters(self.link.autopilot)))
+        asyncio.get_running_loop().create_task(self.commander.request_autopilot_version(), name="autopilot-version")
+        if self._first_contact:
+            self._first_contact = False
+            log.info("autopilot %s found: `companion setup-autopilot -c %s` checks the parameters this config needs",
+                     self.link.autopilot, self.cfg.source)
 
     def _announce(self, name: str, new: ComponentHealth, old: ComponentHealth | None) -> None:
         if name == "link" or name.startswith("task:") or old is None:
@@ -249,9 +254,12 @@ class Daemon:
                            "heartbeat_age_s": None if link.last_heartbeat is None else clock.now() - link.last_heartbeat,
                            **vars(link.stats)})
         t.publish("autopilot", {"mode": state.mode, "armed": state.armed,
+                                "firmware": state.firmware.label if state.firmware else None,
                                 "origin_confirmed": self.origin.confirmed and link.connected,
+                                "home_at_origin": self.origin.home_confirmed,
                                 "external_nav_in_use": state.external_nav_in_use, "ekf_flags": state.ekf_flags,
-                                "local_position_ned_m": state.local_position_ned})
+                                "local_position_ned_m": state.local_position_ned,
+                                "streams": dict(self.streams.chosen), "nonfinite_rejected": state.nonfinite_rejected})
         t.publish("estimate_stats", {**vars(self.estimate.stats), "reset_counter": self.estimate.reset_counter,
                                      "nonfinite_dropped_link": link.stats.nonfinite_dropped})
         t.publish("system", {**process_usage(self.started_wall),

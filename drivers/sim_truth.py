@@ -4,8 +4,13 @@ The one documented truth interface is MAVLink on the autopilot link:
 
 - ``SIM_STATE`` (the built-in SITL vehicle, and recent ArduPilot SITL): attitude quaternion,
   NED velocity, ``lat_int``/``lon_int`` (1e-7 deg, so about 1.1 cm) and altitude;
-- ``SIMSTATE`` (older ArduPilot SITL): attitude and ``lat``/``lng`` (1e-7 deg) but no
-  altitude, which is then taken from the autopilot's LOCAL_POSITION_NED.
+- ``SIMSTATE`` (ArduPilot SITL before SIM_STATE, e.g. 4.0): true attitude and ``lat``/``lng``
+  (1e-7 deg) but no altitude. The altitude then comes from ArduPilot SITL's simulated
+  barometer (SCALED_PRESSURE), which is an exact function of the true altitude through
+  ArduPilot's standard atmosphere when its error sources are off (SIM_BARO_RND, SIM_BARO_DRIFT,
+  SIM_BARO_GLITCH, SIM_BARO_DELAY, SIM_TEMP_BFACTOR all 0: ``companion sitl --ardupilot`` sets
+  them; the EKF does not use that barometer, it takes height from the external navigation).
+  Never the autopilot's own estimate (LOCAL_POSITION_NED, AHRS2): that is not truth.
 
 Samples are stamped with the daemon clock on arrival (in lockstep that is exactly the
 simulation time they were sampled at) and converted to the project frame (LOCAL_NED at the
@@ -17,7 +22,9 @@ never an input to a real estimator.
 from __future__ import annotations
 
 import bisect
+import math
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,6 +35,23 @@ from companion.frames import euler_from_quat, ned_from_geodetic, quat_from_euler
 from companion.mavlink.link import MavlinkLink, mavlink
 
 HISTORY_S = 2.0
+SIM_STATE_PREFERRED_S = 1.0  # a SIM_STATE this recent makes SIMSTATE redundant
+
+# ArduPilot's AP_Baro::SimpleAtmosphere (troposphere), as its SITL barometer uses it.
+SSL_AIR_PRESSURE_PA = 101325.01576
+SSL_AIR_TEMPERATURE_K = 288.15
+EARTH_RADIUS_KM = 6369.0
+GAS_CONSTANT_GMR = 34.163195
+LAPSE_RATE_K_PER_KM = 6.5
+
+
+def sitl_baro_altitude_m(pressure_hpa: float) -> float:
+    """Altitude (m AMSL) at which ArduPilot SITL's noiseless barometer reads ``pressure_hpa``: the
+    inverse of AP_Baro::SimpleAtmosphere (geopotential troposphere, then geometric altitude)."""
+    delta = pressure_hpa * 100.0 / SSL_AIR_PRESSURE_PA
+    theta = delta ** (LAPSE_RATE_K_PER_KM / GAS_CONSTANT_GMR)
+    h_km = (1.0 - theta) * SSL_AIR_TEMPERATURE_K / LAPSE_RATE_K_PER_KM
+    return 1000.0 * h_km * EARTH_RADIUS_KM / (EARTH_RADIUS_KM - h_km)
 
 
 @dataclass(frozen=True)
@@ -41,13 +65,17 @@ class TruthSample:
 class TruthSource:
     """Keeps ``HISTORY_S`` seconds of simulator truth and interpolates it."""
 
-    def __init__(self, link: MavlinkLink, origin: OriginConfig) -> None:
+    def __init__(self, link: MavlinkLink, origin: OriginConfig,
+                 listener: Callable[[TruthSample], None] | None = None) -> None:
+        """``listener`` is called with every new sample (the harness records them)."""
         self._origin = (origin.lat, origin.lon, origin.alt)
+        self._listener = listener
         self._samples: deque[TruthSample] = deque()
-        self._last_z: float | None = None  # LOCAL_POSITION_NED z, for SIMSTATE
+        self._baro_alt: float | None = None  # m AMSL, from SCALED_PRESSURE, for SIMSTATE
+        self._sim_state_t: float | None = None  # daemon time of the last SIM_STATE
         link.subscribe("SIM_STATE", self._on_sim_state)
         link.subscribe("SIMSTATE", self._on_simstate)
-        link.subscribe("LOCAL_POSITION_NED", self._on_local_position)
+        link.subscribe("SCALED_PRESSURE", self._on_pressure)
 
     @property
     def latest(self) -> TruthSample | None:
@@ -75,23 +103,31 @@ class TruthSource:
         self._samples.append(sample)
         while self._samples and sample.t - self._samples[0].t > HISTORY_S:
             self._samples.popleft()
+        if self._listener is not None:
+            self._listener(sample)
 
     def _on_sim_state(self, msg: mavlink.MAVLink_message) -> None:
         lat_int = getattr(msg, "lat_int", 0)
         lat = lat_int * 1e-7 if lat_int else msg.lat
         lon = msg.lon_int * 1e-7 if lat_int else msg.lon
-        self._add(TruthSample(clock.now(), ned_from_geodetic(lat, lon, msg.alt, self._origin),
+        values = (lat, lon, msg.alt, msg.vn, msg.ve, msg.vd, msg.q1, msg.q2, msg.q3, msg.q4)
+        if not all(math.isfinite(v) for v in values):
+            return
+        self._sim_state_t = clock.now()
+        self._add(TruthSample(self._sim_state_t, ned_from_geodetic(lat, lon, msg.alt, self._origin),
                               np.array([msg.vn, msg.ve, msg.vd]), np.array([msg.q1, msg.q2, msg.q3, msg.q4])))
 
+    def _on_pressure(self, msg: mavlink.MAVLink_message) -> None:
+        if math.isfinite(msg.press_abs) and msg.press_abs > 0:
+            self._baro_alt = sitl_baro_altitude_m(msg.press_abs)
+
     def _on_simstate(self, msg: mavlink.MAVLink_message) -> None:
-        if self._last_z is None:
-            return
-        position = ned_from_geodetic(msg.lat * 1e-7, msg.lng * 1e-7, self._origin[2], self._origin)
-        position[2] = self._last_z
-        previous = self.latest
         now = clock.now()
+        if self._baro_alt is None or not all(math.isfinite(v) for v in (msg.roll, msg.pitch, msg.yaw)):
+            return
+        if self._sim_state_t is not None and now - self._sim_state_t < SIM_STATE_PREFERRED_S:
+            return
+        position = ned_from_geodetic(msg.lat * 1e-7, msg.lng * 1e-7, self._baro_alt, self._origin)
+        previous = self.latest
         velocity = np.zeros(3) if previous is None or now <= previous.t else (position - previous.position_ned) / (now - previous.t)
         self._add(TruthSample(now, position, velocity, quat_from_euler(msg.roll, msg.pitch, msg.yaw)))
-
-    def _on_local_position(self, msg: mavlink.MAVLink_message) -> None:
-        self._last_z = msg.z

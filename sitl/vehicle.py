@@ -54,7 +54,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mav  # noqa: E402
 from companion.frames import GRAVITY_MPS2, geodetic_from_ned, ned_from_geodetic, rotation_from_quat  # noqa: E402
 from sitl.copter import SimulatedCopter, WindConfig  # noqa: E402
 from sitl.flight_log import FlightLog  # noqa: E402
-from sitl.jitter import JitterCorrection  # noqa: E402
+from companion.jitter import JitterCorrection  # noqa: E402
 
 COMPID = mav.MAV_COMP_ID_AUTOPILOT1
 DEFAULT_HOME = (1.2966, 103.7764, 10.0)
@@ -127,6 +127,7 @@ class VehicleConfig:
     gust_mps: float | None = None
     start: tuple[float, float, float] = (0.0, 0.0, 0.0)  # north m, east m, yaw deg
     sysid: int = 1
+    legacy_streams: bool = False  # like older firmware: SET_MESSAGE_INTERVAL unknown, REQUEST_DATA_STREAM only
 
 
 def _next_due(due_us: int, interval_us: int, now_us: int) -> int:
@@ -615,6 +616,8 @@ class Vehicle:
 
     def _cmd_set_message_interval(self, link: Link, p: tuple[float, ...], frame: int | None) -> int:
         """param1 message id, param2 interval us (0 default rate, -1 off)."""
+        if self.cfg.legacy_streams:
+            return mav.MAV_RESULT_UNSUPPORTED
         msgid = int(p[0])
         if msgid not in self._builders:
             self._texts.append((mav.MAV_SEVERITY_INFO, f"No ap_message for mavlink id ({msgid})"))
@@ -1015,13 +1018,16 @@ def parse_args(argv: Sequence[str] | None = None) -> VehicleConfig:
     p.add_argument("--gust", type=float, default=None, help="gust standard deviation (m/s)")
     p.add_argument("--start", type=_floats(3), default=(0.0, 0.0, 0.0), help="start pose N,E,YAW_DEG (m, m, deg)")
     p.add_argument("--sysid", type=int, default=1)
+    p.add_argument("--legacy-streams", action="store_true",
+                   help="answer SET_MESSAGE_INTERVAL with MAV_RESULT_UNSUPPORTED, as firmware that only knows "
+                        "REQUEST_DATA_STREAM groups does")
     a = p.parse_args(argv)
     if a.tick <= 0 or (a.seconds is not None and a.seconds < 0) or not 1 <= a.sysid <= 255:
         p.error("--tick must be > 0, --seconds >= 0 and --sysid 1..255")
     return VehicleConfig(
         companion=a.companion, gcs=tuple(a.gcs), lockstep=a.lockstep, tick_s=a.tick, seed=a.seed,
         seconds=a.seconds, log=a.log, home=a.home, gps=not a.no_gps, position_source=a.position_source,
-        wind_ned_mps=a.wind, gust_mps=a.gust, start=a.start, sysid=a.sysid)
+        wind_ned_mps=a.wind, gust_mps=a.gust, start=a.start, sysid=a.sysid, legacy_streams=a.legacy_streams)
 
 
 @contextmanager

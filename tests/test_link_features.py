@@ -1,4 +1,4 @@
-"""MAVLink link features: signing with a key file, TIMESYNC answers, truth from SIM_STATE/SIMSTATE."""
+"""MAVLink link features: signing with a key file, truth from SIM_STATE, or SIMSTATE with the SITL barometer."""
 
 from __future__ import annotations
 
@@ -44,7 +44,7 @@ def test_signed_heartbeat_is_accepted_by_a_peer_with_the_key_and_not_by_one_with
         for port in (port_ok, port_wrong):
             link = MavlinkLink(MavlinkConfig(), VehicleConfig(), f"udpout:127.0.0.1:{port}",
                                Health(lambda: 0.0), signing_key=KEY)
-            link._open()
+            await link._open()
             link._send_heartbeat()
             link._close()
 
@@ -84,10 +84,19 @@ def test_sim_state_becomes_ned_truth_at_the_configured_origin() -> None:
     np.testing.assert_allclose(sample.velocity_ned, [0.5, 0.0, 0.0])
 
 
-def test_simstate_takes_height_from_the_autopilot_local_position() -> None:
+def ardupilot_sitl_pressure_hpa(alt_m: float) -> float:
+    """What ArduPilot SITL's noiseless barometer reads at ``alt_m`` AMSL (AP_Baro::SimpleAtmosphere, forward)."""
+    h = alt_m / 1000.0 * 6369.0 / (alt_m / 1000.0 + 6369.0)
+    theta = (288.15 - 6.5 * h) / 288.15
+    return 101325.01576 * theta ** (34.163195 / 6.5) / 100.0
+
+
+def test_simstate_takes_height_from_the_sitl_barometer_not_the_autopilot_estimate() -> None:
     async def main() -> TruthSource:
         link, truth = _truth_link()
-        link._dispatch(_from_autopilot(mavlink.MAVLink_local_position_ned_message(0, 0, 0, -2.0, 0, 0, 0)))
+        link._dispatch(_from_autopilot(mavlink.MAVLink_local_position_ned_message(0, 0, 0, -7.0, 0, 0, 0)))
+        link._dispatch(_from_autopilot(mavlink.MAVLink_scaled_pressure_message(
+            0, ardupilot_sitl_pressure_hpa(ORIGIN.alt + 2.0), 0.0, 2500)))
         lat, lon, _ = geodetic_from_ned(np.array([1.0, 1.0, 0.0]), (ORIGIN.lat, ORIGIN.lon, ORIGIN.alt))
         link._dispatch(_from_autopilot(mavlink.MAVLink_simstate_message(
             0.1, 0, 0.5, 0, 0, -9.8, 0, 0, 0, int(round(lat * 1e7)), int(round(lon * 1e7)))))
@@ -96,6 +105,17 @@ def test_simstate_takes_height_from_the_autopilot_local_position() -> None:
     truth = asyncio.run(main())
     sample = truth.latest
     assert sample is not None
-    np.testing.assert_allclose(sample.position_ned, [1.0, 1.0, -2.0], atol=0.012)
+    np.testing.assert_allclose(sample.position_ned[:2], [1.0, 1.0], atol=0.012)
+    assert sample.position_ned[2] == pytest.approx(-2.0, abs=0.002)  # float32 hPa: ~0.5 mm
     roll, _, yaw = truth.euler_at(sample.t)
     assert roll == pytest.approx(0.1, abs=1e-6) and yaw == pytest.approx(0.5, abs=1e-6)
+
+
+def test_simstate_without_a_barometer_reading_gives_no_truth() -> None:
+    async def main() -> TruthSource:
+        link, truth = _truth_link()
+        link._dispatch(_from_autopilot(mavlink.MAVLink_local_position_ned_message(0, 0, 0, -2.0, 0, 0, 0)))
+        link._dispatch(_from_autopilot(mavlink.MAVLink_simstate_message(0, 0, 0, 0, 0, -9.8, 0, 0, 0, 1, 1)))
+        return truth
+
+    assert asyncio.run(main()).latest is None

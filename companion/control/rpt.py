@@ -556,6 +556,21 @@ class ControlOutput(NamedTuple):
         return {"position_ned": np.array(self.position_ned), "velocity_ned": np.array(self.velocity_ned),
                 "acceleration_ned": np.array(self.acceleration_ned)}
 
+    def position_velocity_fields(self, vel_gain_xy: float = 2.0) -> dict[str, np.ndarray]:
+        """``Setpoint`` keyword arguments for autopilots that take position + velocity but no
+        acceleration targets (mask 3520; ArduPilot Copter < 4.1 ignores mask 3072).
+
+        The autopilot's velocity loop demands ``K_v (v_target - v)`` on top of its position
+        correction, so the horizontal x, y acceleration reaches it as a velocity raised by
+        ``a / K_v`` (``K_v``: ArduPilot ``PSC_VELXY_P``): the same demand as mask 3072, through its
+        velocity filter (PSC_ACC_XY_FILT) and without the I / D terms' share. z is unchanged (the
+        z velocity reference). On the held safe output the velocity is the held one.
+        """
+        vx, vy, vz = self.velocity_ned
+        ax, ay, _ = self.acceleration_ned if self.valid else (0.0, 0.0, 0.0)
+        return {"position_ned": np.array(self.position_ned),
+                "velocity_ned": np.array([vx + ax / vel_gain_xy, vy + ay / vel_gain_xy, vz])}
+
 
 def position_only_target(output: ControlOutput, *, pos_gain_xy: float = 1.0, vel_gain_xy: float = 2.0,
                          pos_gain_z: float = 1.0, max_lead_m: float = 2.0) -> tuple[float, float, float]:

@@ -1,28 +1,80 @@
 """What the companion knows about its autopilot, from the messages it streams.
 
 :class:`AutopilotState` is fed by the link's dispatch and never sends anything. It decodes the
-flight mode for ArduPilot Copter and PX4, arming, the EKF origin and home, the estimator
-flags, the attitude and IMU the pipelines use, and whether the autopilot says it fuses
-external navigation (ArduPilot STATUSTEXT "... is using external nav data", or PX4's
-ESTIMATOR_STATUS flags with the EV aiding bits unavailable from MAVLink: there the horizontal
-position flag while no GPS is fused is the best signal).
+firmware (``companion.mavlink.firmware``), the flight mode for ArduPilot Copter and PX4,
+arming, the EKF origin and home, the estimator flags, the attitude and IMU the pipelines use,
+and whether the autopilot says it fuses external navigation (ArduPilot STATUSTEXT "... is using
+external nav data", or PX4's ESTIMATOR_STATUS flags with the EV aiding bits unavailable from
+MAVLink: there the horizontal position flag while no GPS is fused is the best signal).
+
+Everything is kept in the project frame: LOCAL_POSITION_NED from firmware that reports it
+relative to home (ArduPilot < 4.1) is moved to the EKF origin with the home and origin the
+autopilot itself reports. A message with a non-finite value in a field used here is dropped
+and counted (``nonfinite_rejected``): a NaN from the autopilot never reaches a pipeline.
+
+The IMU comes from one message, the one the stream negotiation chose (``imu_source``:
+HIGHRES_IMU, or SCALED_IMU / RAW_IMU / SCALED_IMU2 where the firmware does not stream it);
+the scaled ones carry mG and mrad/s, converted here to m/s^2 and rad/s. Every sample is kept
+(the last :data:`IMU_QUEUE` of them, for :meth:`AutopilotState.imu_after`), stamped with the
+autopilot's own sample time mapped onto the daemon clock (``companion.jitter``): a stream that
+arrives in bursts (ArduPilot SITL over TCP) keeps its real spacing, and no sample between two
+nav cycles is lost.
 """
 
 from __future__ import annotations
 
 import logging
+import math
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from companion import clock
+from companion.frames import GRAVITY_MPS2, ned_from_geodetic
+from companion.jitter import JitterCorrection
+from companion.mavlink.firmware import Firmware, firmware_from_heartbeat, with_version
 from companion.mavlink.link import MavlinkLink, mavlink, mavutil
 
 log = logging.getLogger("companion.autopilot")
 
 # Modes in which an autopilot takes setpoints from the companion.
 COMMANDABLE_MODES = {"GUIDED", "OFFBOARD"}
+IMU_MESSAGES = ("HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "RAW_IMU")
+IMU_QUEUE = 64  # samples kept: > 1 s at 50 Hz, far more than one nav cycle
+IMU_CLOCK_WINDOW = 50  # samples in the clock-offset minimum (1 s at 50 Hz)
+MILLI_G = GRAVITY_MPS2 / 1000.0  # SCALED_IMU* (and ArduPilot's RAW_IMU) accelerations are in mG
+
+
+def _finite(*values: float) -> bool:
+    return all(math.isfinite(v) for v in values)
+
+
+@dataclass(frozen=True)
+class ImuSample:
+    """One IMU reading: specific force (m/s^2) and angular rate (rad/s) in body FRD, at ``t``
+    (daemon clock, s: the autopilot's sample time mapped onto it)."""
+
+    t: float
+    accel_body: np.ndarray
+    gyro_body: np.ndarray
+
+
+def imu_remote_time_s(msg: mavlink.MAVLink_message) -> float:
+    """The autopilot's sample time of an IMU message, s since its boot (``time_usec`` or ``time_boot_ms``)."""
+    usec = getattr(msg, "time_usec", None)
+    return usec * 1e-6 if usec is not None else msg.time_boot_ms * 1e-3
+
+
+def imu_sample(msg: mavlink.MAVLink_message) -> tuple[np.ndarray, np.ndarray]:
+    """(specific force m/s^2, angular rate rad/s), body FRD, from HIGHRES_IMU or a scaled IMU message
+    (SCALED_IMU*, and ArduPilot's RAW_IMU, which carries the same mG / mrad/s units)."""
+    accel = np.array([msg.xacc, msg.yacc, msg.zacc], dtype=float)
+    gyro = np.array([msg.xgyro, msg.ygyro, msg.zgyro], dtype=float)
+    if msg.get_type() == "HIGHRES_IMU":
+        return accel, gyro
+    return accel * MILLI_G, gyro * 1e-3
 
 
 @dataclass
@@ -37,22 +89,25 @@ class AutopilotState:
     """Latest autopilot state; times are daemon-clock seconds of reception."""
 
     link: MavlinkLink
+    firmware: Firmware | None = None
     mode: str | None = None
     armed: bool = False
-    origin: Origin | None = None
-    home: Origin | None = None
+    origin: Origin | None = None  # the EKF origin, as the autopilot reports it (GPS_GLOBAL_ORIGIN)
+    home: Origin | None = None  # as the autopilot reports it (HOME_POSITION)
     external_nav_in_use: bool = False
     ekf_flags: int = 0
     attitude_euler: tuple[float, float, float] | None = None  # roll, pitch, yaw rad (body FRD -> NED)
     attitude_time: float | None = None
-    local_position_ned: np.ndarray | None = None  # m, the autopilot's own estimate
+    local_position_ned: np.ndarray | None = None  # m, the autopilot's own estimate, at the EKF origin
     local_velocity_ned: np.ndarray | None = None  # m/s
     local_position_time: float | None = None
-    accel_body: np.ndarray | None = None  # specific force, body FRD, m/s^2 (HIGHRES_IMU)
-    gyro_body: np.ndarray | None = None  # rad/s
-    imu_time: float | None = None
+    imu_source: str | None = None  # the message the IMU is taken from (set by the stream negotiation)
+    imu: deque[ImuSample] = field(default_factory=lambda: deque(maxlen=IMU_QUEUE))  # oldest first
+    imu_rejected: int = 0  # IMU samples whose time stamp could not be placed (stale, or a clock jump)
+    nonfinite_rejected: int = 0  # messages dropped for a NaN or infinity in a used field
     statustext: list[tuple[float, int, str]] = field(default_factory=list)
     _mode_listeners: list[Callable[[str | None, str], None]] = field(default_factory=list)
+    _imu_clock: JitterCorrection = field(default_factory=lambda: JitterCorrection(window=IMU_CLOCK_WINDOW))
 
     def __post_init__(self) -> None:
         for msg_type, handler in (
@@ -63,8 +118,9 @@ class AutopilotState:
             ("ESTIMATOR_STATUS", self._on_estimator_status),
             ("ATTITUDE", self._on_attitude),
             ("LOCAL_POSITION_NED", self._on_local_position),
-            ("HIGHRES_IMU", self._on_imu),
+            ("AUTOPILOT_VERSION", self._on_version),
             ("STATUSTEXT", self._on_statustext),
+            *((name, self._on_imu) for name in IMU_MESSAGES),
         ):
             self.link.subscribe(msg_type, handler)
 
@@ -92,9 +148,36 @@ class AutopilotState:
 
     # -- handlers ---------------------------------------------------------------------------
 
+    def imu_after(self, t: float | None) -> list[ImuSample]:
+        """The kept IMU samples taken after daemon time ``t`` (all of them for None), oldest first."""
+        return [sample for sample in self.imu if t is None or sample.t > t]
+
+    def home_offset_ned(self) -> np.ndarray | None:
+        """Home in the EKF-origin frame (m), from the home and origin the autopilot reports; None if unknown."""
+        if self.home is None or self.origin is None:
+            return None
+        return ned_from_geodetic(self.home.lat, self.home.lon, self.home.alt,
+                                 (self.origin.lat, self.origin.lon, self.origin.alt))
+
+    def setpoint_z_offset_m(self) -> float:
+        """What to add to a LOCAL_NED setpoint z for this firmware: the height of home above the
+        origin where the firmware reads z relative to home (ArduPilot Copter < 4.1), else 0."""
+        if self.firmware is None or not self.firmware.setpoint_z_relative_to_home:
+            return 0.0
+        offset = self.home_offset_ned()
+        return 0.0 if offset is None else -float(offset[2])
+
+    def _nonfinite(self, msg: mavlink.MAVLink_message) -> None:
+        self.nonfinite_rejected += 1
+        if self.nonfinite_rejected == 1 or self.nonfinite_rejected % 100 == 0:
+            log.error("dropped %s with a non-finite field from the autopilot (%d so far)", msg.get_type(),
+                      self.nonfinite_rejected)
+
     def _on_heartbeat(self, msg: mavlink.MAVLink_message) -> None:
-        if msg.get_srcComponent() != self.link.ids.autopilot_compid:
+        if msg.get_srcComponent() != self.link.ids.autopilot_compid or msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID:
             return
+        if self.firmware is None or self.firmware.autopilot != self.link.autopilot:
+            self.firmware = firmware_from_heartbeat(self.link.autopilot or "unknown", msg.type)
         self.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         mode = mavutil.mode_string_v10(msg)
         if mode != self.mode:
@@ -102,6 +185,14 @@ class AutopilotState:
             log.info("autopilot mode %s -> %s", old, mode)
             for listener in self._mode_listeners:
                 listener(old, mode)
+
+    def _on_version(self, msg: mavlink.MAVLink_message) -> None:
+        if self.firmware is None:
+            return
+        firmware = with_version(self.firmware, msg)
+        if firmware != self.firmware:
+            log.info("autopilot firmware: %s", firmware.label)
+        self.firmware = firmware
 
     def _on_origin(self, msg: mavlink.MAVLink_message) -> None:
         self.origin = Origin(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
@@ -116,18 +207,38 @@ class AutopilotState:
         self.ekf_flags = msg.flags
 
     def _on_attitude(self, msg: mavlink.MAVLink_message) -> None:
+        if not _finite(msg.roll, msg.pitch, msg.yaw):
+            self._nonfinite(msg)
+            return
         self.attitude_euler = (msg.roll, msg.pitch, msg.yaw)
         self.attitude_time = clock.now()
 
     def _on_local_position(self, msg: mavlink.MAVLink_message) -> None:
-        self.local_position_ned = np.array([msg.x, msg.y, msg.z])
-        self.local_velocity_ned = np.array([msg.vx, msg.vy, msg.vz])
+        if not _finite(msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz):
+            self._nonfinite(msg)
+            return
+        position = np.array([msg.x, msg.y, msg.z], dtype=float)
+        if self.firmware is not None and self.firmware.local_position_relative_to_home:
+            offset = self.home_offset_ned()
+            if offset is None:
+                return  # home-relative, and home not known yet: not usable in the project frame
+            position = position + offset
+        self.local_position_ned = position
+        self.local_velocity_ned = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
         self.local_position_time = clock.now()
 
     def _on_imu(self, msg: mavlink.MAVLink_message) -> None:
-        self.accel_body = np.array([msg.xacc, msg.yacc, msg.zacc])
-        self.gyro_body = np.array([msg.xgyro, msg.ygyro, msg.zgyro])
-        self.imu_time = clock.now()
+        if msg.get_type() != self.imu_source:
+            return
+        accel, gyro = imu_sample(msg)
+        if not (np.all(np.isfinite(accel)) and np.all(np.isfinite(gyro))):
+            self._nonfinite(msg)
+            return
+        t = self._imu_clock.correct(imu_remote_time_s(msg), clock.now())
+        if t is None or (self.imu and t <= self.imu[-1].t):
+            self.imu_rejected += 1
+            return
+        self.imu.append(ImuSample(t, accel, gyro))
 
     def _on_statustext(self, msg: mavlink.MAVLink_message) -> None:
         text = msg.text

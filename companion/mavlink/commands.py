@@ -1,43 +1,32 @@
-"""Commands to the autopilot with COMMAND_ACK handling: streams, modes, arming, takeoff, landing.
+"""Commands to the autopilot with COMMAND_ACK handling: modes, arming, takeoff, landing, messages.
 
 Every command is COMMAND_LONG, retried ``command_retries`` times (with the confirmation field
 counting retries) and waited for ``command_timeout_s`` each time. A command that is refused
-or never acknowledged raises :class:`CommandFailed` naming the command and the result.
+or never acknowledged raises :class:`CommandFailed` naming the command and the result
+(:meth:`Commander.command_result` returns the result instead, for callers that try
+alternatives, e.g. the stream negotiation).
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+from collections import defaultdict
 
-from companion.config import MavlinkConfig, PayloadConfig, StreamRatesConfig
+from companion.config import MavlinkConfig, PayloadConfig
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.link import MavlinkLink, mavlink
 
 log = logging.getLogger("companion.commands")
 
+VERSION_WAIT_S = 0.5  # AUTOPILOT_VERSION expected this long after a request
+VERSION_ATTEMPTS = 3
 RESULT_NAMES = {v: k for k, v in vars(mavlink).items() if k.startswith("MAV_RESULT_") and isinstance(v, int)}
 COMMAND_NAMES = {v: k for k, v in vars(mavlink).items() if k.startswith("MAV_CMD_") and isinstance(v, int)}
 
 
 class CommandFailed(Exception):
     """The autopilot refused a command or never acknowledged it."""
-
-
-def stream_requests(rates: StreamRatesConfig, autopilot: str | None) -> dict[int, float]:
-    """{message id: rate Hz} to ask of the autopilot, for its flavour (0 Hz entries left out)."""
-    estimator = mavlink.MAVLINK_MSG_ID_ESTIMATOR_STATUS if autopilot == "PX4" else mavlink.MAVLINK_MSG_ID_EKF_STATUS_REPORT
-    wanted = {
-        mavlink.MAVLINK_MSG_ID_ATTITUDE: rates.attitude,
-        mavlink.MAVLINK_MSG_ID_HIGHRES_IMU: rates.imu,
-        mavlink.MAVLINK_MSG_ID_SCALED_IMU: rates.imu if autopilot != "PX4" else 0.0,
-        mavlink.MAVLINK_MSG_ID_LOCAL_POSITION_NED: rates.local_position,
-        mavlink.MAVLINK_MSG_ID_GPS_RAW_INT: rates.gps_raw,
-        mavlink.MAVLINK_MSG_ID_HOME_POSITION: rates.home_position,
-        estimator: rates.estimator_status,
-        mavlink.MAVLINK_MSG_ID_SIM_STATE: rates.sim_state,
-    }
-    return {msg_id: hz for msg_id, hz in wanted.items() if hz > 0}
 
 
 class Commander:
@@ -48,12 +37,16 @@ class Commander:
         self.state = state
         self.cfg = cfg
         self._waiting: dict[int, asyncio.Future[int]] = {}
+        # COMMAND_ACK names only the command: two of the same at once could not be told apart.
+        self._locks: dict[int, asyncio.Lock] = defaultdict(asyncio.Lock)
         link.subscribe("COMMAND_ACK", self._on_ack)
 
-    async def command(self, command: int, *params: float) -> None:
-        """Send COMMAND_LONG ``command`` with up to 7 params; raise CommandFailed unless ACCEPTED."""
-        padded = [float(p) for p in params] + [0.0] * (7 - len(params))
-        name = COMMAND_NAMES.get(command, str(command))
+    async def command_result(self, command: int, *params: float) -> int | None:
+        """Send COMMAND_LONG ``command`` with up to 7 params; its final MAV_RESULT, or None if never acknowledged."""
+        async with self._locks[command]:
+            return await self._command_result(command, [float(p) for p in params] + [0.0] * (7 - len(params)))
+
+    async def _command_result(self, command: int, padded: list[float]) -> int | None:
         loop = asyncio.get_running_loop()
         for attempt in range(self.cfg.command_retries):
             future: asyncio.Future[int] = loop.create_future()
@@ -62,24 +55,38 @@ class Commander:
             try:
                 result = await asyncio.wait_for(future, self.cfg.command_timeout_s)
             except TimeoutError:
-                log.debug("%s: no COMMAND_ACK (attempt %d)", name, attempt + 1)
+                log.debug("%s: no COMMAND_ACK (attempt %d)", COMMAND_NAMES.get(command, command), attempt + 1)
                 continue
             finally:
                 self._waiting.pop(command, None)
             if result == mavlink.MAV_RESULT_IN_PROGRESS:
                 continue
-            if result != mavlink.MAV_RESULT_ACCEPTED:
-                raise CommandFailed(f"{name} refused: {RESULT_NAMES.get(result, result)}")
-            return
-        raise CommandFailed(f"{name}: no COMMAND_ACK after {self.cfg.command_retries} attempts")
+            return result
+        return None
 
-    async def request_streams(self) -> None:
-        """Ask for every configured stream with SET_MESSAGE_INTERVAL; log refusals, never raise."""
-        for msg_id, hz in stream_requests(self.cfg.streams, self.link.autopilot).items():
-            try:
-                await self.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz)
-            except CommandFailed as exc:
-                log.warning("stream %d at %g Hz: %s", msg_id, hz, exc)
+    async def command(self, command: int, *params: float) -> None:
+        """Send COMMAND_LONG ``command`` with up to 7 params; raise CommandFailed unless ACCEPTED."""
+        name = COMMAND_NAMES.get(command, str(command))
+        result = await self.command_result(command, *params)
+        if result is None:
+            raise CommandFailed(f"{name}: no COMMAND_ACK after {self.cfg.command_retries} attempts")
+        if result != mavlink.MAV_RESULT_ACCEPTED:
+            raise CommandFailed(f"{name} refused: {RESULT_NAMES.get(result, result)}")
+
+    async def request_autopilot_version(self) -> bool:
+        """Ask for AUTOPILOT_VERSION until it arrives (True) or ``VERSION_ATTEMPTS`` rounds passed:
+        REQUEST_MESSAGE, then the older REQUEST_AUTOPILOT_CAPABILITIES (ArduPilot 4.0 accepts
+        REQUEST_MESSAGE for it without sending it, and answers the older command only from the
+        second time on)."""
+        for _ in range(VERSION_ATTEMPTS):
+            for command, params in ((mavlink.MAV_CMD_REQUEST_MESSAGE, (mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION,)),
+                                    (mavlink.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES, (1,))):
+                await self.command_result(command, *params)
+                await asyncio.sleep(VERSION_WAIT_S)
+                if self.state.firmware is not None and self.state.firmware.version is not None:
+                    return True
+        log.warning("no AUTOPILOT_VERSION: the firmware version is unknown (setpoints without acceleration)")
+        return False
 
     async def request_message(self, msg_id: int) -> None:
         """Ask the autopilot to send message ``msg_id`` once (MAV_CMD_REQUEST_MESSAGE)."""

@@ -1,10 +1,16 @@
-"""EKF origin: make the autopilot use the configured origin, and know when it does.
+"""EKF origin and home: make the autopilot use the configured origin, and know when it does.
 
 Without GPS the autopilot's EKF estimates no position until an origin is set. Every second,
-until GPS_GLOBAL_ORIGIN confirms, the companion sends SET_GPS_GLOBAL_ORIGIN and
-SET_HOME_POSITION and asks for GPS_GLOBAL_ORIGIN. After an autopilot reboot or a lost link it
-starts over. An autopilot that already had a different origin (ArduPilot sets it only once)
-is reported; the local NED frame is still the autopilot's, which is what estimates are in.
+until GPS_GLOBAL_ORIGIN confirms, the companion sends SET_GPS_GLOBAL_ORIGIN and asks for
+GPS_GLOBAL_ORIGIN. After an autopilot reboot or a lost link it starts over. An autopilot that
+already had a different origin (ArduPilot sets it only once) is reported; the local NED frame
+is still the autopilot's, which is what estimates are in.
+
+Home is then set at the same point (SET_HOME_POSITION, once a second until HOME_POSITION
+confirms it), so that firmware reading positions relative to home (ArduPilot < 4.1) and the
+EKF-origin frame agree, and arming does not move home. It is sent only once the EKF reports a
+horizontal position: ArduPilot 4.0 SITL halts with "Should not be called on invalid location"
+when home is set while the EKF has an altitude but no position yet (Copter::read_inertia).
 """
 
 from __future__ import annotations
@@ -22,7 +28,10 @@ from companion.mavlink.link import MavlinkLink, mavlink
 
 log = logging.getLogger("companion.origin")
 
-MATCH_TOLERANCE_M = 0.5
+MATCH_TOLERANCE_M = 0.5  # origin: an autopilot that kept its own further away than this is reported
+HOME_TOLERANCE_M = 0.05  # home: at the origin within this (ArduPilot keeps home in cm and 1e-7 deg)
+EKF_POS_HORIZ_ABS = 0x10  # EKF_STATUS_REPORT / ESTIMATOR_STATUS flag: absolute horizontal position
+HOME_ATTEMPTS = 10  # SET_HOME_POSITION sent this often without HOME_POSITION at the origin: give up, say so
 
 
 class OriginSetter:
@@ -37,6 +46,8 @@ class OriginSetter:
         self.health = health
         self.confirmed = False
         self.confirmed_at: float | None = None
+        self.home_confirmed = False
+        self.home_done = False  # the home phase is over: confirmed, or given up (positions are converted)
         self._restart = asyncio.Event()
         link.on_connect(self._restart.set)
         health.report("origin", State.LOST, "not confirmed by the autopilot yet")
@@ -45,11 +56,18 @@ class OriginSetter:
         while True:
             await self._restart.wait()
             self._restart.clear()
-            self.confirmed = False
-            self.state.origin = None
-            await self._until_confirmed()
+            self.confirmed = self.home_confirmed = self.home_done = False
+            self.state.origin = self.state.home = None
+            if await self._until_confirmed():
+                await self._until_home_set()
 
-    async def _until_confirmed(self) -> None:
+    @property
+    def ready(self) -> bool:
+        """The origin is confirmed and home is settled: positions mean the same to both sides."""
+        return self.confirmed and self.home_done
+
+    async def _until_confirmed(self) -> bool:
+        """Send the origin until the autopilot reports one; False if the link restarted first."""
         while not self._restart.is_set():
             self._send_origin()
             try:
@@ -59,16 +77,51 @@ class OriginSetter:
             await asyncio.sleep(1.0)
             if self.state.origin is not None:
                 self._confirm()
+                return True
+        return False
+
+    async def _until_home_set(self) -> None:
+        """Set home at the origin once the EKF has a horizontal position (see the module docstring)."""
+        attempts = 0
+        while not self._restart.is_set():
+            if self._home_at_origin():
+                self.home_confirmed = self.home_done = True
+                log.info("home set at the origin, confirmed by HOME_POSITION")
                 return
+            if attempts == HOME_ATTEMPTS:
+                log.warning("the autopilot did not take home at the origin after %d attempts; positions relative "
+                            "to home are converted with the home it reports", attempts)
+                self.home_done = True
+                return
+            if self.state.ekf_flags & EKF_POS_HORIZ_ABS:
+                attempts += 1
+                self._send_home()
+                try:
+                    await self.commander.request_message(mavlink.MAVLINK_MSG_ID_HOME_POSITION)
+                except CommandFailed as exc:
+                    log.debug("HOME_POSITION request: %s", exc)
+            await asyncio.sleep(1.0)
+
+    def _home_at_origin(self) -> bool:
+        home = self.state.home
+        if home is None:
+            return False
+        offset = ned_from_geodetic(home.lat, home.lon, home.alt, (self.origin.lat, self.origin.lon, self.origin.alt))
+        return float((offset ** 2).sum() ** 0.5) <= HOME_TOLERANCE_M
+
+    def _geodetic(self) -> tuple[int, int, int, int]:
+        """(lat 1e-7 deg, lon 1e-7 deg, alt mm, time usec) of the configured origin."""
+        o = self.origin
+        return int(round(o.lat * 1e7)), int(round(o.lon * 1e7)), int(round(o.alt * 1000)), int(clock.now() * 1e6)
 
     def _send_origin(self) -> None:
-        o = self.origin
-        sysid = self.link.ids.autopilot_sysid
-        usec = int(clock.now() * 1e6)
-        lat, lon, alt = int(round(o.lat * 1e7)), int(round(o.lon * 1e7)), int(round(o.alt * 1000))
-        self.link.send(mavlink.MAVLink_set_gps_global_origin_message(sysid, lat, lon, alt, usec))
+        lat, lon, alt, usec = self._geodetic()
+        self.link.send(mavlink.MAVLink_set_gps_global_origin_message(self.link.ids.autopilot_sysid, lat, lon, alt, usec))
+
+    def _send_home(self) -> None:
+        lat, lon, alt, usec = self._geodetic()
         self.link.send(mavlink.MAVLink_set_home_position_message(
-            sysid, lat, lon, alt, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, usec))
+            self.link.ids.autopilot_sysid, lat, lon, alt, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, usec))
 
     def _confirm(self) -> None:
         got = self.state.origin

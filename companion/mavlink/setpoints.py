@@ -56,10 +56,13 @@ class Setpoint:
         return mask
 
 
-def setpoint_message(sp: Setpoint, time_boot_ms: int, target: tuple[int, int]) -> mavlink.MAVLink_message:
-    """SET_POSITION_TARGET_LOCAL_NED for ``sp`` (ignored fields are sent as 0)."""
+def setpoint_message(sp: Setpoint, time_boot_ms: int, target: tuple[int, int],
+                     z_offset_m: float = 0.0) -> mavlink.MAVLink_message:
+    """SET_POSITION_TARGET_LOCAL_NED for ``sp`` (ignored fields are sent as 0). ``z_offset_m`` is
+    added to the position's z for firmware that reads it relative to home
+    (``AutopilotState.setpoint_z_offset_m``)."""
     zero = np.zeros(3)
-    p = sp.position_ned if sp.position_ned is not None else zero
+    p = sp.position_ned + np.array([0.0, 0.0, z_offset_m]) if sp.position_ned is not None else zero
     v = sp.velocity_ned if sp.velocity_ned is not None else zero
     a = sp.acceleration_ned if sp.acceleration_ned is not None else zero
     return mavlink.MAVLink_set_position_target_local_ned_message(
@@ -128,7 +131,8 @@ class SetpointStream:
             return
         now = clock.now()
         self._last_sent = now if sent_at is None else sent_at
-        if self.link.send(setpoint_message(self.current, int(now * 1000) & 0xFFFFFFFF, self.link.target())):
+        if self.link.send(setpoint_message(self.current, int(now * 1000) & 0xFFFFFFFF, self.link.target(),
+                                           self.state.setpoint_z_offset_m())):
             self.sent += 1
 
     def _on_mode_change(self, old: str | None, new: str) -> None:

@@ -30,6 +30,7 @@ log = logging.getLogger("companion.mission")
 RECENT_FAILSAFES = 20  # the mission stream carries the last ones (and counts of all)
 RECOVERED_AFTER_S = 1.0  # an estimate back from lost must stay healthy this long before flying on
 AUTOPILOT_POSITION_MAX_AGE_S = 1.0
+AGREEMENT_M = 0.2  # before take-off, the autopilot's position within this of the companion's estimate
 EKF_HORIZONTAL_POSITION = 0x08 | 0x10  # EKF_STATUS_REPORT / ESTIMATOR_STATUS: POS_HORIZ_REL | POS_HORIZ_ABS
 
 
@@ -84,6 +85,14 @@ class MissionContext:
     def yaw(self) -> float | None:
         est = self.estimate()
         return float(est.euler_rad[2]) if est is not None else None
+
+    def autopilot_agrees(self) -> bool:
+        """The autopilot's own position is within ``AGREEMENT_M`` of the companion's estimate when it
+        fuses that estimate: its EKF has converged onto it (else it flies somewhere else)."""
+        if not self.state.external_nav_in_use:
+            return True
+        est, p = self.estimate(), self.state.local_position_ned
+        return est is not None and p is not None and float(np.linalg.norm(p - est.position_ned)) <= AGREEMENT_M
 
     def autopilot_position_fresh(self) -> bool:
         t = self.state.local_position_time

@@ -34,6 +34,7 @@ from companion.control.rpt import (ACCELERATION, VELOCITY, ControlOutput, Measur
                                    Reference, RptController, RptLimits, RptParams, position_only_target)
 from companion.control.trajectory import Trajectory, plan
 from companion.health import State
+from companion.mavlink.firmware import Firmware
 from companion.mavlink.setpoints import Setpoint
 from companion.mission.context import MissionContext, MissionFailed
 from companion.mission.timeline import Timeline
@@ -45,6 +46,15 @@ SAME_POINT_M = 0.02  # a first waypoint this close to the start is where the veh
 PASS_ZONE_M = 1.0  # the pass tolerance is enforced while the reference is this close to the opening
 MOVING_MPS = 0.05  # slower than this the reference has no direction: the whole error counts
 TRAJECTORY_SAMPLE_S = 0.25  # spacing of the path published on the trajectory stream
+
+
+def output_mode(configured: str, firmware: Firmware | None) -> str:
+    """The setpoint form to fly with: ``control.output``, with ``auto`` resolved for this
+    firmware (pos_vel_acc where it takes acceleration targets, else pos_vel, which every
+    autopilot with a GUIDED / OFFBOARD position + velocity mode takes)."""
+    if configured != "auto":
+        return configured
+    return "pos_vel_acc" if firmware is not None and firmware.accepts_setpoint_acceleration else "pos_vel"
 
 
 def make_controller(cfg: ControlConfig) -> OuterLoopController:
@@ -142,6 +152,9 @@ class TrajectoryFlight:
                                                 for i, w in enumerate(flight.waypoints) if w.hold_s > 0})
         passes = [(np.asarray(w.position, dtype=float), w) for w in flight.waypoints if w.pass_tolerance_m]
         goal = np.asarray(flight.trajectory.waypoints[-1], dtype=float)
+        mode = output_mode(ctx.control.output, ctx.state.firmware)
+        log.info("fly: %s setpoints (control.output %s, %s)", mode, ctx.control.output,
+                 ctx.state.firmware.label if ctx.state.firmware else "firmware unknown")
         degraded = False
         period = 1.0 / ctx.control.rate_hz
         previous = next_tick = clock.now()
@@ -167,7 +180,7 @@ class TrajectoryFlight:
             measured = ctx.measured()  # None only for a pipeline without velocity and no autopilot velocity
             if measured is not None:
                 self._check(measured, reference, passes)  # before sending anything from this estimate
-                self._send(controller.step(dt, reference, measured), yaw)
+                self._send(controller.step(dt, reference, measured), yaw, mode)
                 self.progress = timeline.tau / flight.trajectory.duration
                 error_to_goal = float(np.linalg.norm(np.asarray(measured.position_ned) - goal))
                 if timeline.finished and error_to_goal <= step.arrival_tolerance_m:
@@ -187,12 +200,14 @@ class TrajectoryFlight:
             left = [dataclasses.replace(waypoints[-1], hold_s=0.0)]
         return tuple(left)
 
-    def _send(self, output: ControlOutput, yaw_rad: float) -> None:
+    def _send(self, output: ControlOutput, yaw_rad: float, mode: str) -> None:
         ctx = self.ctx
-        if ctx.control.output == "position_only":
-            g = ctx.control.autopilot_gains
+        g = ctx.control.autopilot_gains
+        if mode == "position_only":
             target = position_only_target(output, pos_gain_xy=g.pos_xy_p, vel_gain_xy=g.vel_xy_p, pos_gain_z=g.pos_z_p)
             ctx.setpoints.command(Setpoint(position_ned=np.array(target), yaw_rad=yaw_rad))
+        elif mode == "pos_vel":
+            ctx.setpoints.command(Setpoint(**output.position_velocity_fields(g.vel_xy_p), yaw_rad=yaw_rad))
         else:
             ctx.setpoints.command(Setpoint(**output.setpoint_fields(), yaw_rad=yaw_rad))
 

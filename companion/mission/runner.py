@@ -159,9 +159,10 @@ class MissionRunner:
 
     async def _wait_ready(self, step: WaitReadyStep) -> None:
         ctx = self.ctx
-        await self.ctx.wait_for(lambda: ctx.origin.confirmed and ctx.autopilot_position_fresh()
-                             and ctx.estimate_status().state == State.OK, step.timeout_s,
-                             "a confirmed origin, an autopilot position and a healthy estimate")
+        await self.ctx.wait_for(lambda: ctx.origin.ready and ctx.autopilot_position_fresh()
+                                and ctx.estimate_status().state == State.OK and ctx.autopilot_agrees(),
+                                step.timeout_s, "a confirmed origin and home, an autopilot position that agrees "
+                                "with a healthy estimate")
 
     async def _mode(self, name: str) -> None:
         ctx = self.ctx

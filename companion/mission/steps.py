@@ -1,7 +1,8 @@
 """Mission files (config/missions/*.yaml): ``name`` plus ``steps``, each step a mapping with one key.
 
-- ``wait_ready: {timeout_s}``: the origin is confirmed, the autopilot reports a position and
-  the companion's estimate is healthy (fresh, every navigation component ok);
+- ``wait_ready: {timeout_s}``: the origin is confirmed and home settled, the autopilot reports a
+  position, the companion's estimate is healthy (fresh, every navigation component ok) and, if the
+  autopilot fuses it, its position is within 0.2 m of it (its EKF has converged onto it);
 - ``mode: NAME``: switch flight mode (GUIDED on ArduPilot; OFFBOARD on PX4, after streaming a
   hold setpoint for a second first, as PX4 requires);
 - ``arm: {timeout_s}``: arm, only if the config's ``mission.allow_arm`` is true;

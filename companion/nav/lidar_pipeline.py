@@ -7,8 +7,9 @@ Data flow (all in the daemon's event loop, no I/O here):
   scan's capture time;
 - the vertical scanner's scans -> :class:`~companion.nav.height.HeightEstimator` (height above
   the floor) -> fusion height correction;
-- the autopilot's HIGHRES_IMU (specific force) and ATTITUDE (roll, pitch; yaw only as a rate)
-  -> fusion prediction;
+- the autopilot's IMU samples (specific force and rates, every one since the previous cycle,
+  ``AutopilotState.imu_after``) and ATTITUDE (roll, pitch; yaw only as a rate) -> fusion
+  prediction;
 - every nav cycle: the fused state -> a :class:`PoseEstimate` (VISION_POSITION_ESTIMATE +
   VISION_SPEED_ESTIMATE), only while the filter is healthy. A relocalization jump or a fusion
   reset sets ``reset`` so the autopilot's ``reset_counter`` increments.
@@ -152,11 +153,11 @@ class LidarPipeline:
         return self.autopilot.attitude_euler or (0.0, 0.0, 0.0)
 
     def _predict(self) -> None:
-        ap = self.autopilot
-        if ap.imu_time is None or ap.accel_body is None or ap.imu_time == self._imu_t:
-            return
-        self._imu_t = ap.imu_time
-        self.fusion.predict(ap.imu_time, ap.accel_body, self._attitude(), ap.gyro_body)
+        """Propagate the fusion with every IMU sample since the previous cycle, in order."""
+        attitude = self._attitude()
+        for sample in self.autopilot.imu_after(self._imu_t):
+            self._imu_t = sample.t
+            self.fusion.predict(sample.t, sample.accel_body, attitude, sample.gyro_body)
 
     def _process_horizontal(self, scan: Scan) -> float:
         roll, pitch, yaw = self._attitude()

@@ -1,10 +1,14 @@
 """Mapping of a remote sender's timestamps onto local time, after ArduPilot's JitterCorrection.
 
-A companion stamps VISION_POSITION_ESTIMATE / VISION_SPEED_ESTIMATE with its own clock (``usec``,
-its monotonic capture time). The autopilot cannot know the offset between that clock and its own,
-so, like ArduPilot's ``JitterCorrection`` (libraries/AP_RTC), it assumes that the fastest transport
-seen recently took no time: the offset is the minimum over a sliding window of
-``local_receive_time - remote_time``, and a sample is placed at ``remote_time + offset``.
+Used both ways: the simulated autopilot places the companion's VISION_* stamps (``usec``, the
+companion's monotonic capture time) on its clock, and the companion places the autopilot's IMU
+samples (``time_usec`` / ``time_boot_ms``, the autopilot's boot clock) on its own, so a burst of
+samples arriving together keeps the spacing they were measured with. Neither side can know the
+offset between the two clocks, so, like ArduPilot's ``JitterCorrection`` (libraries/AP_RTC), it
+assumes that the fastest transport seen recently took no time: the offset is the minimum over a
+sliding window of ``local_receive_time - remote_time``, and a sample is placed at
+``remote_time + offset``. A remote clock running slow or fast by ``d`` (ArduPilot SITL runs about
+1 % slow) biases the result by at most ``d`` times the window's span.
 
 Differences from ArduPilot, which clamps instead of dropping: a sample that would land more than
 ``max_lag_s`` before its arrival (stale) or more than ``max_lag_s`` after its arrival (claiming

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from sitl.jitter import JitterCorrection
+from companion.jitter import JitterCorrection
 
 CLOCK_OFFSET_S = 1000.0  # remote clock reads local + 1000 s
 
