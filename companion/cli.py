@@ -1,4 +1,4 @@
-"""`companion` command line: run, check-config, sitl, dashboard, bench, config-reference."""
+"""`companion` command line: run, check-config, setup-autopilot, sitl, dashboard, bench, config-reference."""
 
 from __future__ import annotations
 
@@ -70,6 +70,23 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_setup_autopilot(args: argparse.Namespace) -> int:
+    from companion.setup_autopilot import parse_param_assignments, setup_autopilot
+
+    cfg = _config_with_logging(args)
+    if cfg is None:
+        return EXIT_CONFIG_ERROR
+    try:
+        extra = parse_param_assignments(args.param)
+    except ValueError as exc:
+        print(f"companion: {exc}", file=sys.stderr)
+        return EXIT_CONFIG_ERROR
+    status, _ = asyncio.run(setup_autopilot(cfg, args.mavlink or cfg.mavlink.url, apply=args.apply, reboot=args.reboot,
+                                            extra=extra, timeout_s=args.timeout,
+                                            out=lambda line: print(line, flush=True)))
+    return status
+
+
 def _cmd_sitl(args: argparse.Namespace) -> int:
     from sitl.harness import run_harness
 
@@ -115,6 +132,18 @@ def build_parser() -> argparse.ArgumentParser:
     check.add_argument("config")
     check.set_defaults(func=_cmd_check_config)
 
+    setup = sub.add_parser("setup-autopilot", help="check (and with --apply write) the autopilot parameters the "
+                                                    "configured pipelines need; dry run by default")
+    setup.add_argument("-c", "--config", required=True, help="YAML config file (its pipelines decide what is needed)")
+    setup.add_argument("--mavlink", help="autopilot endpoint, pymavlink syntax (overrides mavlink.url)")
+    setup.add_argument("--apply", action="store_true", help="write the differing parameters (PARAM_SET, read back)")
+    setup.add_argument("--reboot", action="store_true",
+                       help="after --apply, reboot the autopilot (disarmed only) if a written parameter needs it")
+    setup.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
+                       help="also set this parameter (repeatable)")
+    setup.add_argument("--timeout", type=float, default=30.0, help="seconds to wait for the autopilot and its parameters")
+    setup.set_defaults(func=_cmd_setup_autopilot)
+
     sitl = sub.add_parser("sitl", help="simulated vehicle + daemon over loopback; optional scored report")
     sitl.add_argument("-c", "--config", default=str(repo_config_dir() / "sitl.yaml"), help="daemon config (default: config/sitl.yaml)")
     sitl.add_argument("--mission", help="mission name: missions/NAME.yaml beside the config file (default: the config's mission)")
@@ -124,7 +153,10 @@ def build_parser() -> argparse.ArgumentParser:
     sitl.add_argument("--seed", type=int, default=0)
     sitl.add_argument("--report", help="write the truth-scored flight report (JSON) here")
     sitl.add_argument("--control-law", choices=["rpt", "pid"], help="fly trajectories with this law (overrides control.law)")
-    sitl.add_argument("--autopilot", help="use an external autopilot SITL at this pymavlink URL instead of the built-in vehicle")
+    sitl.add_argument("--autopilot", help="use an external autopilot SITL at this pymavlink URL instead of the built-in "
+                                          "vehicle (no truth: no --report)")
+    sitl.add_argument("--ardupilot", metavar="PATH", help="run this ArduPilot SITL binary as the vehicle, set up by "
+                                                          "the companion (overrides sitl.ardupilot.binary; real time)")
     sitl.add_argument("--dashboard", type=int, nargs="?", const=8080, metavar="PORT",
                       help="also serve the live telemetry page on 127.0.0.1:PORT (default 8080) and print its URL")
     sitl.set_defaults(func=_cmd_sitl)
