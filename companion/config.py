@@ -49,6 +49,10 @@ class MavlinkConfig:
     link_timeout_s: float = field(default=3.0, metadata=meta("No autopilot HEARTBEAT for this long = link lost.", (0.5, 60)))
     command_timeout_s: float = field(default=1.0, metadata=meta("Wait for COMMAND_ACK before a retry.", (0.05, 30)))
     command_retries: int = field(default=3, metadata=meta("Attempts per command before it is reported failed.", (1, 20)))
+    autopilot_serial_port: int | None = field(default=None, metadata=meta(
+        "The autopilot's SERIALn the companion is wired to (ArduPilot; e.g. 2 for TELEM2); `companion setup-autopilot` "
+        "then also checks SERIALn_PROTOCOL 2 (MAVLink 2) and SERIALn_BAUD 921 (921600) on it. null = not checked.",
+        (0, 9)))
     signing_key_file: str | None = field(default=None, metadata=meta(
         "MAVLink 2 signing: file holding the 32-byte secret key (raw, or 64 hex characters). null = unsigned."))
     streams: StreamRatesConfig = field(default_factory=StreamRatesConfig, metadata=meta("Streams requested from the autopilot."))

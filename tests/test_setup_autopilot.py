@@ -42,6 +42,15 @@ def test_firmware_with_ekf3_source_sets_gets_them_and_the_renamed_gps_parameter(
     assert "EK2_GPS_TYPE" not in names and "GPS_TYPE" not in names
 
 
+def test_the_companion_port_gets_mavlink_2_at_921600_when_the_config_names_it(tmp_path: Path) -> None:
+    cfg = lidar_config(tmp_path)
+    params = {"SERIAL2_PROTOCOL": 1, "SERIAL2_BAUD": 57, "GPS_TYPE": 0}
+    assert "SERIAL2_PROTOCOL" not in {r.name for r in requirements(COPTER_40, cfg, params)}
+    cfg.mavlink.autopilot_serial_port = 2
+    diff = {d.name: d for d in differences(requirements(COPTER_40, cfg, params), params)}
+    assert diff["SERIAL2_PROTOCOL"].wanted == 2 and diff["SERIAL2_BAUD"].wanted == 921 and diff["SERIAL2_BAUD"].reboot
+
+
 def test_a_config_without_a_position_pipeline_needs_nothing(tmp_path: Path) -> None:
     cfg = lidar_config(tmp_path)
     cfg.pipelines.lidar = None

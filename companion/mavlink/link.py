@@ -25,7 +25,7 @@ import math
 import os
 import time
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,6 +45,26 @@ REOPEN_BACKOFF_S = (0.25, 2.0)  # first and longest wait before reopening an end
 SIGNING_EPOCH = 1420070400  # MAVLink 2 signing timestamps count 10 us units from 2015-01-01
 
 Handler = Callable[[mavlink.MAVLink_message], None]
+
+
+async def run_per_connection(connected: asyncio.Event, body: Callable[[], Awaitable[None]]) -> None:
+    """Run ``body`` after every (re)connection (``connected`` set, e.g. by :meth:`MavlinkLink.on_connect`);
+    a new connection cancels a body still running and starts it again at once: what it waits for
+    (an ACK, a retry) belongs to the previous connection."""
+    while True:
+        await connected.wait()
+        connected.clear()
+        task = asyncio.ensure_future(body())
+        reconnected = asyncio.ensure_future(connected.wait())
+        try:
+            await asyncio.wait({task, reconnected}, return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            reconnected.cancel()
+            if not task.done():
+                task.cancel()
+                await asyncio.gather(task, return_exceptions=True)
+        if task.done() and not task.cancelled() and task.exception() is not None:
+            raise task.exception()  # type: ignore[misc]  # a bug in the body: the supervisor restarts
 
 AUTOPILOT_NAMES = {
     mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA: "ArduPilot",

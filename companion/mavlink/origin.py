@@ -24,7 +24,7 @@ from companion.frames import ned_from_geodetic
 from companion.health import Health, State
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.commands import CommandFailed, Commander
-from companion.mavlink.link import MavlinkLink, mavlink
+from companion.mavlink.link import MavlinkLink, mavlink, run_per_connection
 
 log = logging.getLogger("companion.origin")
 
@@ -53,22 +53,23 @@ class OriginSetter:
         health.report("origin", State.LOST, "not confirmed by the autopilot yet")
 
     async def run(self) -> None:
-        while True:
-            await self._restart.wait()
-            self._restart.clear()
-            self.confirmed = self.home_confirmed = self.home_done = False
-            self.state.origin = self.state.home = None
-            if await self._until_confirmed():
-                await self._until_home_set()
+        await run_per_connection(self._restart, self._establish)
+
+    async def _establish(self) -> None:
+        """Origin, then home, for one connection."""
+        self.confirmed = self.home_confirmed = self.home_done = False
+        self.state.origin = self.state.home = None
+        await self._until_confirmed()
+        await self._until_home_set()
 
     @property
     def ready(self) -> bool:
         """The origin is confirmed and home is settled: positions mean the same to both sides."""
         return self.confirmed and self.home_done
 
-    async def _until_confirmed(self) -> bool:
-        """Send the origin until the autopilot reports one; False if the link restarted first."""
-        while not self._restart.is_set():
+    async def _until_confirmed(self) -> None:
+        """Send the origin every second until the autopilot reports one."""
+        while True:
             self._send_origin()
             try:
                 await self.commander.request_message(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
@@ -77,13 +78,12 @@ class OriginSetter:
             await asyncio.sleep(1.0)
             if self.state.origin is not None:
                 self._confirm()
-                return True
-        return False
+                return
 
     async def _until_home_set(self) -> None:
         """Set home at the origin once the EKF has a horizontal position (see the module docstring)."""
         attempts = 0
-        while not self._restart.is_set():
+        while True:
             if self._home_at_origin():
                 self.home_confirmed = self.home_done = True
                 log.info("home set at the origin, confirmed by HOME_POSITION")

@@ -68,10 +68,21 @@ def requirements(firmware: Firmware, cfg: Config, params: Mapping[str, float]) -
     if firmware.autopilot == "PX4":
         wanted = _px4_external_navigation(params)
     elif firmware.autopilot == "ArduPilot":
-        wanted = _ardupilot_external_navigation(params) + _ardupilot_indoor_failsafes(firmware)
+        wanted = (_ardupilot_companion_port(cfg.mavlink.autopilot_serial_port) + _ardupilot_external_navigation(params)
+                  + _ardupilot_indoor_failsafes(firmware))
     else:
         return []
     return [r for r in wanted if r.name in params]
+
+
+def _ardupilot_companion_port(serial: int | None) -> list[Requirement]:
+    """MAVLink 2 at 921600 baud on the port wired to the companion: the bandwidth for 30 Hz
+    estimates and 50 Hz setpoints, and (4.0) a receive-time bound on the estimates' stamps that
+    the baud rate tightens (GCS_MAVLINK::correct_offboard_timestamp_usec_to_ms)."""
+    if serial is None:
+        return []
+    return [Requirement(f"SERIAL{serial}_PROTOCOL", 2, "MAVLink 2 on the port the companion is wired to", reboot=True),
+            Requirement(f"SERIAL{serial}_BAUD", 921, "921600 baud on the companion's port", reboot=True)]
 
 
 def _ardupilot_external_navigation(params: Mapping[str, float]) -> list[Requirement]:
@@ -92,6 +103,8 @@ def _ardupilot_external_navigation(params: Mapping[str, float]) -> list[Requirem
         ]
     return common + [  # 4.0: EKF2, external navigation when GPS is inhibited; height follows the position
         Requirement("EK2_GPS_TYPE", 3, "EKF2: no GPS, use external navigation"),
+        Requirement("EK2_POSNE_M_NSE", 0.1, "4.0 ignores the estimate's covariance and takes this as its noise; "
+                    "the default 1 m (for GPS) lets the EKF wander centimetres off the estimate"),
         Requirement("COMPASS_USE", 0, "EKF2 takes the heading from external navigation only without a compass"),
         Requirement("COMPASS_USE2", 0, "as COMPASS_USE"),
         Requirement("COMPASS_USE3", 0, "as COMPASS_USE"),

@@ -29,7 +29,7 @@ from companion.config import StreamRatesConfig
 from companion.health import Health, State
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.commands import Commander
-from companion.mavlink.link import MavlinkLink, mavlink
+from companion.mavlink.link import MavlinkLink, mavlink, run_per_connection
 
 log = logging.getLogger("companion.streams")
 
@@ -105,10 +105,7 @@ class StreamNegotiator:
         return all(self._last_seen.get(name, -1.0) >= since for name in option)
 
     async def run(self) -> None:
-        while True:
-            await self._restart.wait()
-            self._restart.clear()
-            await self.negotiate()
+        await run_per_connection(self._restart, self.negotiate)
 
     async def negotiate(self) -> None:
         """Ask for every need; see the module docstring for the order of things."""
