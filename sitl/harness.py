@@ -12,6 +12,11 @@ With ``sitl.scip_sensors`` (real time only) it also starts ``python -m sitl.scip
 before the daemon: the bridge gets its own vehicle link (an extra ``--gcs`` on a free loopback
 UDP port) for SIM_STATE truth and serves those sensors over SCIP 2.0 on their
 ``settings.tcp_port``, where the daemon's real Hokuyo driver connects.
+
+With ``--ardupilot PATH`` (or ``sitl.ardupilot.binary``) the vehicle is a real ArduPilot SITL
+binary instead (sitl/ardupilot_run.py): set up by ``companion setup-autopilot``, flown by the
+daemon through a recording tap, scored against the SITL's own truth with the same report.
+Real time only.
 """
 
 from __future__ import annotations
@@ -37,6 +42,9 @@ import yaml
 from companion.config import Config, ConfigError, load_config
 from companion.dashboard.app import spawn_dashboard
 from companion.telemetry.keys import KEY_PREFIX
+from sitl.ardupilot_observer import THREAD_NAME as OBSERVER_THREAD
+from sitl.ardupilot_run import ArduPilotRun, ArduPilotStartFailure
+from sitl.frame_shift import moved_origin, shift_mission, shift_world, shifted, write_shifted
 from sitl.report import build_report
 from sitl.world import load_world
 
@@ -86,8 +94,9 @@ def companion_url_for(vehicle_url: str) -> str:
 
 
 def write_run_config(cfg: Config, mission: str | None, out_dir: Path, autopilot_url: str | None,
-                     control_law: str | None = None) -> Path:
-    """A copy of the config with the mission (and control law) chosen, absolute paths and the matching link URL."""
+                     control_law: str | None = None, origin_at_takeoff: bool = False) -> Path:
+    """A copy of the config with the mission (and control law) chosen, absolute paths and the matching
+    link URL; with ``origin_at_takeoff``, in the frame whose origin is the take-off point (sitl/frame_shift.py)."""
     raw = yaml.safe_load(Path(cfg.source).read_text()) or {}
     if control_law is not None:
         raw.setdefault("control", {})["law"] = control_law
@@ -104,9 +113,42 @@ def write_run_config(cfg: Config, mission: str | None, out_dir: Path, autopilot_
     for name, sensor in cfg.sensors.items():
         if "file" in sensor.settings:
             raw["sensors"][name]["settings"]["file"] = str(cfg.resolve(sensor.settings["file"]))
+    for key in ("binary", "defaults"):
+        value = getattr(cfg.sitl.ardupilot, key)
+        if value:
+            raw["sitl"].setdefault("ardupilot", {})[key] = str(cfg.resolve(value))
+    if origin_at_takeoff:  # ArduPilot SITL: also, the daemon is wired to its SERIAL0 (through the tap)
+        raw["mavlink"]["autopilot_serial_port"] = 0
+        _move_origin_to_takeoff(cfg, raw, out_dir)
     path = out_dir / "companion.yaml"
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
     return path
+
+
+def _move_origin_to_takeoff(cfg: Config, raw: dict, out_dir: Path) -> None:
+    """Rewrite ``raw`` (and write shifted copies of the world, map and mission) so that the origin
+    is the take-off point: ``sitl.start``, else the world's start."""
+    world_path = cfg.resolve(cfg.sitl.world)
+    start = cfg.sitl.start if cfg.sitl.start is not None else load_world(world_path).start
+    offset = (-start[0], -start[1])
+    lat, lon, alt = moved_origin((cfg.origin.lat, cfg.origin.lon, cfg.origin.alt), (start[0], start[1]))
+    raw["origin"] = {"lat": lat, "lon": lon, "alt": alt}
+    raw["sitl"]["world"] = str(write_shifted(world_path, out_dir / "world.yaml", offset, shift_world))
+    if cfg.sitl.start is not None:
+        raw["sitl"]["start"] = shifted(cfg.sitl.start, offset)
+    lidar = cfg.pipelines.lidar
+    if lidar is not None:
+        map_path = cfg.resolve(lidar.map)
+        raw["pipelines"]["lidar"]["map"] = (raw["sitl"]["world"] if map_path.resolve() == world_path.resolve() else
+                                            str(write_shifted(map_path, out_dir / "map.yaml", offset, shift_world)))
+        if lidar.initial_pose is not None:
+            raw["pipelines"]["lidar"]["initial_pose"] = shifted(lidar.initial_pose, offset)
+    if raw["mission"]["file"]:
+        raw["mission"]["file"] = str(write_shifted(Path(raw["mission"]["file"]), out_dir / "mission.yaml", offset,
+                                                   shift_mission))
+    box = cfg.mission.geofence.box_ned_m
+    if box is not None:
+        raw["mission"].setdefault("geofence", {})["box_ned_m"] = [shifted(corner, offset) for corner in box]
 
 
 def vehicle_command(cfg: Config, args: argparse.Namespace, log_path: Path,
@@ -253,21 +295,24 @@ def _sigterm_as_ctrl_c() -> Iterator[None]:
 class Session:
     """The processes of one SITL run and what the harness learns about them."""
 
-    vehicle: subprocess.Popen | None = None
+    vehicle: subprocess.Popen | None = None  # the built-in vehicle
+    ardupilot: ArduPilotRun | None = None  # or ArduPilot SITL (--ardupilot)
     daemon: subprocess.Popen | None = None
     bridge: subprocess.Popen | None = None  # the SCIP bridge (sitl.scip_sensors)
     bridge_rc: int | None = None  # its exit code; 1 if it ended during the run
     dashboard: subprocess.Popen | None = None  # `companion dashboard` (--dashboard)
     dashboard_url: str | None = None
+    run_config: Path | None = None  # the config the daemon runs with (written by the harness)
     listener: TelemetryListener | None = None
     started: float = field(default_factory=time.monotonic)
     usage: tuple[float, float] | None = None  # daemon (CPU s, peak RSS MB)
 
     def wait(self, seconds: float | None, until_mission_end: bool = False) -> None:
-        """Until the vehicle ends the run (--seconds), the daemon dies, (external autopilot) time
-        is up, or, with ``until_mission_end``, the mission is over (completed, failed or aborted)
-        and MISSION_END_GRACE_S more have passed."""
+        """Until the built-in vehicle ends the run (--seconds), the daemon or ArduPilot SITL dies,
+        (ArduPilot, external autopilot) time is up, or, with ``until_mission_end``, the mission is
+        over (completed, failed or aborted) and MISSION_END_GRACE_S more have passed."""
         assert self.daemon is not None
+        started = time.monotonic()
         ended_at: float | None = None
         while True:
             if until_mission_end and ended_at is None and self.listener is not None:
@@ -277,13 +322,17 @@ class Session:
                 return
             if self.vehicle is not None and self.vehicle.poll() is not None:
                 return
+            if self.ardupilot is not None and not self.ardupilot.alive:
+                log.error("ArduPilot SITL stopped during the run: %s", "; ".join(self.ardupilot.internal_errors())
+                          or "no internal error reported")
+                return
             if self.daemon.poll() is not None:
                 log.error("the daemon exited with %s during the run", self.daemon.returncode)
                 return
             if self.bridge is not None and self.bridge.poll() is not None:
                 log.error("the SCIP bridge exited with %s during the run", self.bridge.returncode)
                 return
-            if self.vehicle is None and seconds is not None and time.monotonic() - self.started > seconds:
+            if self.vehicle is None and seconds is not None and time.monotonic() - started > seconds:
                 return
             self.usage = process_cpu_rss(self.daemon.pid) or self.usage
             time.sleep(0.2)
@@ -296,6 +345,8 @@ class Session:
         bridge_ended_early = self.bridge is not None and self.bridge.poll() is not None
         daemon_rc = _terminate(self.daemon, "daemon", interrupted) if self.daemon is not None else 0
         vehicle_rc = _terminate(self.vehicle, "vehicle", interrupted) if self.vehicle is not None else 0
+        if self.ardupilot is not None:
+            vehicle_rc = self.ardupilot.stop() or 0
         if self.bridge is not None:
             rc = _terminate(self.bridge, "SCIP bridge", interrupted)
             self.bridge_rc = (rc or 1) if bridge_ended_early else rc
@@ -306,13 +357,26 @@ class Session:
         return daemon_rc, vehicle_rc, telemetry
 
 
-def _start(session: Session, cfg: Config, args: argparse.Namespace, run_cfg: Path, vehicle_log: Path) -> None:
+def _start(session: Session, cfg: Config, args: argparse.Namespace, work: Path, vehicle_log: Path) -> Path:
+    """Start the vehicle (built-in, or ArduPilot SITL set up for this config), the bridge, the
+    daemon and the dashboard; the run config the daemon uses."""
     extra_gcs: tuple[str, ...] = ()
     if cfg.sitl.scip_sensors:
         port = free_udp_port()
         extra_gcs = (f"udpout:127.0.0.1:{port}",)
         session.bridge = subprocess.Popen(scip_bridge_command(cfg, args, f"udpin:127.0.0.1:{port}"))
-    if args.autopilot is None:
+    autopilot_url = args.autopilot
+    if session.ardupilot is not None:
+        autopilot_url = session.ardupilot.start_tap()
+    run_cfg = write_run_config(cfg, args.mission, work, autopilot_url, args.control_law,
+                               origin_at_takeoff=session.ardupilot is not None)
+    if session.ardupilot is not None:
+        try:
+            session.ardupilot.boot(run_cfg)
+        except ArduPilotStartFailure as exc:
+            raise StartFailure(str(exc)) from None
+        session.ardupilot.begin()
+    elif args.autopilot is None:
         session.vehicle = subprocess.Popen(vehicle_command(cfg, args, vehicle_log, extra_gcs))
     if session.bridge is not None and not wait_listening(session.bridge, scip_ports(cfg), BRIDGE_READY_S):
         raise StartFailure(f"the SCIP bridge is not serving {', '.join(cfg.sitl.scip_sensors)} "
@@ -328,10 +392,45 @@ def _start(session: Session, cfg: Config, args: argparse.Namespace, run_cfg: Pat
             session.dashboard, session.dashboard_url = spawn_dashboard(run_cfg, args.dashboard)
         except RuntimeError as exc:
             raise StartFailure(str(exc)) from None
+    return run_cfg
+
+
+def ardupilot_binary(cfg: Config, args: argparse.Namespace) -> Path | None:
+    """The ArduPilot SITL binary of this run: --ardupilot, else sitl.ardupilot.binary, else None."""
+    if args.ardupilot:
+        return Path(args.ardupilot).resolve()
+    return cfg.resolve(cfg.sitl.ardupilot.binary).resolve() if cfg.sitl.ardupilot.binary else None
+
+
+def refusal(cfg: Config, args: argparse.Namespace, ardupilot: Path | None) -> str | None:
+    """Why this combination of options cannot run, or None."""
+    if ardupilot is not None:
+        if args.autopilot is not None:
+            return "--ardupilot starts its own autopilot: leave out --autopilot"
+        if args.lockstep:
+            return "ArduPilot SITL runs in real time with the daemon (its clock is not the daemon's): leave out --lockstep"
+        if cfg.sitl.scip_sensors:
+            return "sitl.scip_sensors needs the built-in vehicle (its truth link); use backend: sim sensors with --ardupilot"
+        if not ardupilot.is_file() or not os.access(ardupilot, os.X_OK):
+            return f"{ardupilot}: not an executable ArduPilot SITL binary"
+    if cfg.sitl.scip_sensors and (args.lockstep or args.autopilot is not None):
+        return ("sitl.scip_sensors needs the built-in vehicle in real time (the SCIP bridge runs on the "
+                "wall clock); lockstep runs use backend: sim sensors")
+    return None
+
+
+class _QuietObserver(logging.Filter):
+    """The ArduPilot observer reuses the daemon's MAVLink classes in this process: below ERROR their
+    lines would repeat what the daemon itself logs about the same autopilot."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return record.threadName != OBSERVER_THREAD or record.levelno >= logging.ERROR
 
 
 def run_harness(args: argparse.Namespace) -> int:
     """Run one SITL session; returns the exit code (0 = ran and, if asked, reported)."""
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(_QuietObserver())
     try:
         cfg = load_config(args.config)
         if args.mission and not cfg.resolve(f"missions/{args.mission}.yaml").exists():
@@ -340,27 +439,32 @@ def run_harness(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"companion: {exc}", file=sys.stderr)
         return 2
-    if cfg.sitl.scip_sensors and (args.lockstep or args.autopilot is not None):
-        print("companion: sitl.scip_sensors needs the built-in vehicle in real time (the SCIP bridge runs on the "
-              "wall clock); lockstep runs use backend: sim sensors", file=sys.stderr)
+    ardupilot = ardupilot_binary(cfg, args)
+    problem = refusal(cfg, args, ardupilot)
+    if problem is not None:
+        print(f"companion: {problem}", file=sys.stderr)
         return 2
-    taken = ports_in_use(cfg, builtin_vehicle=args.autopilot is None)
+    taken = ports_in_use(cfg, builtin_vehicle=args.autopilot is None and ardupilot is None)
     if taken:
         print(f"companion: in use already (another `companion sitl` running?): {', '.join(taken)}; "
               "stop it, or give this run other ports in a copy of the config", file=sys.stderr)
         return 2
     work = Path(tempfile.mkdtemp(prefix="companion-sitl-"))
-    run_cfg = write_run_config(cfg, args.mission, work, args.autopilot, args.control_law)
     vehicle_log = work / "vehicle-log.json"
     mission_name = args.mission or (Path(cfg.mission.file).stem if cfg.mission.file else "none")
     session = Session()
+    if ardupilot is not None:
+        session.ardupilot = ArduPilotRun(ardupilot, cfg.sitl.ardupilot, cfg.base_dir, work, args.seed,
+                                         cfg.vehicle.autopilot_sysid)
     interrupted = False
     start_failed = False
     with _sigterm_as_ctrl_c():
         try:
-            _start(session, cfg, args, run_cfg, vehicle_log)
+            session.run_config = _start(session, cfg, args, work, vehicle_log)
+            session.started = time.monotonic()
             bridge = f"; SCIP bridge serving {', '.join(cfg.sitl.scip_sensors)}" if session.bridge else ""
-            print(f"companion sitl: vehicle + daemon running (mission {mission_name}, "
+            vehicle = f"ArduPilot SITL {ardupilot.name}" if ardupilot is not None else "vehicle"
+            print(f"companion sitl: {vehicle} + daemon running (mission {mission_name}, "
                   f"{'lockstep' if args.lockstep else 'real time'}, seed {args.seed}); "
                   f"telemetry on zenoh {', '.join(cfg.telemetry.listen)}; GCS links {', '.join(cfg.sitl.gcs_urls)}"
                   f"{bridge}", flush=True)
@@ -383,17 +487,24 @@ def run_harness(args: argparse.Namespace) -> int:
         bridge_exit = f", SCIP bridge exit {session.bridge_rc}" if session.bridge is not None else ""
         print(f"companion sitl: daemon exit {daemon_rc}, vehicle exit {vehicle_rc}{bridge_exit}", file=sys.stderr)
     if args.report:
-        if session.vehicle is None or not vehicle_log.exists():
-            print("companion sitl: no vehicle flight log, cannot score a report "
-                  "(truth recording from an external autopilot SITL is not implemented)", file=sys.stderr)
+        if session.ardupilot is not None:
+            session.ardupilot.write_log(vehicle_log)
+        if not vehicle_log.exists():
+            print("companion sitl: no flight log, cannot score a report (an external autopilot given with "
+                  "--autopilot records no truth: use --ardupilot PATH to have the harness run ArduPilot SITL)",
+                  file=sys.stderr)
             return 1
         sim_log = json.loads(vehicle_log.read_text())
+        frame = load_config(session.run_config).origin if session.run_config is not None else cfg.origin
         usage = session.usage
         report = build_report(
             mission=mission_name, seconds=sim_log["sim_seconds"], lockstep=bool(args.lockstep), seed=args.seed,
-            control_law=args.control_law or cfg.control.law, log=sim_log, telemetry=telemetry, origin=(cfg.origin.lat, cfg.origin.lon, cfg.origin.alt),
+            control_law=args.control_law or cfg.control.law, log=sim_log, telemetry=telemetry,
+            origin=(frame.lat, frame.lon, frame.alt),
+            internal_errors=session.ardupilot.internal_errors() if session.ardupilot is not None else None,
             cpu_percent=None if usage is None else 100.0 * usage[0] / max(wall, 1e-6),
             rss_mb=None if usage is None else usage[1])
         Path(args.report).write_text(json.dumps(report, indent=2) + "\n")
         print(json.dumps(report, indent=2), flush=True)
+        print(f"companion sitl: flight log (truth, everything the autopilot received) in {vehicle_log}", flush=True)
     return 0 if ok else 1

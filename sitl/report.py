@@ -103,8 +103,12 @@ def _stage(system: dict, name: str, key: str) -> float | None:
 
 def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, control_law: str, log: dict,
                  telemetry: dict[str, dict], origin: tuple[float, float, float],
-                 cpu_percent: float | None, rss_mb: float | None) -> dict[str, Any]:
-    """The report dict (schema 1) from a vehicle log and the daemon's last telemetry."""
+                 cpu_percent: float | None, rss_mb: float | None,
+                 internal_errors: list[str] | None = None) -> dict[str, Any]:
+    """The report dict (schema 1) from a vehicle log and the daemon's last telemetry.
+
+    ``internal_errors``: what a real autopilot (ArduPilot SITL) stopped on during the run; None
+    for the built-in vehicle, which has no such thing."""
     estimate = score_estimate(log)
     estimate.pop("horizontal_rms_m", None)
     system = telemetry.get("system", {})
@@ -126,6 +130,8 @@ def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, con
             "vision_speed_estimate_hz": _rate(log["vision_speed"]["t_rx"]),
             "setpoint_hz": _rate(log["setpoints"]["t_rx"]),
             "nonfinite_dropped": nonfinite,
+            "firmware": telemetry.get("autopilot", {}).get("firmware"),
+            "internal_errors": internal_errors,
         },
         "control": {
             "law": control_law,

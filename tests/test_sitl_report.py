@@ -24,7 +24,7 @@ SCHEMA_1 = {
     "schema": None, "mission": None, "seconds": None, "lockstep": None, "seed": None,
     "estimate": {"position_rms_m", "position_max_m", "yaw_rms_deg", "height_rms_m", "fix_rate_hz", "lost_seconds"},
     "autopilot": {"origin_confirmed", "external_nav_in_use", "vision_position_estimate_hz",
-                  "vision_speed_estimate_hz", "setpoint_hz", "nonfinite_dropped"},
+                  "vision_speed_estimate_hz", "setpoint_hz", "nonfinite_dropped", "firmware", "internal_errors"},
     "control": {"law", "mission_completed", "tracking_rms_m", "tracking_max_m", "failsafes_triggered", "degraded_slowdowns"},
     "timing": {"lidar_ms_p50", "lidar_ms_p99", "fusion_ms_p50", "loop_jitter_ms_p99", "cpu_percent", "rss_mb"},
 }
