@@ -20,3 +20,15 @@ def free_port(kind: int = socket.SOCK_DGRAM) -> int:
 @pytest.fixture
 def repo() -> Path:
     return REPO
+
+
+@pytest.fixture
+def procs(tmp_path: Path):  # noqa: ANN201 - a generator fixture
+    """Subprocesses of the test (output in tmp_path/NAME.out); whatever still runs is killed after."""
+    from tests.sitl_helpers import Processes  # the daemon's imports: only for the tests that use it
+
+    p = Processes(tmp_path)
+    try:
+        yield p
+    finally:
+        p.close()

@@ -4,11 +4,9 @@ message came (in the units the fusion expects)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from companion.config import load_config
 from tests.conftest import free_port
@@ -18,13 +16,6 @@ from tests.sitl_helpers import (PipelineDaemon, Processes, TruthPipeline, read_l
 SIM_SECONDS = 8.0
 
 
-@pytest.fixture
-def procs(tmp_path: Path) -> Iterator[Processes]:
-    p = Processes(tmp_path)
-    try:
-        yield p
-    finally:
-        p.close()
 
 
 def run_on_ground(tmp_path: Path, procs: Processes, legacy_streams: bool) -> tuple[PipelineDaemon, dict]:

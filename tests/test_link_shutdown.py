@@ -32,8 +32,11 @@ def start_daemon(tmp_path: Path, port: int) -> subprocess.Popen:
                             stderr=subprocess.PIPE, text=True)
 
 
-def sigterm_takes(proc: subprocess.Popen) -> tuple[int, float]:
-    """(exit status, seconds from SIGTERM to exit); kills the process if it hangs."""
+def runs_then_stops(proc: subprocess.Popen) -> tuple[int, float]:
+    """Let the daemon run RUN_S against the peer (it must still be running), then SIGTERM it:
+    (exit status, seconds from SIGTERM to exit); kills the process if it hangs."""
+    time.sleep(RUN_S)
+    assert proc.poll() is None, proc.stderr.read()
     started = time.monotonic()
     proc.send_signal(signal.SIGTERM)
     try:
@@ -59,9 +62,7 @@ def test_an_autopilot_that_accepts_and_then_hangs(tmp_path: Path, listener: sock
     daemon = start_daemon(tmp_path, listener.getsockname()[1])
     peer, _ = listener.accept()  # never read from, never written to
     try:
-        time.sleep(RUN_S)
-        assert daemon.poll() is None, daemon.stderr.read()
-        rc, took = sigterm_takes(daemon)
+        rc, took = runs_then_stops(daemon)
     finally:
         peer.close()
     assert rc == 0 and took <= 2.0, (rc, took)
@@ -87,9 +88,7 @@ def test_an_autopilot_that_talks_garbage(tmp_path: Path, listener: socket.socket
     talker = threading.Thread(target=babble, daemon=True)
     talker.start()
     try:
-        time.sleep(RUN_S)
-        assert daemon.poll() is None, daemon.stderr.read()
-        rc, took = sigterm_takes(daemon)
+        rc, took = runs_then_stops(daemon)
     finally:
         stop.set()
         talker.join(2)
@@ -108,9 +107,7 @@ def test_an_endpoint_that_never_accepts(tmp_path: Path, listener: socket.socket)
         fillers.append(filler)
     daemon = start_daemon(tmp_path, listener.getsockname()[1])
     try:
-        time.sleep(RUN_S)
-        assert daemon.poll() is None, daemon.stderr.read()
-        rc, took = sigterm_takes(daemon)
+        rc, took = runs_then_stops(daemon)
     finally:
         for filler in fillers:
             filler.close()

@@ -36,13 +36,6 @@ LOST_HOLD_S = 2.0
 GPS_TOLERANCE_M = 0.35
 
 
-@pytest.fixture
-def procs(tmp_path: Path):
-    p = Processes(tmp_path)
-    yield p
-    p.close()
-
-
 def fly(tmp_path: Path, procs: Processes, steps: list[dict], seconds: float, sections: dict | None = None,
         **faults: object) -> tuple[PipelineDaemon, dict]:
     """Fly ``steps`` (after wait_ready / GUIDED / arm / takeoff) for ``seconds`` of simulation."""

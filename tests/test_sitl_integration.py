@@ -17,7 +17,6 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -44,16 +43,6 @@ SIM_SECONDS = 25.0
 PIPELINE_SEED = 7
 VEHICLE_SEED = 3
 LOITER = 5  # ArduCopter custom_mode
-
-
-@pytest.fixture
-def procs(tmp_path: Path) -> Iterator[Processes]:
-    """Subprocesses of the test (output in tmp_path/NAME.out); whatever still runs is killed after."""
-    p = Processes(tmp_path)
-    try:
-        yield p
-    finally:
-        p.close()
 
 
 # -- in-process daemon + lockstep vehicle ----------------------------------------------------

@@ -29,14 +29,14 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink import mavutil  # noqa: E402
+os.environ.setdefault("MAVLINK20", "1")  # before the first pymavlink import, which reads it
+from pymavlink import mavutil  # noqa: E402,F401 (the mode tables, for autopilot.py)
 from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 from companion import clock  # noqa: E402
 from companion.config import MavlinkConfig, VehicleConfig  # noqa: E402
 from companion.health import Health, State  # noqa: E402
-from companion.mavlink.transport import Transport, TransportClosed, open_transport, parse_url  # noqa: E402
+from companion.mavlink.transport import Transport, TransportClosed, open_transport  # noqa: E402
 
 log = logging.getLogger("companion.mavlink")
 

@@ -71,10 +71,7 @@ class OriginSetter:
         """Send the origin every second until the autopilot reports one."""
         while True:
             self._send_origin()
-            try:
-                await self.commander.request_message(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
-            except CommandFailed as exc:
-                log.debug("GPS_GLOBAL_ORIGIN request: %s", exc)
+            await self._ask_for(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
             await asyncio.sleep(1.0)
             if self.state.origin is not None:
                 self._confirm()
@@ -96,11 +93,15 @@ class OriginSetter:
             if self.state.ekf_flags & EKF_POS_HORIZ_ABS:
                 attempts += 1
                 self._send_home()
-                try:
-                    await self.commander.request_message(mavlink.MAVLINK_MSG_ID_HOME_POSITION)
-                except CommandFailed as exc:
-                    log.debug("HOME_POSITION request: %s", exc)
+                await self._ask_for(mavlink.MAVLINK_MSG_ID_HOME_POSITION)
             await asyncio.sleep(1.0)
+
+    async def _ask_for(self, msg_id: int) -> None:
+        """REQUEST_MESSAGE ``msg_id``; a refusal is no error here (the next round asks again)."""
+        try:
+            await self.commander.request_message(msg_id)
+        except CommandFailed as exc:
+            log.debug("request for message %d: %s", msg_id, exc)
 
     def _home_at_origin(self) -> bool:
         home = self.state.home
