@@ -27,15 +27,19 @@ class VehicleConfig:
 
 @dataclass
 class StreamRatesConfig:
-    """Rates (Hz) asked of the autopilot with SET_MESSAGE_INTERVAL; 0 leaves a stream alone."""
+    """Rates (Hz) asked of the autopilot (SET_MESSAGE_INTERVAL, else legacy stream groups; the
+    messages per need and their fallbacks: companion/mavlink/streams.py); 0 leaves a stream alone."""
 
     attitude: float = field(default=50.0, metadata=meta("ATTITUDE.", (0, 400)))
-    imu: float = field(default=50.0, metadata=meta("HIGHRES_IMU (ArduPilot and PX4) and SCALED_IMU.", (0, 400)))
+    imu: float = field(default=50.0, metadata=meta(
+        "HIGHRES_IMU, else SCALED_IMU, RAW_IMU (ArduPilot) or SCALED_IMU2: the fusion's prediction input.", (0, 400)))
     local_position: float = field(default=10.0, metadata=meta("LOCAL_POSITION_NED.", (0, 100)))
     gps_raw: float = field(default=5.0, metadata=meta("GPS_RAW_INT.", (0, 50)))
     home_position: float = field(default=0.5, metadata=meta("HOME_POSITION.", (0, 10)))
     estimator_status: float = field(default=2.0, metadata=meta("EKF_STATUS_REPORT (ArduPilot) / ESTIMATOR_STATUS (PX4).", (0, 50)))
-    sim_state: float = field(default=0.0, metadata=meta("SIM_STATE ground truth (simulators only; sim backends need it).", (0, 400)))
+    sim_state: float = field(default=0.0, metadata=meta(
+        "Simulator ground truth: SIM_STATE, else SIMSTATE + SCALED_PRESSURE (simulators only; sim backends need it).",
+        (0, 400)))
 
 
 @dataclass

@@ -25,7 +25,7 @@ from companion.health import ComponentHealth, Health, State
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.commands import Commander
 from companion.mavlink.estimate import EstimateSender, PoseEstimate
-from companion.mavlink.link import MavlinkLink, load_signing_key, mavlink
+from companion.mavlink.link import MavlinkLink, load_signing_key, mavlink, run_per_connection
 from companion.mavlink.origin import OriginSetter
 from companion.mavlink.setpoints import SetpointStream
 from companion.mavlink.streams import StreamNegotiator
@@ -71,6 +71,7 @@ class Daemon:
         self.drivers: dict[str, LidarDriver] = {}
         self.truth: TruthSource | None = None  # ground truth, only for simulated sensors
         self._first_contact = True
+        self._identify = asyncio.Event()  # set on every (re)connection: ask for AUTOPILOT_VERSION
         self._stop = asyncio.Event()
 
     def request_stop(self) -> None:
@@ -106,6 +107,8 @@ class Daemon:
         sup.spawn("link", link.run)
         sup.spawn("origin", origin.run)
         sup.spawn("streams", streams.run)
+        # AUTOPILOT_VERSION after every (re)connection: the firmware decides frames and setpoints
+        sup.spawn("firmware", lambda: run_per_connection(self._identify, commander.request_autopilot_version))
         sup.spawn("setpoints", setpoints.run)
         sup.spawn("nav", self.nav.run)
         sup.spawn("status", self._publish_status)
@@ -229,7 +232,7 @@ class Daemon:
             self.supervisor.spawn("telemetry:lidar", lambda: every(1.0 / t.scan_hz, self._lidar_telemetry().publish))
 
     def _on_autopilot_found(self) -> None:
-        asyncio.get_running_loop().create_task(self.commander.request_autopilot_version(), name="autopilot-version")
+        self._identify.set()
         if self._first_contact:
             self._first_contact = False
             log.info("autopilot %s found: `companion setup-autopilot -c %s` checks the parameters this config needs",
@@ -259,7 +262,8 @@ class Daemon:
                                 "home_at_origin": self.origin.home_confirmed,
                                 "external_nav_in_use": state.external_nav_in_use, "ekf_flags": state.ekf_flags,
                                 "local_position_ned_m": state.local_position_ned,
-                                "streams": dict(self.streams.chosen), "nonfinite_rejected": state.nonfinite_rejected})
+                                "streams": dict(self.streams.chosen), "nonfinite_rejected": state.nonfinite_rejected,
+                                "imu_rejected": state.imu_rejected})
         t.publish("estimate_stats", {**vars(self.estimate.stats), "reset_counter": self.estimate.reset_counter,
                                      "nonfinite_dropped_link": link.stats.nonfinite_dropped})
         t.publish("system", {**process_usage(self.started_wall),

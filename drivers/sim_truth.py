@@ -58,7 +58,7 @@ def sitl_baro_altitude_m(pressure_hpa: float) -> float:
 class TruthSample:
     t: float  # daemon clock, seconds
     position_ned: np.ndarray  # m
-    velocity_ned: np.ndarray  # m/s
+    velocity_ned: np.ndarray  # m/s (from SIMSTATE: differenced 1.1 cm-quantized positions, noisy)
     quat: np.ndarray  # [w, x, y, z], body FRD -> NED
 
 

@@ -38,14 +38,16 @@ from companion.frames import euler_from_quat
 from companion.health import Health
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.commands import Commander
-from companion.mavlink.link import MavlinkLink, mavlink, nonfinite_fields
+from companion.mavlink.link import MavlinkLink, mavlink, nonfinite_fields, run_per_connection
 from companion.mavlink.streams import StreamNegotiator
 from drivers.sim_truth import TruthSample, TruthSource
 from sitl.flight_log import FlightLog
 
 log = logging.getLogger("companion.sitl.ardupilot")
 
-GROUND_SYSID, GROUND_COMPID = 255, mavlink.MAV_COMP_ID_MISSIONPLANNER
+# Not 255: ArduPilot takes heartbeats from SYSID_MYGCS (255) as a ground station being there,
+# which would hide its GCS failsafe; the observer only listens.
+GROUND_SYSID, GROUND_COMPID = 254, mavlink.MAV_COMP_ID_MISSIONPLANNER
 TRUTH_HZ = 50.0
 ORIGIN_POLL_S = 2.0
 # What the tap keeps the arrival times of, per direction (the fault tests read them).
@@ -180,12 +182,14 @@ class ArduPilotObserver:
         streams = StreamNegotiator(link, state, commander, cfg.streams, health)
         assert self.origin is not None
         TruthSource(link, self.origin, listener=self._on_truth)
-        loop = asyncio.get_running_loop()
-        link.on_connect(lambda: loop.create_task(commander.request_autopilot_version()))  # its frame quirks
+        identify = asyncio.Event()  # AUTOPILOT_VERSION after every (re)connection: its frame quirks
+        link.on_connect(identify.set)
         link.subscribe("HEARTBEAT", self._on_heartbeat)
         link.subscribe("STATUSTEXT", self._on_statustext)
         link.subscribe("GPS_GLOBAL_ORIGIN", self._on_origin)
+        loop = asyncio.get_running_loop()
         return [loop.create_task(link.run()), loop.create_task(streams.run()),
+                loop.create_task(run_per_connection(identify, commander.request_autopilot_version)),
                 loop.create_task(self._poll_origin(commander))]
 
     async def _poll_origin(self, commander: Commander) -> None:

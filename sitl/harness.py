@@ -476,6 +476,9 @@ def run_harness(args: argparse.Namespace) -> int:
         except StartFailure as exc:
             log.error("%s", exc)
             start_failed = True
+        except Exception:  # a bug: still leave no process behind (ArduPilot SITL would spin on)
+            session.stop()
+            raise
         wall = time.monotonic() - session.started
         daemon_rc, vehicle_rc, telemetry = session.stop(interrupted)
     if interrupted:

@@ -128,6 +128,7 @@ class VehicleConfig:
     start: tuple[float, float, float] = (0.0, 0.0, 0.0)  # north m, east m, yaw deg
     sysid: int = 1
     legacy_streams: bool = False  # like older firmware: SET_MESSAGE_INTERVAL unknown, REQUEST_DATA_STREAM only
+    refuse_intervals: tuple[int, ...] = ()  # message ids whose SET_MESSAGE_INTERVAL fails, as on ArduPilot 4.0
 
 
 def _next_due(due_us: int, interval_us: int, now_us: int) -> int:
@@ -619,6 +620,9 @@ class Vehicle:
         if self.cfg.legacy_streams:
             return mav.MAV_RESULT_UNSUPPORTED
         msgid = int(p[0])
+        if msgid in self.cfg.refuse_intervals:
+            self._texts.append((mav.MAV_SEVERITY_INFO, f"No ap_message for mavlink id ({msgid})"))
+            return mav.MAV_RESULT_FAILED
         if msgid not in self._builders:
             self._texts.append((mav.MAV_SEVERITY_INFO, f"No ap_message for mavlink id ({msgid})"))
             return mav.MAV_RESULT_DENIED
@@ -1018,6 +1022,9 @@ def parse_args(argv: Sequence[str] | None = None) -> VehicleConfig:
     p.add_argument("--gust", type=float, default=None, help="gust standard deviation (m/s)")
     p.add_argument("--start", type=_floats(3), default=(0.0, 0.0, 0.0), help="start pose N,E,YAW_DEG (m, m, deg)")
     p.add_argument("--sysid", type=int, default=1)
+    p.add_argument("--refuse-interval", type=int, action="append", default=[], metavar="MSGID",
+                   help="answer SET_MESSAGE_INTERVAL for this message id with MAV_RESULT_FAILED, as ArduPilot 4.0 does "
+                        "for HIGHRES_IMU (105) and SIM_STATE (108) (repeatable)")
     p.add_argument("--legacy-streams", action="store_true",
                    help="answer SET_MESSAGE_INTERVAL with MAV_RESULT_UNSUPPORTED, as firmware that only knows "
                         "REQUEST_DATA_STREAM groups does")
@@ -1027,7 +1034,8 @@ def parse_args(argv: Sequence[str] | None = None) -> VehicleConfig:
     return VehicleConfig(
         companion=a.companion, gcs=tuple(a.gcs), lockstep=a.lockstep, tick_s=a.tick, seed=a.seed,
         seconds=a.seconds, log=a.log, home=a.home, gps=not a.no_gps, position_source=a.position_source,
-        wind_ned_mps=a.wind, gust_mps=a.gust, start=a.start, sysid=a.sysid, legacy_streams=a.legacy_streams)
+        wind_ned_mps=a.wind, gust_mps=a.gust, start=a.start, sysid=a.sysid, legacy_streams=a.legacy_streams,
+        refuse_intervals=tuple(a.refuse_interval))
 
 
 @contextmanager

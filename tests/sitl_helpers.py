@@ -77,7 +77,8 @@ def write_config(path: Path, *, vehicle_port: int, zenoh_port: int | None = None
 
 def vehicle_args(port: int, *, log: Path | None = None, lockstep: bool = False, seconds: float | None = None,
                  position_source: str = "gps", gps: bool = True, seed: int = 0,
-                 gcs: tuple[str, ...] = (), start: str | None = None, legacy_streams: bool = False) -> list[str]:
+                 gcs: tuple[str, ...] = (), start: str | None = None, legacy_streams: bool = False,
+                 refuse_intervals: tuple[int, ...] = ()) -> list[str]:
     """Command line of ``python -m sitl.vehicle`` listening for the companion on ``port``."""
     args = [sys.executable, "-m", "sitl.vehicle", "--companion", f"udpin:127.0.0.1:{port}",
             "--seed", str(seed), "--home", ",".join(str(v) for v in HOME),
@@ -96,6 +97,8 @@ def vehicle_args(port: int, *, log: Path | None = None, lockstep: bool = False, 
         args += ["--gcs", url]
     if legacy_streams:
         args.append("--legacy-streams")
+    for msgid in refuse_intervals:
+        args += ["--refuse-interval", str(msgid)]
     return args
 
 

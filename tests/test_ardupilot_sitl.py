@@ -89,15 +89,16 @@ def first_stream_request_after(run: ArduPilotRun, t: float) -> float | None:
     return next((at for at, _ in run.observer.tap.stream_requests if at >= t), None)
 
 
-def assert_recovered(run: ArduPilotRun, since: float, what: str) -> None:
+def assert_recovered(run: ArduPilotRun, since: float, what: str) -> float:
     """After ``since``: the autopilot answered (a HEARTBEAT to the companion), then the companion
-    re-sent the origin and re-requested its streams within RECOVERY_S of that."""
+    re-sent the origin and re-requested its streams within RECOVERY_S of that. Returns when it answered."""
     tap = run.observer.tap
     answered = wait_for(lambda: tap.first_after("to_companion:HEARTBEAT", since), 30, f"{what}: a heartbeat")
     origin = wait_for(lambda: tap.first_after("to_autopilot:SET_GPS_GLOBAL_ORIGIN", answered), 10,
                       f"{what}: the origin re-sent")
     streams = wait_for(lambda: first_stream_request_after(run, answered), 10, f"{what}: streams re-requested")
     assert origin - answered <= RECOVERY_S and streams - answered <= RECOVERY_S, (what, answered, origin, streams)
+    return answered
 
 
 def test_the_companion_recovers_when_the_autopilot_hangs_and_when_it_restarts(tmp_path: Path) -> None:
@@ -105,12 +106,13 @@ def test_the_companion_recovers_when_the_autopilot_hangs_and_when_it_restarts(tm
     cfg = load_config(config)
     run = ArduPilotRun(ARDUCOPTER, cfg.sitl.ardupilot, cfg.base_dir, tmp_path, seed=0)
     run_cfg = write_run_config(cfg, None, tmp_path, run.start_tap(), origin_at_takeoff=True)
-    run.boot(run_cfg)
-    run.begin()
-    with open(tmp_path / "daemon.out", "w") as out:
-        daemon = subprocess.Popen([sys.executable, "-m", "companion.cli", "run", "-c", str(run_cfg)], cwd=REPO,
-                                  stdout=out, stderr=subprocess.STDOUT)
+    daemon: subprocess.Popen | None = None
     try:
+        run.boot(run_cfg)
+        run.begin()
+        with open(tmp_path / "daemon.out", "w") as out:
+            daemon = subprocess.Popen([sys.executable, "-m", "companion.cli", "run", "-c", str(run_cfg)], cwd=REPO,
+                                      stdout=out, stderr=subprocess.STDOUT)
         state = run.observer.state
         assert state is not None
         wait_for(lambda: state.external_nav_in_use, 40, "the EKF using the companion's estimate")
@@ -125,17 +127,24 @@ def test_the_companion_recovers_when_the_autopilot_hangs_and_when_it_restarts(tm
         time.sleep(2.0)
         restarted = run.observer.now()
         run.sitl.start()
-        assert_recovered(run, restarted, "killed and restarted")
+        assert run.sitl.wait_listening()
+        listening = run.observer.now()
+        answered = assert_recovered(run, restarted, "killed and restarted")
+        # the companion dialled again within its longest reopen wait (2 s) of the port being back
+        assert answered - listening <= 2.5, (listening, answered)
         wait_for(lambda: any(t >= restarted and "using external nav" in text for t, _, text in run.observer.log.statustext),
                  40, "the restarted EKF using the companion's estimate")
+        assert run.alive  # and it is still running (a halt would have ended it: SITL_PANIC_EXIT)
     finally:
-        stopping = time.monotonic()
-        daemon.send_signal(signal.SIGTERM)
-        try:
-            rc = daemon.wait(10)
-        finally:
-            stop_s = time.monotonic() - stopping
-            run.stop()
+        rc, stop_s = None, None
+        if daemon is not None:
+            stopping = time.monotonic()
+            daemon.send_signal(signal.SIGTERM)
+            try:
+                rc = daemon.wait(10)
+            finally:
+                stop_s = time.monotonic() - stopping
+        sitl_rc = run.stop()
     assert rc == 0 and stop_s <= 2.0, (rc, stop_s, (tmp_path / "daemon.out").read_text()[-3000:])
-    assert run.internal_errors() == []
+    assert sitl_rc == 0 and run.internal_errors() == []  # it ended on SIGTERM, not on an internal error
     assert run.observer.tap.nonfinite == 0

@@ -21,7 +21,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 from tests.conftest import REPO  # noqa: E402
 
-RUN_S = 3.0  # the daemon runs against the peer this long before SIGTERM
+RUN_S = 3.0  # the daemon runs against the peer this long (3 x link_timeout_s) before SIGTERM
 
 
 def start_daemon(tmp_path: Path, port: int) -> subprocess.Popen:
@@ -63,6 +63,9 @@ def test_an_autopilot_that_accepts_and_then_hangs(tmp_path: Path, listener: sock
     peer, _ = listener.accept()  # never read from, never written to
     try:
         rc, took = runs_then_stops(daemon)
+        listener.setblocking(False)
+        with pytest.raises(BlockingIOError):  # silence is no reason to hang up and dial again
+            listener.accept()[0].close()
     finally:
         peer.close()
     assert rc == 0 and took <= 2.0, (rc, took)

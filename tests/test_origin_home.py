@@ -32,6 +32,9 @@ class ScriptedAutopilot(threading.Thread):
         super().__init__(daemon=True)
         self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=1, source_component=1)
         self.has_position = threading.Event()
+        self.silent = threading.Event()  # says nothing (a hung or rebooting autopilot)
+        self.reports_flags = threading.Event()  # EKF_STATUS_REPORT streams (not yet, after a reboot)
+        self.reports_flags.set()
         self.stop = threading.Event()
         self.origin: tuple[int, int, int] | None = None
         self.home: tuple[int, int, int] | None = None
@@ -41,12 +44,13 @@ class ScriptedAutopilot(threading.Thread):
     def run(self) -> None:
         last = 0.0
         while not self.stop.is_set():
-            if time.monotonic() - last > 0.1:
+            if time.monotonic() - last > 0.1 and not self.silent.is_set():
                 last = time.monotonic()
                 self.conn.mav.heartbeat_send(mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0,
                                              mavlink.MAV_STATE_STANDBY)
-                flags = POSITION if self.has_position.is_set() else NO_POSITION
-                self.conn.mav.ekf_status_report_send(flags, 0, 0, 0, 0, 0)
+                if self.reports_flags.is_set():
+                    flags = POSITION if self.has_position.is_set() else NO_POSITION
+                    self.conn.mav.ekf_status_report_send(flags, 0, 0, 0, 0, 0)
             msg = self.conn.recv_match(blocking=True, timeout=0.02)
             if msg is None:
                 continue
@@ -66,30 +70,47 @@ class ScriptedAutopilot(threading.Thread):
                     self.conn.mav.home_position_send(*self.home, 0, 0, 0, [1, 0, 0, 0], 0, 0, 0)
 
 
+async def until(condition, seconds: float) -> bool:  # noqa: ANN001
+    for _ in range(int(seconds / 0.1)):
+        if condition():
+            return True
+        await asyncio.sleep(0.1)
+    return condition()
+
+
 def test_home_follows_the_origin_only_once_the_ekf_has_a_horizontal_position() -> None:
     port = free_port()
     autopilot = ScriptedAutopilot(port)
     autopilot.start()
 
     async def main() -> OriginSetter:
-        cfg = MavlinkConfig(command_timeout_s=0.2)
+        cfg = MavlinkConfig(command_timeout_s=0.2, link_timeout_s=0.5)
         link = MavlinkLink(cfg, VehicleConfig(), f"udpout:127.0.0.1:{port}", Health(clock.now))
         state = AutopilotState(link)
         origin = OriginSetter(link, state, Commander(link, state, cfg), ORIGIN, Health(clock.now))
         tasks = [asyncio.ensure_future(link.run()), asyncio.ensure_future(origin.run())]
         try:
-            for _ in range(40):  # the origin is confirmed without a position
-                await asyncio.sleep(0.1)
-                if origin.confirmed:
-                    break
-            assert origin.confirmed and not origin.ready
+            assert await until(lambda: origin.confirmed, 4.0)  # the origin is confirmed without a position
+            assert not origin.ready
             await asyncio.sleep(2.0)  # still no position: no home
             assert autopilot.home_sent_at == []
             autopilot.has_position.set()
-            for _ in range(40):
-                await asyncio.sleep(0.1)
-                if origin.ready:
-                    break
+            assert await until(lambda: origin.ready, 4.0)
+
+            # the autopilot goes quiet and comes back without a position and without its EKF stream
+            # yet (a reboot): the position it reported before does not count, home waits for a new report
+            autopilot.silent.set()
+            autopilot.has_position.clear()
+            autopilot.reports_flags.clear()
+            assert await until(lambda: not link.connected, 2.0)
+            sent_before = len(autopilot.home_sent_at)
+            autopilot.silent.clear()
+            assert await until(lambda: origin.confirmed, 4.0)
+            await asyncio.sleep(1.5)
+            assert len(autopilot.home_sent_at) == sent_before and not origin.ready
+            autopilot.has_position.set()
+            autopilot.reports_flags.set()
+            assert await until(lambda: origin.ready, 4.0)
             return origin
         finally:
             for task in tasks:

@@ -558,13 +558,14 @@ class ControlOutput(NamedTuple):
 
     def position_velocity_fields(self, vel_gain_xy: float = 2.0) -> dict[str, np.ndarray]:
         """``Setpoint`` keyword arguments for autopilots that take position + velocity but no
-        acceleration targets (mask 3520; ArduPilot Copter < 4.1 ignores mask 3072).
+        acceleration targets (type_mask 3520, 2496 with yaw; ArduPilot Copter < 4.1 ignores 3072).
 
         The autopilot's velocity loop demands ``K_v (v_target - v)`` on top of its position
         correction, so the horizontal x, y acceleration reaches it as a velocity raised by
-        ``a / K_v`` (``K_v``: ArduPilot ``PSC_VELXY_P``): the same demand as mask 3072, through its
-        velocity filter (PSC_ACC_XY_FILT) and without the I / D terms' share. z is unchanged (the
-        z velocity reference). On the held safe output the velocity is the held one.
+        ``a / K_v`` (``K_v``: ArduPilot ``PSC_VELXY_P``): through its P term, the same demand as
+        type_mask 3072, filtered by PSC_ACC_XY_FILT; its I and D terms act on the raised velocity
+        too, so this is an approximation of the feed-forward. z is unchanged (the z velocity
+        reference). On the held safe output the velocity is the held one.
         """
         vx, vy, vz = self.velocity_ned
         ax, ay, _ = self.acceleration_ned if self.valid else (0.0, 0.0, 0.0)

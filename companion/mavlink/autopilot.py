@@ -92,8 +92,10 @@ class AutopilotState:
     firmware: Firmware | None = None
     mode: str | None = None
     armed: bool = False
-    origin: Origin | None = None  # the EKF origin, as the autopilot reports it (GPS_GLOBAL_ORIGIN)
-    home: Origin | None = None  # as the autopilot reports it (HOME_POSITION)
+    origin: Origin | None = None  # the EKF origin, as the autopilot last reported it (GPS_GLOBAL_ORIGIN)
+    origin_time: float | None = None  # daemon clock of that report
+    home: Origin | None = None  # as the autopilot last reported it (HOME_POSITION)
+    home_time: float | None = None
     external_nav_in_use: bool = False
     ekf_flags: int = 0
     attitude_euler: tuple[float, float, float] | None = None  # roll, pitch, yaw rad (body FRD -> NED)
@@ -123,6 +125,14 @@ class AutopilotState:
             *((name, self._on_imu) for name in IMU_MESSAGES),
         ):
             self.link.subscribe(msg_type, handler)
+        self.link.on_connect(self._new_connection)
+
+    def _new_connection(self) -> None:
+        """What an autopilot said about its estimator belongs to the connection it said it on: after
+        a reboot or a lost link, the EKF has to report a position and external navigation again.
+        The last origin and home are kept (positions keep their frame until new ones arrive)."""
+        self.ekf_flags = 0
+        self.external_nav_in_use = False
 
     def on_mode_change(self, listener: Callable[[str | None, str], None]) -> None:
         """Call ``listener(old_mode, new_mode)`` when the HEARTBEAT mode changes."""
@@ -196,9 +206,11 @@ class AutopilotState:
 
     def _on_origin(self, msg: mavlink.MAVLink_message) -> None:
         self.origin = Origin(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+        self.origin_time = clock.now()
 
     def _on_home(self, msg: mavlink.MAVLink_message) -> None:
         self.home = Origin(msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+        self.home_time = clock.now()
 
     def _on_ekf_status(self, msg: mavlink.MAVLink_message) -> None:
         self.ekf_flags = msg.flags

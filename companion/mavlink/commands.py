@@ -73,8 +73,8 @@ class Commander:
         if result != mavlink.MAV_RESULT_ACCEPTED:
             raise CommandFailed(f"{name} refused: {RESULT_NAMES.get(result, result)}")
 
-    async def request_autopilot_version(self) -> bool:
-        """Ask for AUTOPILOT_VERSION until it arrives (True) or ``VERSION_ATTEMPTS`` rounds passed:
+    async def request_autopilot_version(self) -> None:
+        """Ask for AUTOPILOT_VERSION until it arrives or ``VERSION_ATTEMPTS`` rounds passed:
         REQUEST_MESSAGE, then the older REQUEST_AUTOPILOT_CAPABILITIES (ArduPilot 4.0 accepts
         REQUEST_MESSAGE for it without sending it, and answers the older command only from the
         second time on)."""
@@ -84,9 +84,8 @@ class Commander:
                 await self.command_result(command, *params)
                 await asyncio.sleep(VERSION_WAIT_S)
                 if self.state.firmware is not None and self.state.firmware.version is not None:
-                    return True
+                    return
         log.warning("no AUTOPILOT_VERSION: the firmware version is unknown (setpoints without acceleration)")
-        return False
 
     async def request_message(self, msg_id: int) -> None:
         """Ask the autopilot to send message ``msg_id`` once (MAV_CMD_REQUEST_MESSAGE)."""

@@ -64,7 +64,8 @@ async def run_per_connection(connected: asyncio.Event, body: Callable[[], Awaita
                 task.cancel()
                 await asyncio.gather(task, return_exceptions=True)
         if task.done() and not task.cancelled() and task.exception() is not None:
-            raise task.exception()  # type: ignore[misc]  # a bug in the body: the supervisor restarts
+            connected.set()  # the supervisor's restart of the caller runs the body again for this connection
+            raise task.exception()  # type: ignore[misc]
 
 AUTOPILOT_NAMES = {
     mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA: "ArduPilot",

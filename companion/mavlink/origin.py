@@ -56,32 +56,34 @@ class OriginSetter:
         await run_per_connection(self._restart, self._establish)
 
     async def _establish(self) -> None:
-        """Origin, then home, for one connection."""
+        """Origin, then home, for one connection: each confirmed by a report received on it."""
         self.confirmed = self.home_confirmed = self.home_done = False
-        self.state.origin = self.state.home = None
-        await self._until_confirmed()
-        await self._until_home_set()
+        since = clock.now()
+        await self._until_confirmed(since)
+        await self._until_home_set(since)
 
     @property
     def ready(self) -> bool:
         """The origin is confirmed and home is settled: positions mean the same to both sides."""
         return self.confirmed and self.home_done
 
-    async def _until_confirmed(self) -> None:
-        """Send the origin every second until the autopilot reports one."""
+    async def _until_confirmed(self, since: float) -> None:
+        """Send the origin every second until the autopilot reports one (after daemon time ``since``)."""
         while True:
             self._send_origin()
             await self._ask_for(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
             await asyncio.sleep(1.0)
-            if self.state.origin is not None:
+            if self.state.origin_time is not None and self.state.origin_time >= since:
                 self._confirm()
                 return
 
-    async def _until_home_set(self) -> None:
-        """Set home at the origin once the EKF has a horizontal position (see the module docstring)."""
+    async def _until_home_set(self, since: float) -> None:
+        """Set home at the origin once the EKF has a horizontal position (see the module docstring):
+        the EKF flags are reset at every connection (AutopilotState), so this waits for a report
+        of this connection."""
         attempts = 0
         while True:
-            if self._home_at_origin():
+            if self.state.home_time is not None and self.state.home_time >= since and self._home_at_origin():
                 self.home_confirmed = self.home_done = True
                 log.info("home set at the origin, confirmed by HOME_POSITION")
                 return
@@ -105,8 +107,7 @@ class OriginSetter:
 
     def _home_at_origin(self) -> bool:
         home = self.state.home
-        if home is None:
-            return False
+        assert home is not None
         offset = ned_from_geodetic(home.lat, home.lon, home.alt, (self.origin.lat, self.origin.lon, self.origin.alt))
         return float((offset ** 2).sum() ** 0.5) <= HOME_TOLERANCE_M
 

@@ -10,11 +10,11 @@ order of preference; an option is the message, or the messages together, that sa
 
 Every (re)connection, after the autopilot's first HEARTBEAT: ask for the first option of every
 need with SET_MESSAGE_INTERVAL. A refusal (MAV_RESULT_FAILED / DENIED) moves that need to its next
-option. An option accepted for a need that has alternatives must then deliver within
-:data:`VERIFY_S` (else the next one is tried: some firmware accepts an interval for a message it
-never sends). A firmware that does not know SET_MESSAGE_INTERVAL at all (no COMMAND_ACK, or
-MAV_RESULT_UNSUPPORTED) gets ArduPilot's legacy REQUEST_DATA_STREAM groups instead, at the highest
-rate any need of the group asks for. The outcome is reported as the ``streams`` health component
+option, and so does no COMMAND_ACK at all. An option accepted for a need that has alternatives
+must then deliver within :data:`VERIFY_S` (else the next one is tried: some firmware accepts an
+interval for a message it never sends). An ArduPilot that does not know SET_MESSAGE_INTERVAL
+(MAV_RESULT_UNSUPPORTED) gets its legacy REQUEST_DATA_STREAM groups instead, at the highest rate
+any need of the group asks for (PX4 has no such groups: there it is a refusal). The outcome is reported as the ``streams`` health component
 and on telemetry (``chosen``).
 """
 
@@ -145,7 +145,7 @@ class StreamNegotiator:
 
     async def _try_next_option(self, need: StreamNeed, options: list[tuple[str, ...]]) -> tuple[str, ...] | str | None:
         """Request the next option of ``need`` that the autopilot accepts: that option, UNSUPPORTED
-        (SET_MESSAGE_INTERVAL itself is unknown), or None (no option left)."""
+        (SET_MESSAGE_INTERVAL itself is unknown to this ArduPilot), or None (no option left)."""
         while options:
             option = options.pop(0)
             results = [await self._set_interval(name, need.rate_hz) for name in option]
@@ -162,7 +162,7 @@ class StreamNegotiator:
     async def _set_interval(self, name: str, rate_hz: float) -> str:
         result = await self.commander.command_result(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, message_id(name),
                                                      1e6 / rate_hz)
-        if result is None or result == mavlink.MAV_RESULT_UNSUPPORTED:
+        if result == mavlink.MAV_RESULT_UNSUPPORTED and self.link.autopilot != "PX4":
             return UNSUPPORTED
         return ACCEPTED if result == mavlink.MAV_RESULT_ACCEPTED else REFUSED
 

@@ -55,11 +55,6 @@ class Endpoint:
     device: str = ""
     baud: int = DEFAULT_BAUD
 
-    @property
-    def reopens(self) -> bool:
-        """True for transports that end and must be reopened (TCP, serial); UDP never ends."""
-        return self.kind in ("tcp", "serial")
-
 
 def parse_url(url: str) -> Endpoint:
     """An :class:`Endpoint` from a pymavlink-style URL; ValueError names what is wrong."""
@@ -79,7 +74,9 @@ def parse_url(url: str) -> Endpoint:
 
 
 async def _resolve(host: str, port: int, kind: socket.SocketKind) -> tuple[int, tuple]:
-    """(family, address) for ``host``; literal addresses are not looked up (no thread, no delay)."""
+    """(family, address) for ``host``; literal addresses are not looked up (no thread, no delay).
+    A name is looked up on asyncio's resolver thread: give addresses, not names, on a vehicle
+    (a resolver that hangs would also hold the process at exit)."""
     try:
         ip = ipaddress.ip_address(host)
     except ValueError:
@@ -185,20 +182,21 @@ class DatagramTransport(Transport):
                 data, peer = self._sock.recvfrom(READ_CHUNK)
             except (BlockingIOError, InterruptedError):
                 break
-            except ConnectionRefusedError:  # udpout: ICMP port unreachable, nobody listens yet
-                continue
+            except OSError:  # ICMP port unreachable (nobody listens yet), network down: UDP carries on
+                break
             self._peer = peer
             chunks.append(data)
         return b"".join(chunks)
 
     def _send(self, data: bytes) -> int:
+        if self.endpoint.kind == "udpin" and self._peer is None:  # nobody has spoken yet
+            return len(data)
         try:
-            if self.endpoint.kind == "udpout":
-                return self._sock.send(data)
-            if self._peer is None:  # udpin: nobody has spoken yet
-                return len(data)
-            return self._sock.sendto(data, self._peer)
-        except ConnectionRefusedError:  # udpout: the peer is not listening (yet); a datagram is lost
+            return self._sock.send(data) if self.endpoint.kind == "udpout" else self._sock.sendto(data, self._peer)
+        except (BlockingIOError, InterruptedError):
+            raise
+        except OSError:  # peer not listening, network unreachable, no buffer space: this datagram is lost
+            self.dropped_writes += 1
             return len(data)
 
     def close(self) -> None:
@@ -219,7 +217,8 @@ async def open_transport(url: str, connect_timeout_s: float) -> Transport:
     """Open ``url`` without blocking the event loop; OSError / ValueError / TimeoutError on failure."""
     endpoint = parse_url(url)
     if endpoint.kind == "tcp":
-        family, address = await _resolve(endpoint.host, endpoint.port, socket.SOCK_STREAM)
+        family, address = await asyncio.wait_for(_resolve(endpoint.host, endpoint.port, socket.SOCK_STREAM),
+                                                 connect_timeout_s)
         sock = socket.socket(family, socket.SOCK_STREAM)
         sock.setblocking(False)
         try:
@@ -230,7 +229,8 @@ async def open_transport(url: str, connect_timeout_s: float) -> Transport:
         _tune_tcp(sock)
         return StreamTransport(endpoint, sock.fileno(), sock)
     if endpoint.kind in ("udpin", "udpout"):
-        family, address = await _resolve(endpoint.host, endpoint.port, socket.SOCK_DGRAM)
+        family, address = await asyncio.wait_for(_resolve(endpoint.host, endpoint.port, socket.SOCK_DGRAM),
+                                                 connect_timeout_s)
         sock = socket.socket(family, socket.SOCK_DGRAM)
         sock.setblocking(False)
         try:
@@ -250,7 +250,9 @@ def _open_serial(endpoint: Endpoint) -> Transport:
     import serial  # pyserial: opens the device and sets the line up (raw, baud)
 
     try:
-        port = serial.Serial(endpoint.device, endpoint.baud, timeout=0, write_timeout=0, exclusive=True)
+        # timeout=None sets VMIN=1: once the descriptor is non-blocking, "no data" is EAGAIN and an
+        # empty read can only mean the device hung up (VMIN=0 would return empty reads either way).
+        port = serial.Serial(endpoint.device, endpoint.baud, timeout=None, write_timeout=0, exclusive=True)
     except serial.SerialException as exc:
         raise OSError(errno.ENODEV, str(exc)) from exc
     os.set_blocking(port.fileno(), False)
