@@ -21,11 +21,12 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 # Debian tools the tests use for real (not mocks): systemd-analyze verifies the unit file,
-# headless chromium drives the dashboard page.
+# headless chromium drives the dashboard page, shellcheck reads the install script.
 system-deps:
-	@command -v systemd-analyze >/dev/null 2>&1 && command -v chromium >/dev/null 2>&1 || { \
-	  echo "installing Debian packages: systemd (for systemd-analyze), chromium (for the dashboard tests)"; \
-	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq systemd chromium >/dev/null; }
+	@command -v systemd-analyze >/dev/null 2>&1 && command -v chromium >/dev/null 2>&1 \
+	  && command -v shellcheck >/dev/null 2>&1 || { \
+	  echo "installing Debian packages: systemd (for systemd-analyze), chromium (for the dashboard tests), shellcheck"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq systemd chromium shellcheck >/dev/null; }
 
 # The simulated vehicle flying a mission, with the live dashboard (it prints the URL).
 demo: $(STAMP)

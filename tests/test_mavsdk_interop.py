@@ -39,6 +39,7 @@ TAKEOFF_ALT_M = 1.0
 ALT_TOLERANCE_M = 0.2
 HOLD_S = 4.0
 STOP_GRACE_S = 15.0  # SIGTERM -> exit (the harness gives each child 5 s), then SIGKILL
+SITL_ORIGIN = (1.2966, 103.7764, 10.0)  # the daemon's origin in config/sitl.yaml (deg, deg, m AMSL)
 
 
 @dataclass
@@ -50,6 +51,14 @@ class SitlRun:
 
     def text(self) -> str:
         return self.output.read_text(errors="replace") if self.output.exists() else ""
+
+
+def home_at(home: Any, place: tuple[float, float, float], tol_deg: float = 1e-6) -> Any:
+    """``home`` (mavsdk Position) if it lies at ``place`` (lat deg, lon deg, alt m AMSL), else None."""
+    if home is None:
+        return None
+    got = (home.latitude_deg, home.longitude_deg, home.absolute_altitude_m)
+    return home if all(abs(a - b) <= tol_deg for a, b in zip(got, place)) else None
 
 
 def cmdline_of(pid: int) -> bytes | None:
@@ -215,7 +224,10 @@ async def _fly(gcs_port: int) -> dict[str, Any]:
             await rec.wait_for(lambda: rec.latest["health"].is_local_position_ok
                                and rec.latest["health"].is_home_position_ok, 30, "local position and home ok")
             out["ground_position"] = await rec.wait_for(lambda: rec.latest["position"], 10, "GLOBAL_POSITION_INT")
-            out["home"] = await rec.wait_for(lambda: rec.latest["home"], 10, "HOME_POSITION")
+            # Like ArduPilot, the vehicle sets home where it stands once it has a position; the
+            # daemon then moves home to its origin (after the EKF has a horizontal position).
+            out["home"] = await rec.wait_for(lambda: home_at(rec.latest["home"], SITL_ORIGIN), 10,
+                                             "HOME_POSITION at the daemon's origin")
             out["ground_pvn"] = await rec.wait_for(lambda: rec.latest["position_velocity_ned"], 10,
                                                    "LOCAL_POSITION_NED")
             assert not rec.latest["armed"]
@@ -281,8 +293,7 @@ def test_mavsdk_flies_the_sitl_vehicle_like_ardupilot_copter(companion_sitl: Sit
     assert ground.longitude_deg == pytest.approx(103.7764, abs=1e-3)
     assert abs(ground.relative_altitude_m) < 0.3
     home = result["home"]
-    assert (home.latitude_deg, home.longitude_deg, home.absolute_altitude_m) == pytest.approx(
-        (1.2966, 103.7764, 10.0), abs=1e-6)  # the daemon's origin (config/sitl.yaml)
+    assert (home.latitude_deg, home.longitude_deg, home.absolute_altitude_m) == pytest.approx(SITL_ORIGIN, abs=1e-6)
     assert math.isfinite(result["ground_pvn"].position.north_m)
 
     assert result["takeoff_mode"] == FlightMode.OFFBOARD  # ArduCopter GUIDED in mavsdk's enum
