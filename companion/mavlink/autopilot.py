@@ -47,6 +47,11 @@ IMU_CLOCK_WINDOW = 50  # samples in the clock-offset minimum (1 s at 50 Hz)
 MILLI_G = GRAVITY_MPS2 / 1000.0  # SCALED_IMU* (and ArduPilot's RAW_IMU) accelerations are in mG
 
 
+def new_imu_clock() -> JitterCorrection:
+    """The mapping of the autopilot's IMU sample times onto the daemon clock."""
+    return JitterCorrection(window=IMU_CLOCK_WINDOW)
+
+
 def _finite(*values: float) -> bool:
     return all(math.isfinite(v) for v in values)
 
@@ -109,7 +114,7 @@ class AutopilotState:
     nonfinite_rejected: int = 0  # messages dropped for a NaN or infinity in a used field
     statustext: list[tuple[float, int, str]] = field(default_factory=list)
     _mode_listeners: list[Callable[[str | None, str], None]] = field(default_factory=list)
-    _imu_clock: JitterCorrection = field(default_factory=lambda: JitterCorrection(window=IMU_CLOCK_WINDOW))
+    _imu_clock: JitterCorrection = field(default_factory=new_imu_clock)
 
     def __post_init__(self) -> None:
         for msg_type, handler in (
@@ -129,10 +134,12 @@ class AutopilotState:
 
     def _new_connection(self) -> None:
         """What an autopilot said about its estimator belongs to the connection it said it on: after
-        a reboot or a lost link, the EKF has to report a position and external navigation again.
-        The last origin and home are kept (positions keep their frame until new ones arrive)."""
+        a reboot or a lost link, the EKF has to report a position and external navigation again,
+        and the IMU clock is learnt afresh (a rebooted autopilot's boot clock starts over). The
+        last origin and home are kept (positions keep their frame until new ones arrive)."""
         self.ekf_flags = 0
         self.external_nav_in_use = False
+        self._imu_clock = new_imu_clock()
 
     def on_mode_change(self, listener: Callable[[str | None, str], None]) -> None:
         """Call ``listener(old_mode, new_mode)`` when the HEARTBEAT mode changes."""

@@ -1,0 +1,63 @@
+"""The autopilot's IMU samples on the daemon clock (AutopilotState, companion/jitter.py): scaled
+units converted, and a rebooted autopilot's restarted boot clock learnt at once."""
+
+from __future__ import annotations
+
+import asyncio
+
+import numpy as np
+
+from companion import clock
+from companion.config import MavlinkConfig, VehicleConfig
+from companion.frames import GRAVITY_MPS2
+from companion.health import Health
+from companion.mavlink.autopilot import AutopilotState
+from companion.mavlink.link import MavlinkLink, mavlink
+
+SAMPLE_S = 0.02  # 50 Hz
+
+
+def from_autopilot(msg: mavlink.MAVLink_message) -> mavlink.MAVLink_message:
+    codec = mavlink.MAVLink(None, 1, 1)
+    return codec.parse_char(msg.pack(codec))
+
+
+async def stream_imu(link: MavlinkLink, boot_ms: int, count: int) -> None:
+    """ATTITUDE (the link's boot-time watch) and ``count`` SCALED_IMU at rest from ``boot_ms``, at 50 Hz."""
+    link._dispatch(from_autopilot(mavlink.MAVLink_attitude_message(boot_ms, 0, 0, 0, 0, 0, 0)))
+    for i in range(count):
+        t_ms = boot_ms + round(i * SAMPLE_S * 1000)
+        link._dispatch(from_autopilot(mavlink.MAVLink_scaled_imu_message(t_ms, 0, 0, -1000, 1, 2, 3, 0, 0, 0)))
+        await asyncio.sleep(SAMPLE_S)
+
+
+def test_scaled_imu_becomes_specific_force_and_rates_in_si_units() -> None:
+    async def main() -> AutopilotState:
+        link = MavlinkLink(MavlinkConfig(), VehicleConfig(), "udpout:127.0.0.1:9", Health(clock.now))
+        state = AutopilotState(link)
+        state.imu_source = "SCALED_IMU"
+        await stream_imu(link, 100_000, 5)
+        return state
+
+    state = asyncio.run(main())
+    assert len(state.imu) == 5 and state.imu_rejected == 0
+    np.testing.assert_allclose(state.imu[-1].accel_body, [0.0, 0.0, -GRAVITY_MPS2])  # -1000 mG
+    np.testing.assert_allclose(state.imu[-1].gyro_body, [0.001, 0.002, 0.003])  # mrad/s
+
+
+def test_after_an_autopilot_reboot_its_imu_is_used_at_once() -> None:
+    """The boot clock restarts near 0: the offset learnt before the reboot would place every new
+    sample 100 s in the past (stale) until it slid out of the window; a new connection starts over."""
+    async def main() -> tuple[AutopilotState, int, int]:
+        link = MavlinkLink(MavlinkConfig(), VehicleConfig(), "udpout:127.0.0.1:9", Health(clock.now))
+        state = AutopilotState(link)
+        state.imu_source = "SCALED_IMU"
+        await stream_imu(link, 100_000, 10)
+        before = len(state.imu)
+        await stream_imu(link, 500, 10)  # its ATTITUDE's boot time goes back: the link reports a reboot
+        return state, before, link.stats.autopilot_reboots
+
+    state, before, reboots = asyncio.run(main())
+    assert reboots == 1
+    assert before == 10
+    assert len(state.imu) == 20 and state.imu_rejected == 0
