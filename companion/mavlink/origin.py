@@ -18,11 +18,13 @@ from __future__ import annotations
 import asyncio
 import logging
 
+import numpy as np
+
 from companion import clock
 from companion.config import OriginConfig
 from companion.frames import ned_from_geodetic
 from companion.health import Health, State
-from companion.mavlink.autopilot import AutopilotState
+from companion.mavlink.autopilot import AutopilotState, Origin
 from companion.mavlink.commands import CommandFailed, Commander
 from companion.mavlink.link import MavlinkLink, mavlink, run_per_connection
 
@@ -30,7 +32,6 @@ log = logging.getLogger("companion.origin")
 
 MATCH_TOLERANCE_M = 0.5  # origin: an autopilot that kept its own further away than this is reported
 HOME_TOLERANCE_M = 0.05  # home: at the origin within this (ArduPilot keeps home in cm and 1e-7 deg)
-EKF_POS_HORIZ_ABS = 0x10  # EKF_STATUS_REPORT / ESTIMATOR_STATUS flag: absolute horizontal position
 HOME_ATTEMPTS = 10  # SET_HOME_POSITION sent this often without HOME_POSITION at the origin: give up, say so
 
 
@@ -92,7 +93,7 @@ class OriginSetter:
                             "to home are converted with the home it reports", attempts)
                 self.home_done = True
                 return
-            if self.state.ekf_flags & EKF_POS_HORIZ_ABS:
+            if self.state.ekf_flags & mavlink.EKF_POS_HORIZ_ABS:  # = ESTIMATOR_POS_HORIZ_ABS (PX4)
                 attempts += 1
                 self._send_home()
                 await self._ask_for(mavlink.MAVLINK_MSG_ID_HOME_POSITION)
@@ -106,10 +107,13 @@ class OriginSetter:
             log.debug("request for message %d: %s", msg_id, exc)
 
     def _home_at_origin(self) -> bool:
-        home = self.state.home
-        assert home is not None
-        offset = ned_from_geodetic(home.lat, home.lon, home.alt, (self.origin.lat, self.origin.lon, self.origin.alt))
-        return float((offset ** 2).sum() ** 0.5) <= HOME_TOLERANCE_M
+        assert self.state.home is not None
+        return self._distance_from_origin(self.state.home) <= HOME_TOLERANCE_M
+
+    def _distance_from_origin(self, place: Origin) -> float:
+        """Distance (m) of ``place`` (as the autopilot reports it) from the configured origin."""
+        offset = ned_from_geodetic(place.lat, place.lon, place.alt, (self.origin.lat, self.origin.lon, self.origin.alt))
+        return float(np.linalg.norm(offset))
 
     def _geodetic(self) -> tuple[int, int, int, int]:
         """(lat 1e-7 deg, lon 1e-7 deg, alt mm, time usec) of the configured origin."""
@@ -126,10 +130,8 @@ class OriginSetter:
             self.link.ids.autopilot_sysid, lat, lon, alt, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, usec))
 
     def _confirm(self) -> None:
-        got = self.state.origin
-        assert got is not None
-        offset = ned_from_geodetic(got.lat, got.lon, got.alt, (self.origin.lat, self.origin.lon, self.origin.alt))
-        distance = float((offset ** 2).sum() ** 0.5)
+        assert self.state.origin is not None
+        distance = self._distance_from_origin(self.state.origin)
         self.confirmed = True
         self.confirmed_at = clock.now()
         if distance > MATCH_TOLERANCE_M:
