@@ -25,7 +25,7 @@ from companion.health import ComponentHealth, Health, State
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.commands import Commander
 from companion.mavlink.estimate import EstimateSender, PoseEstimate
-from companion.mavlink.link import MavlinkLink, load_signing_key, mavlink, run_per_connection
+from companion.mavlink.link import MavlinkLink, load_signing_key, mavlink
 from companion.mavlink.origin import OriginSetter
 from companion.mavlink.setpoints import SetpointStream
 from companion.mavlink.streams import StreamNegotiator
@@ -71,7 +71,6 @@ class Daemon:
         self.drivers: dict[str, LidarDriver] = {}
         self.truth: TruthSource | None = None  # ground truth, only for simulated sensors
         self._first_contact = True
-        self._identify = asyncio.Event()  # set on every (re)connection: ask for AUTOPILOT_VERSION
         self._stop = asyncio.Event()
 
     def request_stop(self) -> None:
@@ -107,8 +106,7 @@ class Daemon:
         sup.spawn("link", link.run)
         sup.spawn("origin", origin.run)
         sup.spawn("streams", streams.run)
-        # AUTOPILOT_VERSION after every (re)connection: the firmware decides frames and setpoints
-        sup.spawn("firmware", lambda: run_per_connection(self._identify, commander.request_autopilot_version))
+        sup.spawn("firmware", commander.identify_every_connection)
         sup.spawn("setpoints", setpoints.run)
         sup.spawn("nav", self.nav.run)
         sup.spawn("status", self._publish_status)
@@ -232,7 +230,6 @@ class Daemon:
             self.supervisor.spawn("telemetry:lidar", lambda: every(1.0 / t.scan_hz, self._lidar_telemetry().publish))
 
     def _on_autopilot_found(self) -> None:
-        self._identify.set()
         if self._first_contact:
             self._first_contact = False
             log.info("autopilot %s found: `companion setup-autopilot -c %s` checks the parameters this config needs",

@@ -8,7 +8,7 @@ truth, and the flight log they fill (the same document as the built-in vehicle's
   tap mirrors the connection: SITL gone -> the daemon's connection is closed; the daemon
   reconnecting -> a new connection to SITL. Only the harness sees it: the daemon talks to
   ArduPilot exactly as it would on TCP.
-- **Ground link** (SITL's SERIAL1, as a ground station: sysid 255): SIMSTATE and SCALED_PRESSURE
+- **Ground link** (SITL's SERIAL1, as a listening ground station: sysid 254, see GROUND_SYSID): SIMSTATE and SCALED_PRESSURE
   give the truth (``drivers.sim_truth``: true attitude and position, the altitude from SITL's
   noiseless barometer), HEARTBEAT the mode and arming, STATUSTEXT the EKF's "using external nav",
   GPS_GLOBAL_ORIGIN the origin, LOCAL_POSITION_NED the autopilot's own estimate. It reconnects by
@@ -38,7 +38,7 @@ from companion.frames import euler_from_quat
 from companion.health import Health
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.commands import Commander
-from companion.mavlink.link import MavlinkLink, mavlink, nonfinite_fields, run_per_connection
+from companion.mavlink.link import MavlinkLink, mavlink, nonfinite_fields
 from companion.mavlink.streams import StreamNegotiator
 from drivers.sim_truth import TruthSample, TruthSource
 from sitl.flight_log import FlightLog
@@ -182,14 +182,12 @@ class ArduPilotObserver:
         streams = StreamNegotiator(link, state, commander, cfg.streams, health)
         assert self.origin is not None
         TruthSource(link, self.origin, listener=self._on_truth)
-        identify = asyncio.Event()  # AUTOPILOT_VERSION after every (re)connection: its frame quirks
-        link.on_connect(identify.set)
         link.subscribe("HEARTBEAT", self._on_heartbeat)
         link.subscribe("STATUSTEXT", self._on_statustext)
         link.subscribe("GPS_GLOBAL_ORIGIN", self._on_origin)
         loop = asyncio.get_running_loop()
         return [loop.create_task(link.run()), loop.create_task(streams.run()),
-                loop.create_task(run_per_connection(identify, commander.request_autopilot_version)),
+                loop.create_task(commander.identify_every_connection()),
                 loop.create_task(self._poll_origin(commander))]
 
     async def _poll_origin(self, commander: Commander) -> None:

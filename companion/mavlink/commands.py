@@ -15,7 +15,7 @@ from collections import defaultdict
 
 from companion.config import MavlinkConfig, PayloadConfig
 from companion.mavlink.autopilot import AutopilotState
-from companion.mavlink.link import MavlinkLink, mavlink
+from companion.mavlink.link import MavlinkLink, mavlink, run_per_connection
 
 log = logging.getLogger("companion.commands")
 
@@ -39,7 +39,9 @@ class Commander:
         self._waiting: dict[int, asyncio.Future[int]] = {}
         # COMMAND_ACK names only the command: two of the same at once could not be told apart.
         self._locks: dict[int, asyncio.Lock] = defaultdict(asyncio.Lock)
+        self._connected = asyncio.Event()  # set on every (re)connection: identify the firmware again
         link.subscribe("COMMAND_ACK", self._on_ack)
+        link.on_connect(self._connected.set)
 
     async def command_result(self, command: int, *params: float) -> int | None:
         """Send COMMAND_LONG ``command`` with up to 7 params; its final MAV_RESULT, or None if never acknowledged."""
@@ -72,6 +74,11 @@ class Commander:
             raise CommandFailed(f"{name}: no COMMAND_ACK after {self.cfg.command_retries} attempts")
         if result != mavlink.MAV_RESULT_ACCEPTED:
             raise CommandFailed(f"{name} refused: {RESULT_NAMES.get(result, result)}")
+
+    async def identify_every_connection(self) -> None:
+        """Supervised task body: :meth:`request_autopilot_version` after every (re)connection (the
+        firmware decides frames and setpoints; a reboot may have brought another version)."""
+        await run_per_connection(self._connected, self.request_autopilot_version)
 
     async def request_autopilot_version(self) -> None:
         """Ask for AUTOPILOT_VERSION until it arrives or ``VERSION_ATTEMPTS`` rounds passed:
