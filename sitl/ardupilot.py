@@ -27,9 +27,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
-from companion.frames import geodetic_from_ned
+from sitl.frame_shift import moved_origin
 
 BASE_PORT = 5760
 SERIAL_OFFSETS = (0, 2, 3)  # SERIAL0, SERIAL1, SERIAL2 (uartA, uartC, uartD) from the base port
@@ -190,5 +188,4 @@ def home_at(origin: tuple[float, float, float], start_ned_yaw: tuple[float, floa
     """SITL ``--home`` for a vehicle standing at ``start_ned_yaw`` (north m, east m, yaw deg) of the
     world whose origin (lat, lon, alt of the floor) is ``origin``."""
     north, east, yaw_deg = start_ned_yaw
-    lat, lon, alt = geodetic_from_ned(np.array([north, east, 0.0]), origin)
-    return lat, lon, alt, math.fmod(yaw_deg + 360.0, 360.0)
+    return (*moved_origin(origin, (north, east)), math.fmod(yaw_deg + 360.0, 360.0))

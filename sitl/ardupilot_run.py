@@ -17,7 +17,7 @@ from pathlib import Path
 from companion.config import ArduPilotSitlConfig, OriginConfig, load_config
 from sitl.ardupilot import ArduPilotSitl, SitlOptions, default_defaults, free_instance, home_at, serial_port
 from sitl.ardupilot_observer import ArduPilotObserver
-from sitl.world import load_world
+from sitl.frame_shift import takeoff_pose
 
 # The SITL barometer is the truth altimeter of drivers/sim_truth.py: none of its error sources.
 TRUTH_PARAMETERS = {"SIM_BARO_RND": 0.0, "SIM_BARO_DRIFT": 0.0, "SIM_BARO_GLITCH": 0.0, "SIM_BARO_DELAY": 0.0,
@@ -56,7 +56,7 @@ class ArduPilotRun:
         """Start SITL at the take-off pose of ``run_config`` with wiped parameters and set it up for
         that config (see the module docstring)."""
         cfg = load_config(run_config)
-        start = cfg.sitl.start if cfg.sitl.start is not None else load_world(cfg.resolve(cfg.sitl.world)).start
+        start = takeoff_pose(cfg)
         self.origin = cfg.origin
         o = self.options
         defaults = (self.base_dir / o.defaults) if o.defaults else default_defaults(self.binary)

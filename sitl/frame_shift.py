@@ -21,7 +21,9 @@ from typing import Any
 import numpy as np
 import yaml
 
+from companion.config import Config
 from companion.frames import geodetic_from_ned
+from sitl.world import load_world
 
 Offset = tuple[float, float]  # metres added to every (north, east)
 
@@ -58,6 +60,13 @@ def shift_mission(raw: dict, offset: Offset) -> dict:
             step = {**step, "fly": {**fly, "waypoints": waypoints}}
         steps.append(step)
     return {**raw, "steps": steps}
+
+
+def takeoff_pose(cfg: Config) -> tuple[float, float, float]:
+    """Where the vehicle of ``cfg`` starts: (north m, east m, yaw deg), ``sitl.start``, else the world's start."""
+    start = cfg.sitl.start if cfg.sitl.start is not None else load_world(cfg.resolve(cfg.sitl.world)).start
+    north, east, yaw_deg = (float(v) for v in start)
+    return north, east, yaw_deg
 
 
 def moved_origin(origin: tuple[float, float, float], takeoff: Offset) -> tuple[float, float, float]:

@@ -44,7 +44,7 @@ from companion.dashboard.app import spawn_dashboard
 from companion.telemetry.keys import KEY_PREFIX
 from sitl.ardupilot_observer import THREAD_NAME as OBSERVER_THREAD
 from sitl.ardupilot_run import ArduPilotRun, ArduPilotStartFailure
-from sitl.frame_shift import moved_origin, shift_mission, shift_world, shifted, write_shifted
+from sitl.frame_shift import moved_origin, shift_mission, shift_world, shifted, takeoff_pose, write_shifted
 from sitl.report import build_report
 from sitl.world import load_world
 
@@ -129,7 +129,7 @@ def _move_origin_to_takeoff(cfg: Config, raw: dict, out_dir: Path) -> None:
     """Rewrite ``raw`` (and write shifted copies of the world, map and mission) so that the origin
     is the take-off point: ``sitl.start``, else the world's start."""
     world_path = cfg.resolve(cfg.sitl.world)
-    start = cfg.sitl.start if cfg.sitl.start is not None else load_world(world_path).start
+    start = takeoff_pose(cfg)
     offset = (-start[0], -start[1])
     lat, lon, alt = moved_origin((cfg.origin.lat, cfg.origin.lon, cfg.origin.alt), (start[0], start[1]))
     raw["origin"] = {"lat": lat, "lon": lon, "alt": alt}
@@ -154,7 +154,7 @@ def _move_origin_to_takeoff(cfg: Config, raw: dict, out_dir: Path) -> None:
 def vehicle_command(cfg: Config, args: argparse.Namespace, log_path: Path,
                     extra_gcs: tuple[str, ...] = ()) -> list[str]:
     s = cfg.sitl
-    start = s.start if s.start is not None else load_world(cfg.resolve(s.world)).start
+    start = takeoff_pose(cfg)
     cmd = [sys.executable, "-m", "sitl.vehicle", "--companion", s.vehicle_url,
            "--seed", str(args.seed), "--log", str(log_path), "--tick", str(s.tick_s),
            "--home", f"{cfg.origin.lat},{cfg.origin.lon},{cfg.origin.alt}",
