@@ -31,7 +31,6 @@ from companion.mavlink.params import ParamError, ParameterClient
 from companion.mavlink.requirements import Difference, Requirement, differences, requirements
 
 EXIT_OK, EXIT_FAILED, EXIT_DIFFERENCES = 0, 1, 3
-VERSION_WAIT_S = 3.0
 REBOOT_DROP_S = 10.0  # after the reboot command, wait this long at most for the autopilot to drop the link
 
 
@@ -84,8 +83,7 @@ async def setup_autopilot(cfg: Config, url: str, *, apply: bool, reboot: bool, e
         if not await _until(lambda: link.connected and state.firmware is not None, timeout_s):
             out(f"no autopilot HEARTBEAT on {url} within {timeout_s:g} s")
             return EXIT_FAILED, outcome
-        await commander.request_autopilot_version()
-        await _until(lambda: state.firmware is not None and state.firmware.version is not None, VERSION_WAIT_S)
+        await commander.request_autopilot_version()  # waits for it; without it the parameters still decide
         assert state.firmware is not None
         outcome.firmware = state.firmware.label
         values = await params.fetch_all(timeout_s)

@@ -1,8 +1,8 @@
 """The autopilot parameters the companion needs for its configured pipelines (pure, no I/O).
 
 ``companion setup-autopilot`` prints the difference between these and what the autopilot has
-(and writes them with ``--apply``); ``companion sitl --ardupilot`` applies them to ArduPilot SITL;
-the daemon logs the list at connect. Which parameters exist decides the firmware generation,
+(and writes them with ``--apply``); ``companion sitl --ardupilot`` applies them to ArduPilot SITL
+through it; the daemon points to it when it first finds the autopilot. Which parameters exist decides the firmware generation,
 never a version number alone: ArduPilot 4.1 replaced EKF2's external-navigation switches by
 EKF3 source sets (EK3_SRC1_*), 4.5 renamed GPS_TYPE to GPS1_TYPE.
 
