@@ -620,12 +620,10 @@ class Vehicle:
         if self.cfg.legacy_streams:
             return mav.MAV_RESULT_UNSUPPORTED
         msgid = int(p[0])
-        if msgid in self.cfg.refuse_intervals:
+        refused = msgid in self.cfg.refuse_intervals  # answered as ArduPilot 4.0 does (FAILED)
+        if refused or msgid not in self._builders:
             self._texts.append((mav.MAV_SEVERITY_INFO, f"No ap_message for mavlink id ({msgid})"))
-            return mav.MAV_RESULT_FAILED
-        if msgid not in self._builders:
-            self._texts.append((mav.MAV_SEVERITY_INFO, f"No ap_message for mavlink id ({msgid})"))
-            return mav.MAV_RESULT_DENIED
+            return mav.MAV_RESULT_FAILED if refused else mav.MAV_RESULT_DENIED
         if p[1] < 0:
             interval: int | None = None
         elif p[1] == 0:
