@@ -51,6 +51,7 @@ def runs_then_stops(proc: subprocess.Popen) -> tuple[int, float]:
 def listener() -> Iterator[socket.socket]:
     sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     sock.bind(("127.0.0.1", 0))
+    sock.settimeout(10.0)  # a daemon that never dials fails the test instead of hanging it
     try:
         yield sock
     finally:
