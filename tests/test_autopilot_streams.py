@@ -17,8 +17,6 @@ from tests.sitl_helpers import (PipelineDaemon, Processes, TruthPipeline, read_l
 SIM_SECONDS = 8.0
 
 
-
-
 def run_on_ground(tmp_path: Path, procs: Processes, legacy_streams: bool = False,
                   refuse_intervals: tuple[int, ...] = ()) -> tuple[PipelineDaemon, dict]:
     """The daemon (truth test pipeline, no mission) against a lockstep vehicle for SIM_SECONDS."""
