@@ -9,13 +9,21 @@ used by the generated config reference and an inclusive numeric range.
 Errors raise :class:`SchemaError` naming the file, the dotted key path and the 1-based line of
 the offending node, e.g. ``config/sitl.yaml:12: mavlink.estimate_rate_hz: must be within
 [1, 100], got 500``.
+
+Files come in through :func:`read_regular_file`, the one reader of user-supplied files (configs,
+missions, worlds, signing keys, recordings): regular files only, never more than a cap, so a
+FIFO, /dev/zero or a huge file is an error, not a hang. A YAML file must be UTF-8 text (else the
+error names the line of the first bad byte) whose top level is a mapping.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import errno
 import math
+import os
 import re
+import stat
 import types
 import typing
 from pathlib import Path
@@ -25,9 +33,13 @@ import yaml
 
 T = TypeVar("T")
 
+YAML_MAX_BYTES = 1 << 20  # config, mission and world files (the shipped ones are a few KiB)
+
 
 class SchemaError(Exception):
-    """A document does not match its schema; ``str()`` is ``file:line: key.path: message``."""
+    """A document does not match its schema; ``str()`` is ``file:line: key.path: message``, without
+    the key path for a problem of the document as a whole (``file:line: message``) and without the
+    line when there is none (the file cannot be read: ``file: message``)."""
 
     def __init__(self, file: str, key_path: str, line: int | None, message: str) -> None:
         self.file = file
@@ -35,7 +47,7 @@ class SchemaError(Exception):
         self.line = line
         self.message = message
         where = f"{file}:{line}" if line is not None else file
-        super().__init__(f"{where}: {key_path or '<top>'}: {message}")
+        super().__init__(f"{where}: {key_path}: {message}" if key_path else f"{where}: {message}")
 
 
 def meta(doc: str, range: tuple[float, float] | None = None) -> dict[str, Any]:
@@ -43,28 +55,114 @@ def meta(doc: str, range: tuple[float, float] | None = None) -> dict[str, Any]:
     return {"doc": doc, "range": range}
 
 
-def load_file(path: str | Path, schema: type[T]) -> T:
-    """Parse the YAML file at ``path`` (safe loader) and build ``schema`` from it."""
-    path = Path(path)
+def read_regular_file(path: str | Path, max_bytes: int) -> bytes:
+    """The whole content of the regular file at ``path``, at most ``max_bytes`` long.
+
+    Never blocks and never holds more than ``max_bytes`` + 1 bytes: a FIFO, a device such as
+    /dev/zero, a directory or a socket is refused before it is read, and reading stops one byte
+    past the cap. Raises OSError whose ``strerror`` says why in words (the system's reason when
+    the file cannot be opened, else what the file is or that it is too large).
+    """
+    _require_regular(os.stat(path))  # before open(): opening a device can have effects (serial DTR)
+    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)  # a FIFO swapped in cannot block it
     try:
-        text = path.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise SchemaError(str(path), "", None, f"cannot read file: {exc.strerror}") from exc
-    return load_text(text, schema, str(path))
+        _require_regular(os.fstat(fd))
+        chunks: list[bytes] = []
+        left = max_bytes + 1
+        while left > 0 and (chunk := os.read(fd, min(left, 1 << 16))):
+            chunks.append(chunk)
+            left -= len(chunk)
+    finally:
+        os.close(fd)
+    data = b"".join(chunks)
+    if len(data) > max_bytes:
+        raise OSError(errno.EFBIG, f"larger than {max_bytes} bytes, the limit for this file")
+    return data
+
+
+def _require_regular(st: os.stat_result) -> None:
+    """OSError unless ``st`` is a regular file's."""
+    if not stat.S_ISREG(st.st_mode):
+        kind = next((name for test, name in _FILE_KINDS if test(st.st_mode)), "another kind of file")
+        raise OSError(errno.EINVAL, f"not a regular file but {kind}")
+
+
+_FILE_KINDS = ((stat.S_ISDIR, "a directory"), (stat.S_ISFIFO, "a FIFO (named pipe)"),
+               (stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket"))
+
+
+@dataclasses.dataclass(frozen=True)
+class Document:
+    """A parsed YAML document whose top level is a mapping: its file name (for messages) and its
+    root node, which knows the line of every key."""
+
+    file: str
+    root: yaml.MappingNode
+
+    def line_of(self, key_path: str) -> int:
+        """The 1-based line of the key at ``key_path`` (e.g. ``mission.file``, ``walls[4].end``);
+        for a key not written in the file, the line of its deepest enclosing node that is."""
+        return _line(_find_node(self.root, key_path))
+
+    def build(self, schema: type[T]) -> T:
+        """``schema`` built from this document; SchemaError (this file, key path, line) if it does not match."""
+        return _Builder(self.file).build(schema, self.root, "")
+
+
+def load_file(path: str | Path, schema: type[T]) -> T:
+    """Read the YAML file at ``path`` (see :func:`read_document`) and build ``schema`` from it."""
+    return read_document(path).build(schema)
 
 
 def load_text(text: str, schema: type[T], file: str = "<string>") -> T:
     """Build ``schema`` from YAML ``text``; ``file`` is only used in error messages."""
+    return parse_document(text, file).build(schema)
+
+
+def read_document(path: str | Path) -> Document:
+    """The YAML document in the file at ``path``: a regular file of at most :data:`YAML_MAX_BYTES`
+    of UTF-8 text whose top level is a mapping; SchemaError naming the file (and the line, for its
+    content) otherwise."""
+    file = str(path)
+    try:
+        data = read_regular_file(path, YAML_MAX_BYTES)
+    except OSError as exc:
+        raise SchemaError(file, "", None, f"cannot read file: {exc.strerror or exc}") from exc
+    return parse_document(_decode_utf8(data, file), file)
+
+
+def parse_document(text: str, file: str = "<string>") -> Document:
+    """The YAML document in ``text``; SchemaError (``file``, line) if it is not YAML, is empty or
+    its top level is not a mapping."""
     try:
         node = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = mark.line + 1 if mark is not None else None
-        problem = getattr(exc, "problem", None) or str(exc)
+        line, problem = _yaml_problem(exc, text)
         raise SchemaError(file, "", line, f"invalid YAML: {problem}") from exc
     if node is None:
-        node = yaml.MappingNode(tag="tag:yaml.org,2002:map", value=[])
-    return _Builder(file).build(schema, node, "")
+        raise SchemaError(file, "", 1, "empty document: expected a mapping of keys")
+    if not isinstance(node, yaml.MappingNode):
+        raise SchemaError(file, "", _line(node), f"expected a mapping of keys, got {_describe(node)}")
+    return Document(file, node)
+
+
+def _decode_utf8(data: bytes, file: str) -> str:
+    """``data`` as UTF-8 text; SchemaError at the line of the first byte that is not."""
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line_start = data.rfind(b"\n", 0, exc.start) + 1
+        raise SchemaError(file, "", data.count(b"\n", 0, exc.start) + 1,
+                          f"not UTF-8 text: byte 0x{data[exc.start]:02x} at column {exc.start - line_start + 1}"
+                          ) from None
+
+
+def _yaml_problem(exc: yaml.YAMLError, text: str) -> tuple[int | None, str]:
+    """(1-based line or None, what is wrong) of a YAML parse error."""
+    if isinstance(exc, yaml.reader.ReaderError):  # a character YAML does not allow (NUL, control)
+        return text.count("\n", 0, exc.position) + 1, f"character #x{exc.character:04x} is not allowed"
+    mark = getattr(exc, "problem_mark", None)
+    return (mark.line + 1 if mark is not None else None), getattr(exc, "problem", None) or str(exc)
 
 
 def _line(node: yaml.Node) -> int:
