@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import functools
 import math
 import os
 import re
@@ -34,6 +35,9 @@ import yaml
 T = TypeVar("T")
 
 YAML_MAX_BYTES = 1 << 20  # config, mission and world files (the shipped ones are a few KiB)
+MAX_VALUES = 200_000  # values built from one document, aliases counted at each use (a "billion laughs" stops here)
+TOO_DEEP = "lists or mappings nested too deeply"
+_COMPOSER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)  # libyaml when present: several times faster
 
 
 class SchemaError(Exception):
@@ -106,7 +110,10 @@ class Document:
 
     def build(self, schema: type[T]) -> T:
         """``schema`` built from this document; SchemaError (this file, key path, line) if it does not match."""
-        return _Builder(self.file).build(schema, self.root, "")
+        try:
+            return _Builder(self.file).build(schema, self.root, "")
+        except RecursionError:
+            raise SchemaError(self.file, "", 1, TOO_DEEP) from None
 
 
 def load_file(path: str | Path, schema: type[T]) -> T:
@@ -135,10 +142,12 @@ def parse_document(text: str, file: str = "<string>") -> Document:
     """The YAML document in ``text``; SchemaError (``file``, line) if it is not YAML, is empty or
     its top level is not a mapping."""
     try:
-        node = yaml.compose(text, Loader=yaml.SafeLoader)
+        node = yaml.compose(text, Loader=_COMPOSER)
     except yaml.YAMLError as exc:
         line, problem = _yaml_problem(exc, text)
         raise SchemaError(file, "", line, f"invalid YAML: {problem}") from exc
+    except RecursionError:
+        raise SchemaError(file, "", 1, TOO_DEEP) from None
     if node is None:
         raise SchemaError(file, "", 1, "empty document: expected a mapping of keys")
     if not isinstance(node, yaml.MappingNode):
@@ -172,11 +181,15 @@ def _line(node: yaml.Node) -> int:
 class _Builder:
     def __init__(self, file: str) -> None:
         self.file = file
+        self.values = 0  # built so far: an alias is built again at every use
 
     def error(self, node: yaml.Node, path: str, message: str) -> SchemaError:
         return SchemaError(self.file, path, _line(node), message)
 
     def build(self, tp: Any, node: yaml.Node, path: str) -> Any:
+        self.values += 1
+        if self.values > MAX_VALUES:
+            raise self.error(node, path, f"more than {MAX_VALUES} values (aliases count at every use)")
         origin = get_origin(tp)
         if dataclasses.is_dataclass(tp):
             return self._dataclass(tp, node, path)
@@ -198,14 +211,17 @@ class _Builder:
             return {k: self.build(value_tp, v, f"{path}.{k}" if path else k)
                     for k, v in self._mapping(node, path, key_tp).items()}
         if tp is Any:
-            return _plain(node)
+            try:
+                return _plain(node)
+            except yaml.YAMLError as exc:  # a recursive alias (&a [*a])
+                raise self.error(node, path, getattr(exc, "problem", None) or str(exc)) from exc
         if tp in (int, float, bool, str):
             return self._primitive(tp, node, path)
         raise TypeError(f"schema type {tp!r} at {path} is not supported")
 
     def _dataclass(self, cls: Any, node: yaml.Node, path: str) -> Any:
         items = self._mapping(node, path, str)
-        hints = get_type_hints(cls)
+        hints = _type_hints(cls)
         fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
         for key, value_node in items.items():
             if key not in fields:
@@ -296,6 +312,12 @@ class _Builder:
         if not isinstance(value, tp) or (tp is int and isinstance(value, bool)):
             raise self.error(node, path, f"expected {_type_name(tp)}, got {_describe(node)}")
         return value
+
+
+@functools.cache
+def _type_hints(cls: type) -> dict[str, Any]:
+    """``get_type_hints(cls)``, evaluated once per class: it is most of the time a build takes."""
+    return get_type_hints(cls)
 
 
 def _plain(node: yaml.Node) -> Any:
