@@ -37,6 +37,7 @@ from companion import clock  # noqa: E402
 from companion.config import MavlinkConfig, VehicleConfig  # noqa: E402
 from companion.health import Health, State  # noqa: E402
 from companion.mavlink.transport import Transport, TransportClosed, open_transport  # noqa: E402
+from companion.schema import read_regular_file  # noqa: E402
 
 log = logging.getLogger("companion.mavlink")
 
@@ -84,9 +85,16 @@ class LinkStats:
     autopilot_reboots: int = 0
 
 
+SIGNING_KEY_MAX_BYTES = 1024  # a key file is 32 or 64 bytes, with room for whitespace around a hex key
+
+
 def load_signing_key(path: Path) -> bytes:
-    """The 32-byte MAVLink 2 signing secret from a file (32 raw bytes or 64 hex characters)."""
-    data = path.read_bytes()
+    """The 32-byte MAVLink 2 signing secret from a file (32 raw bytes or 64 hex characters).
+
+    OSError if the file is not a regular file of at most :data:`SIGNING_KEY_MAX_BYTES` (a FIFO or
+    /dev/zero is refused, never read); ValueError, naming the file, if it holds anything else.
+    """
+    data = read_regular_file(path, SIGNING_KEY_MAX_BYTES)
     text = data.strip()
     if len(text) == 64:
         try:
