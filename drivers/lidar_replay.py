@@ -39,15 +39,16 @@ before), so a corrupt record leaves a gap. A malformed line raises
 from __future__ import annotations
 
 import asyncio
+import io
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
-from companion.schema import meta
+from companion.schema import meta, read_regular_file
 from drivers.base import CorruptFrame, EndOfData, ScanBackend
 from drivers.lidar_models import URG_04LX
 from drivers.scan import Scan
@@ -55,6 +56,18 @@ from drivers.scan import Scan
 BREEZYSLAM_BEAMS = 682
 _BREEZYSLAM_FIRST_RANGE = 24
 _BREEZYSLAM_TOKENS = (_BREEZYSLAM_FIRST_RANGE + BREEZYSLAM_BEAMS, _BREEZYSLAM_FIRST_RANGE + BREEZYSLAM_BEAMS + 1)
+RECORDING_MAX_BYTES = 256 << 20  # hours of scans (the BreezySLAM corridor log is 1.4 MB)
+
+
+def read_recording(path: str | Path) -> bytes:
+    """The bytes of the recording file at ``path``; OSError if it is not a regular file of at most
+    :data:`RECORDING_MAX_BYTES` (a FIFO or /dev/zero is refused, never read)."""
+    return read_regular_file(path, RECORDING_MAX_BYTES)
+
+
+def _text_lines(path: str | Path) -> Iterator[tuple[int, str]]:
+    """(1-based number, line) of a text recording; bytes that are not ASCII read as U+FFFD."""
+    return enumerate(io.TextIOWrapper(io.BytesIO(read_recording(path)), encoding="ascii", errors="replace"), start=1)
 
 
 def breezyslam_angles() -> np.ndarray:
@@ -78,15 +91,14 @@ def read_breezyslam(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarra
     """A whole BreezySLAM log: (timestamps s (S,), ranges m (S, 682) with 0 = no return,
     wheel odometry ticks (S, 2) as [left, right]); ValueError naming the first bad line."""
     stamps, ranges, odometry = [], [], []
-    with open(path, encoding="ascii", errors="replace") as f:
-        for number, line in enumerate(f, start=1):
-            try:
-                stamp, r, odo = parse_breezyslam_line(line)
-            except ValueError as exc:
-                raise ValueError(f"{path}:{number}: {exc}") from None
-            stamps.append(stamp)
-            ranges.append(r)
-            odometry.append(odo)
+    for number, line in _text_lines(path):
+        try:
+            stamp, r, odo = parse_breezyslam_line(line)
+        except ValueError as exc:
+            raise ValueError(f"{path}:{number}: {exc}") from None
+        stamps.append(stamp)
+        ranges.append(r)
+        odometry.append(odo)
     return (np.array(stamps), np.array(ranges).reshape(-1, BREEZYSLAM_BEAMS),
             np.array(odometry, dtype=np.int64).reshape(-1, 2))
 
@@ -165,20 +177,19 @@ class ReplayLidar(ScanBackend):
         self._angles = breezyslam_angles()
         records = []
         sweep = URG_04LX.sweep_s
-        with open(self.path, encoding="ascii", errors="replace") as f:
-            for number, line in enumerate(f, start=1):
-                try:
-                    stamp, ranges, _ = parse_breezyslam_line(line)
-                except ValueError as exc:
-                    records.append(_Record(math.nan, np.empty(0), np.empty(0, bool), 0.0, f"line {number}: {exc}"))
-                    continue
-                valid = (ranges >= URG_04LX.min_range_m) & (ranges <= URG_04LX.max_range_m)
-                records.append(_Record(stamp, np.where(valid, ranges, 0.0), valid, sweep))
+        for number, line in _text_lines(self.path):
+            try:
+                stamp, ranges, _ = parse_breezyslam_line(line)
+            except ValueError as exc:
+                records.append(_Record(math.nan, np.empty(0), np.empty(0, bool), 0.0, f"line {number}: {exc}"))
+                continue
+            valid = (ranges >= URG_04LX.min_range_m) & (ranges <= URG_04LX.max_range_m)
+            records.append(_Record(stamp, np.where(valid, ranges, 0.0), valid, sweep))
         self._records = records
 
     def _load_npz(self) -> None:
         try:
-            with np.load(self.path) as data:
+            with np.load(io.BytesIO(read_recording(self.path))) as data:
                 self._angles = np.asarray(data["angles_rad"], dtype=float)
                 t, ranges, valid = data["t_capture"], data["ranges_m"], data["valid"]
                 sweep = data["sweep_s"] if "sweep_s" in data else np.zeros(len(t))
