@@ -46,28 +46,40 @@ def _cmd_run(args: argparse.Namespace) -> int:
             finally:
                 loop.close()
         return asyncio.run(daemon.run())
-    except ConfigError as exc:  # a file the config names (map, world, mission) is bad
+    except ConfigError as exc:  # a file the config names (map, world, mission, signing key) is bad
         print(f"companion: {exc}", file=sys.stderr)
         return EXIT_CONFIG_ERROR
 
 
 def _cmd_check_config(args: argparse.Namespace) -> int:
-    from companion.mission.steps import load_mission
-    from sitl.world import load_world
-
     try:
-        cfg = load_config(args.config)
-        if cfg.mission.file:
-            load_mission(cfg.resolve(cfg.mission.file))
-        if cfg.pipelines.lidar is not None:
-            load_world(cfg.resolve(cfg.pipelines.lidar.map))
-        if any(s.backend == "sim" for s in cfg.sensors.values()):
-            load_world(cfg.resolve(cfg.sitl.world))
+        _load_referenced_files(load_config(args.config))
     except ConfigError as exc:
         print(f"companion: {exc}", file=sys.stderr)
         return EXIT_CONFIG_ERROR
     print(f"{args.config}: OK")
     return 0
+
+
+def _load_referenced_files(cfg: Config) -> None:
+    """Load every file ``cfg`` names and the daemon would read (mission, map, world, signing key,
+    recordings); ConfigError at the config key of the first bad one."""
+    from companion.mavlink.link import load_signing_key
+    from companion.mission.steps import load_mission
+    from drivers.lidar_replay import read_recording
+    from sitl.world import load_world
+
+    if cfg.mission.file:
+        cfg.load_referenced("mission.file", load_mission)
+    if cfg.pipelines.lidar is not None:
+        cfg.load_referenced("pipelines.lidar.map", load_world)
+    if any(s.backend == "sim" for s in cfg.sensors.values()):
+        cfg.load_referenced("sitl.world", load_world)
+    if cfg.mavlink.signing_key_file:
+        cfg.load_referenced("mavlink.signing_key_file", load_signing_key)
+    for name, sensor in cfg.sensors.items():
+        if sensor.backend == "replay":
+            cfg.load_referenced(f"sensors.{name}.settings.file", read_recording)
 
 
 def _cmd_setup_autopilot(args: argparse.Namespace) -> int:
@@ -81,9 +93,13 @@ def _cmd_setup_autopilot(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"companion: {exc}", file=sys.stderr)
         return EXIT_CONFIG_ERROR
-    status, _ = asyncio.run(setup_autopilot(cfg, args.mavlink or cfg.mavlink.url, apply=args.apply, reboot=args.reboot,
-                                            extra=extra, timeout_s=args.timeout,
-                                            out=lambda line: print(line, flush=True)))
+    try:
+        status, _ = asyncio.run(setup_autopilot(cfg, args.mavlink or cfg.mavlink.url, apply=args.apply,
+                                                reboot=args.reboot, extra=extra, timeout_s=args.timeout,
+                                                out=lambda line: print(line, flush=True)))
+    except ConfigError as exc:  # the signing key file is bad
+        print(f"companion: {exc}", file=sys.stderr)
+        return EXIT_CONFIG_ERROR
     return status
 
 

@@ -3,18 +3,21 @@
 Every key is documented here (``meta(doc=...)``); ``companion config-reference`` prints the
 reference in docs/config.md from these definitions, and a test keeps the two identical.
 Relative paths in the file (missions, worlds, key files) are resolved against the directory
-of the config file.
+of the config file; :meth:`Config.load_referenced` loads such a file and puts any error in it at
+the config key (and line) that names it.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
-from companion.schema import SchemaError, load_file, meta
+from companion.schema import Document, SchemaError, meta, read_document
 
 ConfigError = SchemaError
+T = TypeVar("T")
 
 
 @dataclass
@@ -303,6 +306,7 @@ class Config:
     sitl: SitlConfig = field(default_factory=SitlConfig, metadata=meta("Simulation harness settings."))
     base_dir: Path = field(default=Path("."), init=False, repr=False)
     source: str = field(default="<string>", init=False, repr=False)
+    document: Document | None = field(default=None, init=False, repr=False, compare=False)  # for line_of
 
     def validate(self) -> tuple[str, str] | None:
         if any(s.backend == "sim" for s in self.sensors.values()) and self.mavlink.streams.sim_state <= 0:
@@ -348,10 +352,45 @@ class Config:
         p = Path(relative)
         return p if p.is_absolute() else self.base_dir / p
 
+    def line_of(self, key_path: str) -> int | None:
+        """The line of ``key_path`` (e.g. ``mission.file``) in the config file; None for a config
+        not loaded from a file."""
+        return self.document.line_of(key_path) if self.document is not None else None
+
+    def load_referenced(self, key_path: str, loader: Callable[[Path], T]) -> T:
+        """``loader(path)`` for the file whose path the key ``key_path`` holds (e.g. ``mission.file``,
+        ``sensors.lidar.settings.file``), resolved against the config's directory.
+
+        What the loader raises about the file (SchemaError: its content, naming its own file, line and key;
+        OSError: it cannot be read; ValueError: its content, naming the file) is raised again as a
+        ConfigError at this config file, the key's line and the key, with the loader's message after it.
+        """
+        path = self.resolve(self._value_at(key_path))
+        try:
+            return loader(path)
+        except SchemaError as exc:
+            raise self._error_at(key_path, str(exc)) from exc
+        except OSError as exc:
+            raise self._error_at(key_path, f"{path}: cannot read file: {exc.strerror or exc}") from exc
+        except ValueError as exc:
+            raise self._error_at(key_path, str(exc)) from exc
+
+    def _error_at(self, key_path: str, message: str) -> ConfigError:
+        return ConfigError(self.source, key_path, self.line_of(key_path), message)
+
+    def _value_at(self, key_path: str) -> Any:
+        """The value at a dotted key path: attributes of the dataclasses, keys of their dicts."""
+        value: Any = self
+        for key in key_path.split("."):
+            value = value[key] if isinstance(value, dict) else getattr(value, key)
+        return value
+
 
 def load_config(path: str | Path) -> Config:
     """Load and validate a config file; raises :class:`ConfigError` (file, key path, line)."""
-    cfg = load_file(path, Config)
+    document = read_document(path)
+    cfg = document.build(Config)
     cfg.base_dir = Path(path).resolve().parent
     cfg.source = str(path)
+    cfg.document = document
     return cfg
