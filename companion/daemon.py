@@ -86,7 +86,7 @@ class Daemon:
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self.request_stop)
 
-        key = load_signing_key(cfg.resolve(cfg.mavlink.signing_key_file)) if cfg.mavlink.signing_key_file else None
+        key = cfg.load_referenced("mavlink.signing_key_file", load_signing_key) if cfg.mavlink.signing_key_file else None
         self.link = link = MavlinkLink(cfg.mavlink, cfg.vehicle, self.url, self.health, key)
         self.state = state = AutopilotState(link)
         self.commander = commander = Commander(link, state, cfg.mavlink)
@@ -96,6 +96,7 @@ class Daemon:
         self.estimate = EstimateSender(link, cfg.mavlink.estimate_rate_hz, self.health, clock.now,
                                        on_alert=self.statustext)
         self.setpoints = setpoints = SetpointStream(link, state, cfg.mavlink.setpoint_rate_hz)
+        self.mission = self._build_mission()  # before the drivers and tasks start: a bad mission file stops here
         gate = WatchdogGate(max_age=1.0, clock=clock.now)
         self.nav = NavLoop(self.build_pipelines(), self.estimate, telemetry, gate, cfg.pipelines.fusion_rate_hz,
                            clock.now)
@@ -112,7 +113,6 @@ class Daemon:
         sup.spawn("status", self._publish_status)
         if self.notifier.watchdog_interval() is not None:
             sup.spawn("watchdog", lambda: run_watchdog(self.notifier, gate, clock.now))
-        self.mission = self._build_mission()
         if self.mission is not None:
             sup.spawn("mission", self.mission.run)
         self.notifier.ready()
@@ -126,9 +126,9 @@ class Daemon:
         cfg = self.cfg
         if not cfg.mission.file:
             return None
-        mission = load_mission(cfg.resolve(cfg.mission.file))
+        mission = cfg.load_referenced("mission.file", load_mission)
         lidar = cfg.pipelines.lidar
-        bounds = load_world(cfg.resolve(lidar.map)).bounds if lidar is not None else None
+        bounds = cfg.load_referenced("pipelines.lidar.map", load_world).bounds if lidar is not None else None
         ctx = MissionContext(
             state=self.state, commander=self.commander, setpoints=self.setpoints, origin=self.origin,
             estimate=self._mission_estimate, nav_health=lambda: self.health.worst("nav:"), publish=self.telemetry.publish,
@@ -161,7 +161,7 @@ class Daemon:
         pipeline = None
         if lidar_cfg is not None:
             vertical = cfg.sensors[lidar_cfg.vertical_sensor]
-            pipeline = LidarPipeline(lidar_cfg, load_world(cfg.resolve(lidar_cfg.map)),
+            pipeline = LidarPipeline(lidar_cfg, cfg.load_referenced("pipelines.lidar.map", load_world),
                                      cfg.sensors[lidar_cfg.horizontal_sensor].mount, vertical.mount,
                                      self.state, self.health)
         self.drivers = {}
@@ -184,7 +184,7 @@ class Daemon:
             return ReplayLidar(name, settings, base_dir=self.cfg.base_dir)
         if self.truth is None:
             self.truth = TruthSource(self.link, self.cfg.origin)
-            self.sim_world = load_world(self.cfg.resolve(self.cfg.sitl.world))
+            self.sim_world = self.cfg.load_referenced("sitl.world", load_world)
         return SimulatedLidar(name, settings, Mount.from_config(sensor.mount), self.sim_world, self.truth)
 
     def _scan_sink(self, name: str, pipeline: LidarPipeline | None) -> Callable[[Scan], None]:
