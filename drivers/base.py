@@ -14,16 +14,21 @@ A backend implements :class:`ScanBackend`: ``open()``, ``read()`` returning the 
 - :class:`EndOfData`: a replay has no more scans (the frontend stops, health says why).
 
 :class:`LidarDriver` is the frontend; it hands every good scan to ``on_scan`` (the pipeline)
-and is run by the daemon's supervisor as one task per sensor.
+and is run by the daemon's supervisor as one task per sensor. A decoded scan with a non-finite
+time, range or angle, or a capture time not after the previous one, is dropped and counted
+per reason (``DriverStats.rejected_scans``, :func:`scan_problem`): no pipeline sees it.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+
+import numpy as np
 
 from companion.health import Health, State
 from drivers.scan import Scan
@@ -68,8 +73,21 @@ class ScanBackend(ABC):
 class DriverStats:
     scans: int = 0
     corrupt_frames: int = 0
+    rejected_scans: dict[str, int] = field(default_factory=dict)  # decoded but unusable, per reason (scan_problem)
     reconnects: int = 0
     last_error: str | None = None
+
+
+def scan_problem(scan: Scan, previous_t: float | None) -> str | None:
+    """Why a decoded scan must not reach a pipeline, or None: a non-finite capture time, range or
+    angle (a backend bug, a corrupt replay), or a capture time not after the previous scan's."""
+    if not math.isfinite(scan.t_capture):
+        return "non-finite capture time"
+    if previous_t is not None and scan.t_capture <= previous_t:
+        return "capture time not after the previous scan's"
+    if not (np.all(np.isfinite(scan.angles_rad)) and np.all(np.isfinite(scan.ranges_m[scan.valid]))):
+        return "non-finite range or angle"
+    return None
 
 
 class LidarDriver:
@@ -83,6 +101,7 @@ class LidarDriver:
         self.stats = DriverStats()
         self._component = f"sensor:{name}"
         self._backoff = MIN_BACKOFF_S  # wait before the next open after a loss, s
+        self._last_t: float | None = None  # capture time of the last scan handed on, daemon clock s
 
     async def run(self) -> None:
         """Read forever (until cancelled or a replay ends), reopening the device when it drops."""
@@ -116,8 +135,19 @@ class LidarDriver:
             except OSError as exc:
                 return f"{self.backend.description} lost: {exc}"
             self._backoff = MIN_BACKOFF_S  # scans flow: the next loss starts the backoff afresh
+            problem = scan_problem(scan, self._last_t)
+            if problem is not None:
+                self._reject(problem)
+                continue
+            self._last_t = scan.t_capture
             self.stats.scans += 1
             self.on_scan(scan)
+
+    def _reject(self, problem: str) -> None:
+        rejected = self.stats.rejected_scans
+        rejected[problem] = rejected.get(problem, 0) + 1
+        if rejected[problem] == 1 or rejected[problem] % 100 == 0:
+            log.error("%s: scan dropped: %s (%d so far)", self.name, problem, rejected[problem])
 
     async def _lost(self, reason: str) -> None:
         """Report the loss, then wait the backoff before the next open (doubling each time)."""

@@ -19,7 +19,7 @@ from companion.config import MountConfig
 from companion.frames import quat_from_euler
 from companion.health import Health, State
 from companion.schema import SchemaError, load_text
-from drivers.base import EndOfData, LidarDriver
+from drivers.base import EndOfData, LidarDriver, ScanBackend
 from drivers.lidar_models import MODELS, URG_04LX, UTM_30LX
 from drivers.lidar_replay import (ReplayLidar, ReplayLidarSettings, breezyslam_angles, read_breezyslam,
                                   record_npz)
@@ -327,3 +327,46 @@ def test_npz_record_and_replay(tmp_path: Path, arena: World) -> None:
              valid=np.zeros((2, 4), bool))
     with pytest.raises(OSError, match="inconsistent"):
         asyncio.run(ReplayLidar("x", ReplayLidarSettings(file=str(tmp_path / "bad.npz"))).open())
+
+
+class _Scripted(ScanBackend):
+    """A backend that plays the given scans, then ends."""
+
+    description = "scripted"
+
+    def __init__(self, scans: list[Scan]) -> None:
+        self.scans = list(scans)
+
+    async def open(self) -> None:
+        pass
+
+    async def read(self) -> Scan:
+        if not self.scans:
+            raise EndOfData
+        return self.scans.pop(0)
+
+    async def close(self) -> None:
+        pass
+
+
+def _scan(t: float, ranges: list[float]) -> Scan:
+    n = len(ranges)
+    return Scan("s", t, np.linspace(-1.0, 1.0, n), np.array(ranges, dtype=float), np.ones(n, dtype=bool))
+
+
+def test_nonfinite_and_backwards_scans_are_dropped_and_counted_before_any_pipeline() -> None:
+    scans = [_scan(1.0, [1.0, 2.0]), _scan(1.1, [1.0, math.nan]), _scan(math.inf, [1.0, 2.0]),
+             _scan(1.1, [1.0, 2.0]), _scan(1.05, [1.0, 2.0]), _scan(1.2, [1.0, math.inf])]
+    got: list[Scan] = []
+    driver = LidarDriver("s", _Scripted(scans), Health(lambda: 0.0), got.append)
+
+    async def run() -> None:
+        task = asyncio.ensure_future(driver.run())
+        while driver.health.get("sensor:s") is None or driver.health.get("sensor:s").reason != "replay finished":
+            await asyncio.sleep(0.01)
+        task.cancel()
+
+    asyncio.run(run())
+    assert [s.t_capture for s in got] == [1.0, 1.1]
+    assert driver.stats.rejected_scans == {"non-finite range or angle": 2, "non-finite capture time": 1,
+                                           "capture time not after the previous scan's": 1}
