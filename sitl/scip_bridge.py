@@ -41,6 +41,12 @@ refuses ``sitl.scip_sensors``; deterministic runs use the in-daemon ``backend: s
 bridge exists to exercise the real driver, its protocol handling, clock mapping and recovery,
 end to end in SITL and tests.
 
+With ``--faults-from-stdin`` the bridge also reads fault commands, one per line, from its
+standard input (the fault suite, ``companion experiment faults``, drives it so):
+``unplug NAME SECONDS``, ``corrupt NAME N``, ``garbage NAME N``, ``delay NAME N SECONDS``
+(:class:`sitl.scip_emulator.ScipEmulator`'s faults on scanner NAME). A bad line is reported on
+stderr and ignored.
+
 It exits 0 on SIGTERM or SIGINT, after printing how many scans each scanner served.
 """
 
@@ -356,6 +362,9 @@ async def serve(args: argparse.Namespace) -> int:
         for scanner in scanners:
             await scanner.start()
         vehicle.start()
+        if args.faults_from_stdin:
+            by_name = {s.spec.name: s.emulator for s in scanners}
+            threading.Thread(target=_read_fault_commands, args=(loop, by_name), daemon=True).start()
         await stop.wait()
     finally:
         vehicle.stop()
@@ -364,6 +373,35 @@ async def serve(args: argparse.Namespace) -> int:
     served = ", ".join(f"{s.spec.name} {s.rendered} scans ({s.blind} without truth)" for s in scanners)
     print(f"sitl.scip_bridge: stopped; {vehicle.samples} SIM_STATE samples; {served}", flush=True)
     return 0
+
+
+def _read_fault_commands(loop: asyncio.AbstractEventLoop, emulators: dict[str, ScipEmulator]) -> None:
+    """Thread: apply every fault command line of stdin (see the module docstring) on ``loop``."""
+    for line in sys.stdin:
+        try:
+            fault = _fault_command(line.split(), emulators)
+        except (ValueError, IndexError, KeyError) as exc:
+            print(f"sitl.scip_bridge: bad fault command {line.strip()!r}: {exc}", file=sys.stderr, flush=True)
+            continue
+        loop.call_soon_threadsafe(fault)
+
+
+def _fault_command(words: list[str], emulators: dict[str, ScipEmulator]) -> Callable[[], object]:
+    """The call applying one parsed fault command (run on the bridge's loop)."""
+    command, emulator = words[0], emulators[words[1]]
+    if command == "unplug":
+        down_s = float(words[2])
+        return lambda: asyncio.ensure_future(emulator.disconnect(down_s))
+    if command == "corrupt":
+        n = int(words[2])
+        return lambda: emulator.corrupt_scans(n)
+    if command == "garbage":
+        n = int(words[2])
+        return lambda: emulator.garbage_scans(n)
+    if command == "delay":
+        n, delay_s = int(words[2]), float(words[3])
+        return lambda: emulator.delay_scans(n, delay_s)
+    raise ValueError("unknown command (unplug, corrupt, garbage, delay)")
 
 
 def _home(text: str) -> tuple[float, float, float]:
@@ -387,6 +425,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                    help="NAME,MODEL,X,Y,Z,ROLL,PITCH,YAW_DEG,PORT: a scanner on that mount (body FRD, m and deg) "
                         "served on TCP 127.0.0.1:PORT (repeatable)")
     p.add_argument("--seed", type=int, default=0, help="range noise seed; sensor i uses SEED + i")
+    p.add_argument("--faults-from-stdin", action="store_true",
+                   help="read fault commands from stdin (unplug/corrupt/garbage/delay; see the module docstring)")
     args = p.parse_args(argv)
     ports = [s.port for s in args.sensor]
     if len(set(ports)) != len(ports):

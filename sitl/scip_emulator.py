@@ -99,6 +99,7 @@ class ScipEmulator:
         self._clock_origin = 0.0
         self._clock_start_ms = clock_start_ms
         self._faults: deque[str] = deque()
+        self._noise = np.random.default_rng(0)  # the bytes of garbage_scans()
         self._sessions: set[_Session] = set()
         self._server: asyncio.Server | None = None
         self._tcp_address: tuple[str, int] | None = None
@@ -197,6 +198,14 @@ class ScipEmulator:
     def truncate_scans(self, n: int = 1) -> None:
         """The next ``n`` streamed scans stop in the middle of a data block (sums valid)."""
         self._faults.extend(["truncate"] * n)
+
+    def garbage_scans(self, n: int = 1) -> None:
+        """The next ``n`` streamed scans are replaced by line noise (random bytes, then LF LF)."""
+        self._faults.extend(["garbage"] * n)
+
+    def delay_scans(self, n: int, delay_s: float) -> None:
+        """The next ``n`` streamed scans leave ``delay_s`` late (a slow or congested scanner)."""
+        self._faults.extend([f"delay {delay_s}"] * n)
 
     def send_status(self, status: str) -> None:
         """Answer the next streamed scan with ``status`` only (21-49 then stop streaming)."""
@@ -361,6 +370,8 @@ class ScipEmulator:
         remaining = request.scans  # 0: until QT
         while True:
             await asyncio.sleep(max(0.0, t_step0 + sweep - loop.time()))
+            if self._faults and self._faults[0].startswith("delay "):
+                await asyncio.sleep(float(self._faults.popleft().split()[1]))
             remaining = max(remaining - 1, 0)
             echo = body[:13] + b"%02d" % remaining + sep + tag
             try:
@@ -382,6 +393,9 @@ class ScipEmulator:
             status = fault.split()[1]
             self.sent.append(SentScan(self.clock_ms(t_step0), t_step0, np.empty(0, np.int64), fault))
             return scip.format_reply(echo, status), 21 <= int(status) <= 49
+        if fault == "garbage":
+            self.sent.append(SentScan(self.clock_ms(t_step0), t_step0, np.empty(0, np.int64), fault))
+            return self._noise.integers(0, 256, 200, dtype=np.uint8).tobytes() + scip.LF + scip.LF, False
         stamp, data, full = self._measure(request, t_step0)
         if fault == "corrupt":
             data = _corrupt_sum(data)
