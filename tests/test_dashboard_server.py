@@ -7,6 +7,8 @@ import http.client
 import json
 import re
 import socket
+import subprocess
+import sys
 import time
 import tomllib
 from collections.abc import Callable, Iterator
@@ -188,3 +190,18 @@ def test_endpoints_come_from_the_telemetry_section() -> None:
     assert dashboard_endpoints(TelemetryConfig(dashboard_connect=["tcp/192.168.1.10:7447"])) == ["tcp/192.168.1.10:7447"]
     assert page_url("0.0.0.0", 8080) == "http://127.0.0.1:8080/"
     assert page_url("::1", 80) == "http://[::1]:80/"
+
+
+def test_serving_beyond_loopback_is_a_warning_that_says_how_to_keep_it_local(tmp_path: Path) -> None:
+    config = tmp_path / "ground.yaml"
+    config.write_text(yaml.safe_dump({"origin": {"lat": 0.0, "lon": 0.0, "alt": 0.0},
+                                      "telemetry": {"listen": [f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"]}}))
+    proc = subprocess.Popen([sys.executable, "-m", "companion.cli", "dashboard", "-c", str(config), "--host", "0.0.0.0",
+                             "--port", "0"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        announced = proc.stdout.readline()  # type: ignore[union-attr]
+    finally:
+        proc.terminate()
+        _, stderr = proc.communicate(timeout=10)
+    assert "reachable from the network" in announced
+    assert "WARNING" in stderr and "not loopback" in stderr and "--host 127.0.0.1" in stderr

@@ -97,6 +97,9 @@ async def _serve(telemetry: TelemetryConfig, host: str, port: int, announce: Cal
     try:
         bound = await server.start()
         exposure = "" if is_loopback(host) else " (reachable from the network: read-only)"
+        if not is_loopback(host):
+            log.warning("dashboard served on %s, not loopback: anyone on that network can watch the telemetry "
+                        "(read-only, no authentication); --host 127.0.0.1 keeps it on this machine", host)
         announce(f"companion dashboard: {page_url(host, bound)}{exposure}; zenoh {mode}, connecting to "
                  f"{', '.join(endpoints) or 'nothing'}")
         stop = asyncio.Event()
