@@ -255,7 +255,7 @@ class Daemon:
                            **vars(link.stats)})
         t.publish("autopilot", {"mode": state.mode, "armed": state.armed,
                                 "firmware": state.firmware.label if state.firmware else None,
-                                "origin_confirmed": self.origin.confirmed and link.connected,
+                                "origin_confirmed": self.origin.confirmed,  # as health "origin" says
                                 "home_at_origin": self.origin.home_confirmed,
                                 "external_nav_in_use": state.external_nav_in_use, "ekf_flags": state.ekf_flags,
                                 "local_position_ned_m": state.local_position_ned,

@@ -57,8 +57,10 @@ class OriginSetter:
         await run_per_connection(self._restart, self._establish)
 
     async def _establish(self) -> None:
-        """Origin, then home, for one connection: each confirmed by a report received on it."""
+        """Origin, then home, for one connection: each confirmed by a report received on it.
+        Until then the origin is unconfirmed, in health as in telemetry (``confirmed``)."""
         self.confirmed = self.home_confirmed = self.home_done = False
+        self.health.report("origin", State.LOST, "not confirmed on this connection yet")
         since = clock.now()
         await self._until_confirmed(since)
         await self._until_home_set(since)
