@@ -86,7 +86,7 @@ class Daemon:
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self.request_stop)
 
-        key = cfg.load_referenced("mavlink.signing_key_file", load_signing_key) if cfg.mavlink.signing_key_file else None
+        key = self._load_named_files()
         self.link = link = MavlinkLink(cfg.mavlink, cfg.vehicle, self.url, self.health, key)
         self.state = state = AutopilotState(link)
         self.commander = commander = Commander(link, state, cfg.mavlink)
@@ -96,7 +96,7 @@ class Daemon:
         self.estimate = EstimateSender(link, cfg.mavlink.estimate_rate_hz, self.health, clock.now,
                                        on_alert=self.statustext)
         self.setpoints = setpoints = SetpointStream(link, state, cfg.mavlink.setpoint_rate_hz)
-        self.mission = self._build_mission()  # before the drivers and tasks start: a bad mission file stops here
+        self.mission = self._build_mission()
         gate = WatchdogGate(max_age=1.0, clock=clock.now)
         self.nav = NavLoop(self.build_pipelines(), self.estimate, telemetry, gate, cfg.pipelines.fusion_rate_hz,
                            clock.now)
@@ -121,14 +121,24 @@ class Daemon:
         await self._shutdown()
         return 0
 
+    def _load_named_files(self) -> bytes | None:
+        """Load every file the config names (mission, map, simulated world; the signing key is
+        returned) before anything starts: a bad one ends :meth:`run` with a ConfigError naming
+        the config key and line, and no task has run yet."""
+        cfg = self.cfg
+        self.mission_file = cfg.load_referenced("mission.file", load_mission) if cfg.mission.file else None
+        self.map = cfg.load_referenced("pipelines.lidar.map", load_world) if cfg.pipelines.lidar is not None else None
+        simulated = any(s.backend == "sim" for s in cfg.sensors.values())
+        self.sim_world = cfg.load_referenced("sitl.world", load_world) if simulated else None
+        return cfg.load_referenced("mavlink.signing_key_file", load_signing_key) if cfg.mavlink.signing_key_file else None
+
     def _build_mission(self) -> MissionRunner | None:
         """The configured mission's runner (None without one), flying on the companion's estimate."""
         cfg = self.cfg
-        if not cfg.mission.file:
+        mission = self.mission_file
+        if mission is None:
             return None
-        mission = cfg.load_referenced("mission.file", load_mission)
-        lidar = cfg.pipelines.lidar
-        bounds = cfg.load_referenced("pipelines.lidar.map", load_world).bounds if lidar is not None else None
+        bounds = self.map.bounds if self.map is not None else None
         ctx = MissionContext(
             state=self.state, commander=self.commander, setpoints=self.setpoints, origin=self.origin,
             estimate=self._mission_estimate, nav_health=lambda: self.health.worst("nav:"), publish=self.telemetry.publish,
@@ -161,7 +171,7 @@ class Daemon:
         pipeline = None
         if lidar_cfg is not None:
             vertical = cfg.sensors[lidar_cfg.vertical_sensor]
-            pipeline = LidarPipeline(lidar_cfg, cfg.load_referenced("pipelines.lidar.map", load_world),
+            pipeline = LidarPipeline(lidar_cfg, self.map,
                                      cfg.sensors[lidar_cfg.horizontal_sensor].mount, vertical.mount,
                                      self.state, self.health)
         self.drivers = {}
@@ -184,7 +194,7 @@ class Daemon:
             return ReplayLidar(name, settings, base_dir=self.cfg.base_dir)
         if self.truth is None:
             self.truth = TruthSource(self.link, self.cfg.origin)
-            self.sim_world = self.cfg.load_referenced("sitl.world", load_world)
+        assert self.sim_world is not None  # loaded by _load_named_files for every sim sensor
         return SimulatedLidar(name, settings, Mount.from_config(sensor.mount), self.sim_world, self.truth)
 
     def _scan_sink(self, name: str, pipeline: LidarPipeline | None) -> Callable[[Scan], None]:

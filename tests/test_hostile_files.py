@@ -4,6 +4,7 @@ exit 2 within seconds with `file:line: key: message`, never hang, never print a 
 from __future__ import annotations
 
 import os
+import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -193,3 +194,10 @@ def test_lists_nested_too_deeply_are_an_error_not_a_crash() -> None:
     with pytest.raises(SchemaError, match=TOO_DEEP):
         load_text(f"origin: {{lat: 1, lon: 2, alt: 3}}\nsensors:\n  x:\n    kind: lidar\n    backend: sim\n"
                   f"    settings: {{deep: {nested}}}\n", Config)
+
+
+def test_run_with_telemetry_on_stops_at_a_bad_mission_before_any_task_starts(project: Path) -> None:
+    text = replace_once(project.read_text(), "\ntelemetry:\n  enabled: false\n", "\ntelemetry:\n")
+    text = replace_once(text, "tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}")
+    project.write_text(replace_once(text, "file: missions/hover.yaml", "file: missions/not-there.yaml"))
+    assert_config_error(companion("run", project), f"{project}:{line_of(project, 'not-there.yaml')}: mission.file: ")
