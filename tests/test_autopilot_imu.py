@@ -1,5 +1,6 @@
 """The autopilot's IMU samples on the daemon clock (AutopilotState, companion/jitter.py): scaled
-units converted, and a rebooted autopilot's restarted boot clock learnt at once."""
+units converted, and a rebooted autopilot's restarted boot clock learnt as soon as the reboot is
+confirmed."""
 
 from __future__ import annotations
 
@@ -45,19 +46,23 @@ def test_scaled_imu_becomes_specific_force_and_rates_in_si_units() -> None:
     np.testing.assert_allclose(state.imu[-1].gyro_body, [0.001, 0.002, 0.003])  # mrad/s
 
 
-def test_after_an_autopilot_reboot_its_imu_is_used_at_once() -> None:
+def test_after_an_autopilot_reboot_its_imu_is_used_once_the_reboot_is_confirmed() -> None:
     """The boot clock restarts near 0: the offset learnt before the reboot would place every new
-    sample 100 s in the past (stale) until it slid out of the window; a new connection starts over."""
-    async def main() -> tuple[AutopilotState, int, int]:
+    sample 100 s in the past (stale) until it slid out of the window; a new connection starts over.
+    The link confirms the reboot on the third stamp of the new clock (ATTITUDE, then two IMU
+    samples): the two before it are dropped as off the clock, every one after is used."""
+    async def main() -> tuple[AutopilotState, MavlinkLink, int]:
         link = MavlinkLink(MavlinkConfig(), VehicleConfig(), "udpout:127.0.0.1:9", Health(clock.now))
         state = AutopilotState(link)
         state.imu_source = "SCALED_IMU"
+        link._dispatch(from_autopilot(mavlink.MAVLink_heartbeat_message(
+            mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, mavlink.MAV_STATE_STANDBY, 3)))
         await stream_imu(link, 100_000, 10)
         before = len(state.imu)
-        await stream_imu(link, 500, 10)  # its ATTITUDE's boot time goes back: the link reports a reboot
-        return state, before, link.stats.autopilot_reboots
+        await stream_imu(link, 500, 10)  # its ATTITUDE's boot time goes back: the link confirms a reboot
+        return state, link, before
 
-    state, before, reboots = asyncio.run(main())
-    assert reboots == 1
+    state, link, before = asyncio.run(main())
+    assert link.stats.autopilot_reboots == 1 and link.stats.time_anomalies == 2
     assert before == 10
-    assert len(state.imu) == 20 and state.imu_rejected == 0
+    assert len(state.imu) == 19 and state.imu_rejected == 0

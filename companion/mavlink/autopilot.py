@@ -12,6 +12,14 @@ relative to home (ArduPilot < 4.1) is moved to the EKF origin with the home and 
 autopilot itself reports. A message with a non-finite value in a field used here is dropped
 and counted (``nonfinite_rejected``): a NaN from the autopilot never reaches a pipeline.
 
+Only the autopilot's own messages arrive here (the link's trust rules, companion/mavlink/trust.py):
+from its sysid and compid, HEARTBEATs with the identity locked by the first one (so the firmware
+family and vehicle type never change under the companion), and only samples whose
+``time_boot_ms`` is in order: an ATTITUDE, LOCAL_POSITION_NED or SCALED_IMU stamped before the
+last of its kind, or off the boot clock, outside a confirmed reboot, is dropped and counted by the
+link (``time_anomalies``). IMU samples stamped in microseconds (HIGHRES_IMU, RAW_IMU) that go back
+land before the last kept one, or stale, and are dropped here (``imu_rejected``).
+
 The IMU comes from one message, the one the stream negotiation chose (``imu_source``:
 HIGHRES_IMU, or SCALED_IMU / RAW_IMU / SCALED_IMU2 where the firmware does not stream it);
 the scaled ones carry mG and mrad/s, converted here to m/s^2 and rad/s. Every sample is kept
@@ -35,7 +43,7 @@ from companion import clock
 from companion.frames import GRAVITY_MPS2, ned_from_geodetic
 from companion.jitter import JitterCorrection
 from companion.mavlink.firmware import Firmware, firmware_from_heartbeat, with_version
-from companion.mavlink.link import MavlinkLink, mavlink, mavutil
+from companion.mavlink.link import MavlinkLink, mavlink, mavutil, often
 
 log = logging.getLogger("companion.autopilot")
 
@@ -44,6 +52,7 @@ COMMANDABLE_MODES = {"GUIDED", "OFFBOARD"}
 IMU_MESSAGES = ("HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "RAW_IMU")
 IMU_QUEUE = 64  # samples kept: > 1 s at 50 Hz, far more than one nav cycle
 IMU_CLOCK_WINDOW = 50  # samples in the clock-offset minimum (1 s at 50 Hz)
+FAILSAFE_WORDS = ("failsafe", "ekf variance")  # in an autopilot STATUSTEXT: it acted by itself
 MILLI_G = GRAVITY_MPS2 / 1000.0  # SCALED_IMU* (and ArduPilot's RAW_IMU) accelerations are in mG
 
 
@@ -112,7 +121,7 @@ class AutopilotState:
     imu: deque[ImuSample] = field(default_factory=lambda: deque(maxlen=IMU_QUEUE))  # oldest first
     imu_rejected: int = 0  # IMU samples whose time stamp could not be placed (stale, or a clock jump)
     nonfinite_rejected: int = 0  # messages dropped for a NaN or infinity in a used field
-    statustext: list[tuple[float, int, str]] = field(default_factory=list)
+    statustext: list[tuple[float, int, str]] = field(default_factory=list)  # (time, severity, text), the last 50
     _mode_listeners: list[Callable[[str | None, str], None]] = field(default_factory=list)
     _imu_clock: JitterCorrection = field(default_factory=new_imu_clock)
 
@@ -169,6 +178,16 @@ class AutopilotState:
         """The kept IMU samples taken after daemon time ``t`` (all of them for None), oldest first."""
         return [sample for sample in self.imu if t is None or sample.t > t]
 
+    def failsafe_text(self, since: float) -> str | None:
+        """The newest failsafe announcement the autopilot made after daemon time ``since`` (ArduPilot:
+        "EKF Failsafe...", "GCS Failsafe...", "Battery Failsafe", "EKF variance"), or None."""
+        for t, _, text in reversed(self.statustext):
+            if t < since:
+                return None
+            if any(word in text.lower() for word in FAILSAFE_WORDS):
+                return text
+        return None
+
     def home_offset_ned(self) -> np.ndarray | None:
         """Home in the EKF-origin frame (m), from the home and origin the autopilot reports; None if unknown."""
         if self.home is None or self.origin is None:
@@ -186,14 +205,12 @@ class AutopilotState:
 
     def _nonfinite(self, msg: mavlink.MAVLink_message) -> None:
         self.nonfinite_rejected += 1
-        if self.nonfinite_rejected == 1 or self.nonfinite_rejected % 100 == 0:
+        if often(self.nonfinite_rejected):
             log.error("dropped %s with a non-finite field from the autopilot (%d so far)", msg.get_type(),
                       self.nonfinite_rejected)
 
     def _on_heartbeat(self, msg: mavlink.MAVLink_message) -> None:
-        if msg.get_srcComponent() != self.link.ids.autopilot_compid or msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID:
-            return
-        if self.firmware is None or self.firmware.autopilot != self.link.autopilot:
+        if self.firmware is None:  # the link locked the identity with this HEARTBEAT: it stays
             self.firmware = firmware_from_heartbeat(self.link.autopilot or "unknown", msg.type)
         self.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
         mode = mavutil.mode_string_v10(msg)
@@ -261,9 +278,8 @@ class AutopilotState:
 
     def _on_statustext(self, msg: mavlink.MAVLink_message) -> None:
         text = msg.text
-        if msg.get_srcComponent() == self.link.ids.autopilot_compid:  # not our own, routed back
-            log.log(logging.WARNING if msg.severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO,
-                    "autopilot says: %s", text)
+        log.log(logging.WARNING if msg.severity <= mavlink.MAV_SEVERITY_WARNING else logging.INFO,
+                "autopilot says: %s", text)
         self.statustext.append((clock.now(), msg.severity, text))
         del self.statustext[:-50]
         if "using external nav" in text:

@@ -8,6 +8,15 @@ MAV_TYPE_ONBOARD_CONTROLLER, recognises the autopilot (ArduPilot or PX4) from it
 notices link loss and autopilot reboots, and answers TIMESYNC (which also drives the clock in
 lockstep, see companion/clock.py).
 
+Only the autopilot is listened to (``companion.mavlink.trust``): subscribers get messages from the
+autopilot's sysid and compid only (others of its system are counted, ``other_components_rx``); its
+identity (ids, autopilot family, MAV_TYPE) is locked by its first HEARTBEAT, and HEARTBEATs that
+claim another are refused, counted (``identity_changed``, ``identity_impostors``), reported
+(health component ``autopilot_identity`` degraded) and logged; a message whose ``time_boot_ms``
+does not fit the autopilot's boot clock is dropped and counted (``time_anomalies``), and only a
+confirmed new, earlier clock is a reboot (``autopilot_reboots``; the clock is kept across link
+loss).
+
 An autopilot that merely stops talking (hung, paused, rebooting on a serial line) makes the
 link *lost* (health, ``connected``) but the port stays open: closing a TCP connection to a
 paused ArduPilot SITL would only make it fail when it resumes. Bytes that do not parse are
@@ -37,6 +46,7 @@ from companion import clock  # noqa: E402
 from companion.config import MavlinkConfig, VehicleConfig  # noqa: E402
 from companion.health import Health, State  # noqa: E402
 from companion.mavlink.transport import Transport, TransportClosed, open_transport  # noqa: E402
+from companion.mavlink.trust import BootClock, Heartbeat, Identity, IdentityLock, Stamp, autopilot_name  # noqa: E402
 from companion.schema import read_regular_file  # noqa: E402
 
 log = logging.getLogger("companion.mavlink")
@@ -68,11 +78,6 @@ async def run_per_connection(connected: asyncio.Event, body: Callable[[], Awaita
             connected.set()  # the supervisor's restart of the caller runs the body again for this connection
             raise task.exception()  # type: ignore[misc]
 
-AUTOPILOT_NAMES = {
-    mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA: "ArduPilot",
-    mavlink.MAV_AUTOPILOT_PX4: "PX4",
-}
-
 
 @dataclass
 class LinkStats:
@@ -82,7 +87,16 @@ class LinkStats:
     send_errors: int = 0
     parse_errors: int = 0  # undecodable bytes or frames (noise, a wrong baud rate, a hostile peer)
     reconnects: int = 0
-    autopilot_reboots: int = 0
+    autopilot_reboots: int = 0  # confirmed: a new, earlier boot clock (companion.mavlink.trust)
+    other_components_rx: int = 0  # not passed on: other compids of its sysid (gimbal, camera), non-autopilot HEARTBEATs
+    identity_changed: int = 0  # HEARTBEATs from the autopilot's ids with another autopilot type or MAV_TYPE: refused
+    identity_impostors: int = 0  # autopilot-looking HEARTBEATs from the autopilot's sysid, another compid: refused
+    time_anomalies: int = 0  # messages dropped: their time_boot_ms does not fit the autopilot's boot clock
+
+
+def often(count: int) -> bool:
+    """Whether the ``count``-th occurrence of a repeated event is worth a log line (1st, 100th, 200th, ...)."""
+    return count == 1 or count % 100 == 0
 
 
 SIGNING_KEY_MAX_BYTES = 1024  # a key file is 32 or 64 bytes, with room for whitespace around a hex key
@@ -128,7 +142,7 @@ class MavlinkLink:
         self.health = health
         self.signing_key = signing_key
         self.stats = LinkStats()
-        self.autopilot: str | None = None  # "ArduPilot", "PX4" or None until a HEARTBEAT arrives
+        self.autopilot: str | None = None  # "ArduPilot", "PX4" or None until a HEARTBEAT locks the identity
         self.last_heartbeat: float | None = None  # daemon clock, seconds
         self._transport: Transport | None = None
         self._codec: mavlink.MAVLink | None = None
@@ -140,12 +154,12 @@ class MavlinkLink:
         self._paused = False  # lockstep: reading stops at a tick until the loop is idle
         self._ticked = asyncio.Event()  # lockstep: the vehicle's first tick arrived
         self._tick_batch: list[mavlink.MAVLink_message] = []  # lockstep: read, not yet dispatched
-        self._last_boot_ms: int | None = None
+        self._identity = IdentityLock(ids.autopilot_sysid, ids.autopilot_compid)
+        self._boot_clock = BootClock()  # kept across link loss: a link back on an earlier clock is a reboot
+        self._stamped_since_connect = False  # a boot time fitted the clock since the last (re)connection
         self.health.report("link", State.LOST, "not connected yet")
         self.subscribe("HEARTBEAT", self._on_heartbeat)
         self.subscribe("TIMESYNC", self._on_timesync)
-        self.subscribe("SYSTEM_TIME", self._on_boot_time)
-        self.subscribe("ATTITUDE", self._on_boot_time)
 
     # -- public API -------------------------------------------------------------------------
 
@@ -155,7 +169,8 @@ class MavlinkLink:
         return self._connected
 
     def subscribe(self, msg_type: str, handler: Handler) -> None:
-        """Call ``handler(msg)`` for every message of ``msg_type`` from the autopilot."""
+        """Call ``handler(msg)`` for every message of ``msg_type`` from the autopilot (its sysid and
+        compid; HEARTBEATs with its locked identity; boot times that fit its clock)."""
         self._handlers[msg_type].append(handler)
 
     def on_connect(self, callback: Callable[[], None]) -> None:
@@ -344,7 +359,7 @@ class MavlinkLink:
             self.stats.parse_errors += 1
             return
         self.stats.messages_rx += 1
-        if msg.get_srcSystem() != self.ids.autopilot_sysid:
+        if msg.get_srcSystem() != self.ids.autopilot_sysid or not self._from_autopilot(msg):
             return
         for handler in self._handlers.get(msg_type, ()):
             try:
@@ -352,28 +367,85 @@ class MavlinkLink:
             except Exception:
                 log.exception("handler for %s failed", msg_type)
 
+    # -- trust: only the autopilot is listened to (companion.mavlink.trust) -------------------
+
+    def _from_autopilot(self, msg: mavlink.MAVLink_message) -> bool:
+        """Whether a message from the autopilot's sysid is the autopilot's: a HEARTBEAT with its locked
+        identity, anything else from its compid with a boot time (if any) that fits its clock.
+        What is not is counted (and a conflicting identity reported)."""
+        if msg.get_type() == "HEARTBEAT":
+            return self._trusted_heartbeat(msg)
+        if msg.get_srcComponent() != self.ids.autopilot_compid:
+            self.stats.other_components_rx += 1
+            return False
+        return self._fits_boot_clock(msg)
+
+    def _trusted_heartbeat(self, msg: mavlink.MAVLink_message) -> bool:
+        verdict = self._identity.judge(msg)
+        if verdict is Heartbeat.OTHER:
+            self.stats.other_components_rx += 1
+        elif verdict is not Heartbeat.AUTOPILOT:
+            self._identity_conflict(verdict, msg)
+        elif self.autopilot is None:
+            self._identity_locked()
+        return verdict is Heartbeat.AUTOPILOT
+
+    def _identity_locked(self) -> None:
+        identity = self._identity.locked
+        assert identity is not None
+        self.autopilot = autopilot_name(identity.autopilot)
+        log.info("autopilot detected: %s; its identity is locked for the life of this process", identity)
+        if self.stats.identity_changed + self.stats.identity_impostors == 0:
+            self.health.report("autopilot_identity", State.OK, f"locked: {identity}")
+
+    def _identity_conflict(self, verdict: Heartbeat, msg: mavlink.MAVLink_message) -> None:
+        """A HEARTBEAT claiming to be the autopilot with another identity: counted, reported, logged; not obeyed."""
+        if verdict is Heartbeat.CHANGED:
+            self.stats.identity_changed += 1
+        else:
+            self.stats.identity_impostors += 1
+        count = self.stats.identity_changed + self.stats.identity_impostors
+        claim = f"{Identity.of(msg)}: {verdict.value}"
+        self.health.report("autopilot_identity", State.DEGRADED, f"{count} HEARTBEATs refused, last {claim}")
+        if often(count):
+            locked = self._identity.locked
+            log.warning("refused a HEARTBEAT from %s (%d so far); the autopilot is %s. Its identity is locked for "
+                        "the life of this process: if the autopilot really changed (new firmware, another vehicle), "
+                        "restart the companion", claim, count,
+                        f"locked to {locked}" if locked else "not found yet")
+
+    def _fits_boot_clock(self, msg: mavlink.MAVLink_message) -> bool:
+        """Whether the message's ``time_boot_ms`` (if it has one) fits the autopilot's boot clock; a
+        confirmed new, earlier clock is a reboot (counted; a new connection for the on_connect
+        callbacks unless one was announced since the last boot time, e.g. when the link came back)."""
+        boot_ms = getattr(msg, "time_boot_ms", None)
+        if boot_ms is None:
+            return True
+        before = self._boot_clock.ms
+        stamp = self._boot_clock.observe(msg.get_type(), boot_ms, clock.now())
+        if stamp is Stamp.DROPPED:
+            self.stats.time_anomalies += 1
+            if often(self.stats.time_anomalies):
+                log.warning("dropped %s at boot time %d ms: off the autopilot's clock at %s ms (%d so far)",
+                            msg.get_type(), boot_ms, before, self.stats.time_anomalies)
+            return False
+        if stamp is Stamp.REBOOT:
+            self.stats.autopilot_reboots += 1
+            log.warning("autopilot rebooted (its boot clock restarted: %d ms after %s ms)", boot_ms, before)
+            if self._connected and self._stamped_since_connect:
+                self._fire_on_connect()
+        elif stamp is Stamp.JUMP:
+            log.warning("the autopilot's boot clock jumped ahead: %d ms after %s ms", boot_ms, before)
+        self._stamped_since_connect = self._connected
+        return True
+
     # -- built-in handlers ------------------------------------------------------------------
 
     def _on_heartbeat(self, msg: mavlink.MAVLink_message) -> None:
-        if msg.get_srcComponent() != self.ids.autopilot_compid or msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID:
-            return
         self.last_heartbeat = clock.now()
         self._heartbeats += 1
-        name = AUTOPILOT_NAMES.get(msg.autopilot, f"autopilot type {msg.autopilot}")
-        if name != self.autopilot:
-            self.autopilot = name
-            log.info("autopilot detected: %s (sysid %d)", name, msg.get_srcSystem())
         if not self._connected:
-            self._set_connected(True, f"{name} heartbeat")
-
-    def _on_boot_time(self, msg: mavlink.MAVLink_message) -> None:
-        boot_ms = msg.time_boot_ms
-        if self._last_boot_ms is not None and boot_ms + 1000 < self._last_boot_ms:
-            self.stats.autopilot_reboots += 1
-            log.warning("autopilot rebooted (boot time %d ms < %d ms)", boot_ms, self._last_boot_ms)
-            self._last_boot_ms = boot_ms
-            self._fire_on_connect()
-        self._last_boot_ms = boot_ms
+            self._set_connected(True, f"{self.autopilot} heartbeat")
 
     def _on_timesync(self, msg: mavlink.MAVLink_message) -> None:
         if msg.tc1 != 0:
@@ -407,9 +479,9 @@ class MavlinkLink:
         self._connected = connected
         if connected:
             self.health.report("link", State.OK, reason)
+            self._stamped_since_connect = False
             self._fire_on_connect()
         else:
-            self._last_boot_ms = None
             self.health.report("link", State.LOST, reason)
 
     def _fire_on_connect(self) -> None:

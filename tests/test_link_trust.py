@@ -1,0 +1,237 @@
+"""The companion trusts only its autopilot (companion/mavlink/trust.py, link.py, commands.py), over
+real MAVLink 2 on loopback UDP: a fake autopilot (tests/mavlink_peer.py) or the built-in vehicle.
+
+- the identity (ids, autopilot family, MAV_TYPE) is locked by the first HEARTBEAT; heartbeats
+  claiming another are counted, reported and not obeyed, other components' are no conflict;
+- one odd boot time is dropped and counted, not a reboot; a new, earlier clock confirmed by
+  several stamps is; a real restart of the vehicle process (or of ArduPilot SITL) is one reboot.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+
+from companion.mavlink.autopilot import AutopilotState
+from companion.mavlink.commands import Commander
+from companion.mavlink.link import MavlinkLink, mavlink
+from companion.mavlink.streams import StreamNegotiator
+from sitl.ardupilot import ArduPilotSitl, SitlOptions, default_defaults
+from tests.ardupilot_helpers import ARDUCOPTER, requires_ardupilot
+from tests.mavlink_peer import FakeAutopilot, make_link
+from tests.sitl_helpers import Processes, vehicle_args
+from tests.conftest import free_port
+
+GUIDED = 4  # ArduCopter custom_mode
+PX4_OFFBOARD = (6 << 16)  # PX4 main mode OFFBOARD in custom_mode
+GIMBAL_COMPID = mavlink.MAV_COMP_ID_GIMBAL  # 154
+
+
+def run_with_fake(body: Callable[[MavlinkLink, FakeAutopilot], Awaitable[None]], **mavlink_cfg: float) -> MavlinkLink:
+    """Run the link against a fake autopilot, connect them, then ``body(link, fake)``; the link afterwards."""
+    fake = FakeAutopilot()
+
+    async def main() -> MavlinkLink:
+        link = make_link(fake.url, **mavlink_cfg)
+        task = asyncio.ensure_future(link.run())
+        try:
+            await fake.connect(link)
+            await body(link, fake)
+        finally:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+        return link
+
+    try:
+        return asyncio.run(main())
+    finally:
+        fake.close()
+
+
+async def stream_attitude(link: MavlinkLink, fake: FakeAutopilot, count: int, offset_ms: int,
+                          odd: dict[int, int] | None = None) -> None:
+    """``count`` ATTITUDE at 50 Hz on the fake's clock started ``offset_ms`` earlier, and a HEARTBEAT
+    every tenth; message i carries boot time ``odd[i]`` instead where given (with roll 1 as a marker)."""
+    for i in range(count):
+        if i % 10 == 0:
+            fake.heartbeat()
+        if odd and i in odd:
+            fake.attitude(odd[i], roll=1.0)
+        else:
+            fake.attitude(fake.boot_ms(offset_ms))
+        await asyncio.sleep(0.02)
+    fake.pump()
+    await asyncio.sleep(0.05)  # what is in flight arrives
+
+
+# -- identity --------------------------------------------------------------------------------
+
+
+def test_a_spoofed_px4_heartbeat_from_the_autopilot_ids_is_counted_and_the_autopilot_stays_ardupilot() -> None:
+    state: dict[str, AutopilotState] = {}
+
+    async def body(link: MavlinkLink, fake: FakeAutopilot) -> None:
+        state["autopilot"] = AutopilotState(link)
+        fake.heartbeat(custom_mode=GUIDED)
+        await fake.until(lambda: state["autopilot"].mode == "GUIDED", "the autopilot's mode")
+        for _ in range(4):  # what the review saw: a PX4 claim every 0.5 s, here faster
+            fake.heartbeat(autopilot=mavlink.MAV_AUTOPILOT_PX4, custom_mode=PX4_OFFBOARD)
+            await asyncio.sleep(0.05)
+        fake.heartbeat(mav_type=mavlink.MAV_TYPE_FIXED_WING)  # the same family, another vehicle type
+        await fake.until(lambda: link.stats.identity_changed == 5, "5 refused HEARTBEATs")
+        assert link.connected
+
+    link = run_with_fake(body)
+    autopilot = state["autopilot"]
+    assert link.autopilot == "ArduPilot"
+    assert autopilot.firmware is not None and autopilot.firmware.label == "ArduPilot copter"
+    assert autopilot.mode == "GUIDED"  # the spoofed modes were not taken either
+    assert link.stats.identity_changed == 5 and link.stats.identity_impostors == 0
+    identity = link.health.snapshot()["components"]["autopilot_identity"]
+    assert identity["state"] == "degraded"
+    assert "5 HEARTBEATs refused" in identity["reason"]
+    assert "ArduPilot fixed_wing (sysid 1 compid 1)" in identity["reason"]
+
+
+def test_an_autopilot_heartbeat_from_another_compid_is_an_impostor_a_gimbal_or_companion_is_not() -> None:
+    health: dict[str, dict] = {}
+
+    async def body(link: MavlinkLink, fake: FakeAutopilot) -> None:
+        fake.heartbeat(autopilot=mavlink.MAV_AUTOPILOT_INVALID, mav_type=mavlink.MAV_TYPE_GIMBAL, compid=GIMBAL_COMPID)
+        fake.heartbeat(mav_type=mavlink.MAV_TYPE_ONBOARD_CONTROLLER, compid=191)  # another companion computer
+        await fake.until(lambda: link.stats.other_components_rx == 2, "the gimbal's and companion's HEARTBEATs")
+        health["before"] = link.health.snapshot()["components"]["autopilot_identity"]
+        fake.heartbeat(compid=2)  # an autopilot at another component id of system 1
+        await fake.until(lambda: link.stats.identity_impostors == 1, "the impostor")
+        assert link.connected
+
+    link = run_with_fake(body)
+    assert health["before"] == {**health["before"], "state": "ok",
+                                "reason": "locked: ArduPilot quadrotor (sysid 1 compid 1)"}
+    assert link.stats.identity_changed == 0
+    after = link.health.snapshot()["components"]["autopilot_identity"]
+    assert after["state"] == "degraded"
+    assert "ArduPilot quadrotor (sysid 1 compid 2): an autopilot at another component id" in after["reason"]
+    assert link.autopilot == "ArduPilot"
+
+
+# -- boot clock ------------------------------------------------------------------------------
+
+
+def test_one_backwards_or_far_ahead_boot_time_is_dropped_and_counted_not_a_reboot() -> None:
+    seen: list[int] = []
+    connections: list[float] = []
+
+    async def body(link: MavlinkLink, fake: FakeAutopilot) -> None:
+        link.subscribe("ATTITUDE", lambda msg: seen.append(msg.time_boot_ms))
+        link.on_connect(lambda: connections.append(1.0))
+        await stream_attitude(link, fake, 60, offset_ms=100_000, odd={20: 500, 40: 3_600_000_000})
+
+    link = run_with_fake(body)
+    assert link.stats.autopilot_reboots == 0
+    assert link.stats.time_anomalies == 2
+    assert 500 not in seen and 3_600_000_000 not in seen and len(seen) == 58
+    assert seen == sorted(seen)
+    assert connections == []  # nothing restarted: no origin re-sent, no streams re-requested, no state reset
+
+
+def test_a_reboot_during_the_connection_is_confirmed_by_the_new_clock_and_starts_a_new_connection() -> None:
+    seen: list[int] = []
+    connections: list[float] = []
+
+    async def body(link: MavlinkLink, fake: FakeAutopilot) -> None:
+        link.subscribe("ATTITUDE", lambda msg: seen.append(msg.time_boot_ms))
+        link.on_connect(lambda: connections.append(1.0))
+        await stream_attitude(link, fake, 20, offset_ms=100_000)
+        await stream_attitude(link, fake, 20, offset_ms=-fake.boot_ms() + 300)  # rebooted: its clock at 300 ms
+
+    link = run_with_fake(body)
+    assert link.stats.autopilot_reboots == 1
+    assert link.stats.time_anomalies == 2  # the new clock's first two stamps, before it was confirmed
+    assert len(connections) == 1  # one new connection for the on_connect callbacks
+    assert len(seen) == 38 and seen[20] < 1000 and seen[20:] == sorted(seen[20:])
+
+
+def test_the_built_in_vehicle_restarted_after_the_link_was_lost_is_one_reboot(tmp_path: Path, procs: Processes) -> None:
+    """The vehicle process killed (a power cut) and started again on the same port: the link is lost,
+    comes back with the same identity, and its earlier boot clock counts as one reboot."""
+    port = free_port()
+    args = vehicle_args(port, log=None, position_source="extnav", gps=False)
+    vehicle = procs.start("vehicle", args)
+    clock_before: dict[str, int] = {}
+
+    async def main() -> MavlinkLink:
+        link = make_link(f"udpout:127.0.0.1:{port}", link_timeout_s=0.5)
+        state = AutopilotState(link)
+        streams = StreamNegotiator(link, state, Commander(link, state, link.cfg), link.cfg.streams, link.health)
+
+        async def attitude_after(t: float) -> None:
+            while state.attitude_time is None or state.attitude_time <= t:
+                await asyncio.sleep(0.05)
+
+        tasks = [asyncio.ensure_future(link.run()), asyncio.ensure_future(streams.run())]
+        try:
+            await asyncio.wait_for(attitude_after(0.0), 20)
+            await asyncio.sleep(3.0)  # the vehicle's clock runs well past the next one's start
+            clock_before["ms"] = link._boot_clock.ms or 0
+            vehicle.kill()
+            while link.connected:
+                await asyncio.sleep(0.05)
+            lost_at = asyncio.get_running_loop().time()
+            procs.start("vehicle-again", args)
+            await asyncio.wait_for(attitude_after(lost_at), 20)
+            while link.stats.autopilot_reboots == 0 and asyncio.get_running_loop().time() < lost_at + 20:
+                await asyncio.sleep(0.05)
+        finally:
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+        return link
+
+    link = asyncio.run(main())
+    assert clock_before["ms"] > 3000
+    assert link.stats.autopilot_reboots == 1
+    assert link.autopilot == "ArduPilot" and link.stats.identity_changed == 0
+    assert link._boot_clock.ms is not None and link._boot_clock.ms < clock_before["ms"]
+
+
+@requires_ardupilot
+def test_ardupilot_sitl_killed_and_started_again_is_one_reboot(tmp_path: Path) -> None:
+    """ArduCopter 4.0.5 SITL killed (SIGKILL) and started again without wiping: the TCP port ends, the
+    link reopens it, the streams are asked for again and the earlier boot clock counts as one reboot."""
+    sitl = ArduPilotSitl(SitlOptions(ARDUCOPTER, defaults=default_defaults(ARDUCOPTER),
+                                     home=(1.2966, 103.7764, 10.0, 0.0)), tmp_path / "sitl")
+    sitl.start(wipe=True)
+    clock_before: dict[str, int] = {}
+
+    async def main() -> MavlinkLink:
+        assert sitl.wait_listening(30)
+        link = make_link(sitl.url(0))
+        state = AutopilotState(link)
+        streams = StreamNegotiator(link, state, Commander(link, state, link.cfg), link.cfg.streams, link.health)
+        tasks = [asyncio.ensure_future(link.run()), asyncio.ensure_future(streams.run())]
+        loop = asyncio.get_running_loop()
+        try:
+            while (link._boot_clock.ms or 0) < 15_000:  # well past where the next boot will be when it streams
+                await asyncio.sleep(0.1)
+            clock_before["ms"] = link._boot_clock.ms or 0
+            sitl.kill()
+            sitl.start()
+            assert await loop.run_in_executor(None, sitl.wait_listening, 30.0)
+            deadline = loop.time() + 40
+            while link.stats.autopilot_reboots == 0 and loop.time() < deadline:
+                await asyncio.sleep(0.1)
+        finally:
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+        return link
+
+    try:
+        link = asyncio.run(main())
+    finally:
+        sitl.stop()
+    assert link.stats.autopilot_reboots == 1 and link.stats.reconnects >= 1
+    assert link._boot_clock.ms is not None and link._boot_clock.ms < clock_before["ms"]
+    assert link.autopilot == "ArduPilot" and link.stats.identity_changed == link.stats.identity_impostors == 0
