@@ -4,7 +4,8 @@ real MAVLink 2 on loopback UDP: a fake autopilot (tests/mavlink_peer.py) or the 
 - the identity (ids, autopilot family, MAV_TYPE) is locked by the first HEARTBEAT; heartbeats
   claiming another are counted, reported and not obeyed, other components' are no conflict;
 - one odd boot time is dropped and counted, not a reboot; a new, earlier clock confirmed by
-  several stamps is; a real restart of the vehicle process (or of ArduPilot SITL) is one reboot.
+  several stamps is; a real restart of the vehicle process (or of ArduPilot SITL) is one reboot;
+- a COMMAND_ACK completes a command only from the autopilot, for a pending command, addressed to us.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from tests.conftest import free_port
 GUIDED = 4  # ArduCopter custom_mode
 PX4_OFFBOARD = (6 << 16)  # PX4 main mode OFFBOARD in custom_mode
 GIMBAL_COMPID = mavlink.MAV_COMP_ID_GIMBAL  # 154
+REQUEST_MESSAGE = mavlink.MAV_CMD_REQUEST_MESSAGE
 
 
 def run_with_fake(body: Callable[[MavlinkLink, FakeAutopilot], Awaitable[None]], **mavlink_cfg: float) -> MavlinkLink:
@@ -235,3 +237,50 @@ def test_ardupilot_sitl_killed_and_started_again_is_one_reboot(tmp_path: Path) -
     assert link.stats.autopilot_reboots == 1 and link.stats.reconnects >= 1
     assert link._boot_clock.ms is not None and link._boot_clock.ms < clock_before["ms"]
     assert link.autopilot == "ArduPilot" and link.stats.identity_changed == link.stats.identity_impostors == 0
+
+
+# -- COMMAND_ACK -----------------------------------------------------------------------------
+
+
+def ack(command: int, result: int, target: tuple[int, int] = (0, 0)) -> mavlink.MAVLink_message:
+    return mavlink.MAVLink_command_ack_message(command, result, 0, 0, *target)
+
+
+def test_forged_acks_do_not_complete_a_command_and_the_autopilot_s_own_does() -> None:
+    outcome: dict[str, object] = {}
+
+    async def body(link: MavlinkLink, fake: FakeAutopilot) -> None:
+        commander = Commander(link, AutopilotState(link), link.cfg)
+        fake.send(ack(REQUEST_MESSAGE, mavlink.MAV_RESULT_ACCEPTED, (1, 197)))  # nothing pending yet
+        await fake.until(lambda: link.stats.acks_ignored == 1, "the ACK of no command")
+        task = asyncio.ensure_future(commander.command_result(REQUEST_MESSAGE, 148))
+        await fake.until(lambda: any(m.get_type() == "COMMAND_LONG" for m in fake.received), "the command")
+        fake.send(ack(REQUEST_MESSAGE, mavlink.MAV_RESULT_ACCEPTED, (1, 197)), compid=2)  # another component
+        fake.send(ack(REQUEST_MESSAGE, mavlink.MAV_RESULT_ACCEPTED, (7, 197)))  # for another system
+        fake.send(ack(REQUEST_MESSAGE, mavlink.MAV_RESULT_ACCEPTED, (1, 5)))  # for another component
+        fake.send(ack(mavlink.MAV_CMD_COMPONENT_ARM_DISARM, mavlink.MAV_RESULT_ACCEPTED, (1, 197)))  # not pending
+        await asyncio.sleep(0.3)
+        outcome["done_by_forged"] = task.done()
+        fake.send(ack(REQUEST_MESSAGE, mavlink.MAV_RESULT_DENIED, (1, 197)))
+        outcome["result"] = await asyncio.wait_for(task, 2.0)
+        fake.send(ack(REQUEST_MESSAGE, mavlink.MAV_RESULT_ACCEPTED, (1, 197)))  # a repeat, after the answer
+        await fake.until(lambda: link.stats.acks_ignored == 5, "the repeated ACK")
+
+    link = run_with_fake(body, command_timeout_s=2.0, command_retries=1)
+    assert outcome == {"done_by_forged": False, "result": mavlink.MAV_RESULT_DENIED}
+    assert link.stats.acks_ignored == 5  # before any command, two misaddressed, not pending, the repeat
+    assert link.stats.other_components_rx == 1  # the one from component 2 never reached the commander
+
+
+def test_an_ack_with_no_targets_as_ardupilot_4_0_sends_completes_the_command() -> None:
+    outcome: dict[str, object] = {}
+
+    async def body(link: MavlinkLink, fake: FakeAutopilot) -> None:
+        commander = Commander(link, AutopilotState(link), link.cfg)
+        task = asyncio.ensure_future(commander.command_result(REQUEST_MESSAGE, 148))
+        await fake.until(lambda: any(m.get_type() == "COMMAND_LONG" for m in fake.received), "the command")
+        fake.send(ack(REQUEST_MESSAGE, mavlink.MAV_RESULT_ACCEPTED))
+        outcome["result"] = await asyncio.wait_for(task, 2.0)
+
+    link = run_with_fake(body, command_timeout_s=2.0, command_retries=1)
+    assert outcome["result"] == mavlink.MAV_RESULT_ACCEPTED and link.stats.acks_ignored == 0

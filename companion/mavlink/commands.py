@@ -5,6 +5,12 @@ counting retries) and waited for ``command_timeout_s`` each time. A command that
 or never acknowledged raises :class:`CommandFailed` naming the command and the result
 (:meth:`Commander.command_result` returns the result instead, for callers that try
 alternatives, e.g. the stream negotiation).
+
+A COMMAND_ACK completes a command only if it comes from the autopilot (the link passes on
+nothing else), names a command of ours that is waiting for its ACK, and, where its MAVLink 2
+``target_system`` / ``target_component`` are filled in (non-zero), names us. Any other is ignored
+and counted (``link.stats.acks_ignored``): a late or repeated ACK, one meant for a ground station,
+or a forged one. ArduPilot 4.0 leaves both targets 0 (checked against ArduCopter 4.0.5 SITL).
 """
 
 from __future__ import annotations
@@ -129,5 +135,21 @@ class Commander:
 
     def _on_ack(self, msg: mavlink.MAVLink_message) -> None:
         future = self._waiting.get(msg.command)
-        if future is not None and not future.done():
-            future.set_result(msg.result)
+        refusal = self._ack_refusal(msg, future)
+        if refusal is not None:
+            self.link.stats.acks_ignored += 1
+            log.debug("ignored a COMMAND_ACK of %s: %s", COMMAND_NAMES.get(msg.command, msg.command), refusal)
+            return
+        assert future is not None
+        future.set_result(msg.result)
+
+    def _ack_refusal(self, msg: mavlink.MAVLink_message, future: asyncio.Future[int] | None) -> str | None:
+        """Why COMMAND_ACK ``msg`` does not complete ``future`` (the command's, if it is waiting); None if it does."""
+        if future is None or future.done():
+            return "no such command of ours is waiting for its ACK"
+        ids = self.link.ids
+        for field, ours in (("target_system", ids.sysid), ("target_component", ids.compid)):
+            named = getattr(msg, field, 0)
+            if named not in (0, ours):
+                return f"addressed to {field} {named}, not {ours}"
+        return None

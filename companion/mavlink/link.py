@@ -92,6 +92,7 @@ class LinkStats:
     identity_changed: int = 0  # HEARTBEATs from the autopilot's ids with another autopilot type or MAV_TYPE: refused
     identity_impostors: int = 0  # autopilot-looking HEARTBEATs from the autopilot's sysid, another compid: refused
     time_anomalies: int = 0  # messages dropped: their time_boot_ms does not fit the autopilot's boot clock
+    acks_ignored: int = 0  # COMMAND_ACKs for no pending command of ours, or addressed to someone else (Commander)
 
 
 def often(count: int) -> bool:
