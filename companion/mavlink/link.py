@@ -15,7 +15,9 @@ claim another are refused, counted (``identity_changed``, ``identity_impostors``
 (health component ``autopilot_identity`` degraded) and logged; a message whose ``time_boot_ms``
 does not fit the autopilot's boot clock is dropped and counted (``time_anomalies``), and only a
 confirmed new, earlier clock is a reboot (``autopilot_reboots``; the clock is kept across link
-loss).
+loss). With a signing key, everything sent is signed and only correctly signed messages are taken
+(``companion.mavlink.signing``): the others are counted (``unsigned_rejected``, ``bad_signatures``),
+not as parse errors.
 
 An autopilot that merely stops talking (hung, paused, rebooting on a serial line) makes the
 link *lost* (health, ``connected``) but the port stays open: closing a TCP connection to a
@@ -45,6 +47,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 from companion import clock  # noqa: E402
 from companion.config import MavlinkConfig, VehicleConfig  # noqa: E402
 from companion.health import Health, State  # noqa: E402
+from companion.mavlink.signing import is_refused, require_signatures  # noqa: E402
 from companion.mavlink.transport import Transport, TransportClosed, open_transport  # noqa: E402
 from companion.mavlink.trust import BootClock, Heartbeat, Identity, IdentityLock, Stamp, autopilot_name  # noqa: E402
 from companion.schema import read_regular_file  # noqa: E402
@@ -53,7 +56,7 @@ log = logging.getLogger("companion.mavlink")
 
 CONNECT_TIMEOUT_S = 2.0  # a TCP peer that does not accept within this is retried later
 REOPEN_BACKOFF_S = (0.25, 2.0)  # first and longest wait before reopening an ended port
-SIGNING_EPOCH = 1420070400  # MAVLink 2 signing timestamps count 10 us units from 2015-01-01
+SIGNING_LINK_ID = 1  # the link id in the daemon's signatures
 
 Handler = Callable[[mavlink.MAVLink_message], None]
 
@@ -93,6 +96,8 @@ class LinkStats:
     identity_impostors: int = 0  # autopilot-looking HEARTBEATs from the autopilot's sysid, another compid: refused
     time_anomalies: int = 0  # messages dropped: their time_boot_ms does not fit the autopilot's boot clock
     acks_ignored: int = 0  # COMMAND_ACKs for no pending command of ours, or addressed to someone else (Commander)
+    unsigned_rejected: int = 0  # signing on: unsigned messages refused
+    bad_signatures: int = 0  # signing on: wrong key, or a replayed / old signing timestamp
 
 
 def often(count: int) -> bool:
@@ -158,6 +163,7 @@ class MavlinkLink:
         self._identity = IdentityLock(ids.autopilot_sysid, ids.autopilot_compid)
         self._boot_clock = BootClock()  # kept across link loss: a link back on an earlier clock is a reboot
         self._stamped_since_connect = False  # a boot time fitted the clock since the last (re)connection
+        self._signing_streams: dict[tuple[int, int, int], int] = {}  # newest signing timestamp per stream, all ports
         self.health.report("link", State.LOST, "not connected yet")
         self.subscribe("HEARTBEAT", self._on_heartbeat)
         self.subscribe("TIMESYNC", self._on_timesync)
@@ -240,10 +246,8 @@ class MavlinkLink:
         codec = mavlink.MAVLink(transport, srcSystem=self.ids.sysid, srcComponent=self.ids.compid)
         codec.robust_parsing = True
         if self.signing_key is not None:
-            codec.signing.secret_key = self.signing_key
-            codec.signing.sign_outgoing = True
-            codec.signing.link_id = 1
-            codec.signing.timestamp = int(max(time.time() - SIGNING_EPOCH, 0) * 100_000)
+            require_signatures(codec, self.signing_key, SIGNING_LINK_ID, self._signature_refused,
+                               self._signing_streams)
         self._transport, self._codec = transport, codec
         self._ended.clear()
         asyncio.get_running_loop().add_reader(transport.fd, self._on_readable)
@@ -357,7 +361,8 @@ class MavlinkLink:
     def _dispatch(self, msg: mavlink.MAVLink_message) -> None:
         msg_type = msg.get_type()
         if msg_type == "BAD_DATA":
-            self.stats.parse_errors += 1
+            if not is_refused(msg):  # a refused signature is counted by _signature_refused
+                self.stats.parse_errors += 1
             return
         self.stats.messages_rx += 1
         if msg.get_srcSystem() != self.ids.autopilot_sysid or not self._from_autopilot(msg):
@@ -439,6 +444,18 @@ class MavlinkLink:
             log.warning("the autopilot's boot clock jumped ahead: %d ms after %s ms", boot_ms, before)
         self._stamped_since_connect = self._connected
         return True
+
+    def _signature_refused(self, signed: bool) -> None:
+        """Signing on: a message that was unsigned (``signed`` False) or badly signed was refused."""
+        if signed:
+            self.stats.bad_signatures += 1
+        else:
+            self.stats.unsigned_rejected += 1
+        count = self.stats.bad_signatures + self.stats.unsigned_rejected
+        if often(count):
+            log.warning("refused %s message on %s (%d unsigned, %d badly signed so far): is the key the autopilot's?",
+                        "a badly signed (wrong key, replayed or old timestamp)" if signed else "an unsigned",
+                        self.url, self.stats.unsigned_rejected, self.stats.bad_signatures)
 
     # -- built-in handlers ------------------------------------------------------------------
 
