@@ -47,6 +47,7 @@ class FlightLog:
             "t_rx": [], "frame": [], "type_mask": [], "pos": [], "vel": [], "acc": [],
         }
         self.rejected = {"nonfinite": 0, "stale_or_future": 0, "gated": 0}
+        self.signing = {"unsigned_rejected": 0, "bad_signatures": 0}  # companion link, signing on
         self.origin: dict[str, float | None] = {"set_at": None, "lat": None, "lon": None, "alt": None}
         self.external_nav: dict[str, float | None] = {"first_in_use_at": None, "in_use_seconds": 0.0}
         self.modes: list[list] = []
@@ -155,6 +156,7 @@ class FlightLog:
             "vision_speed": self.vision_speed,
             "setpoints": self.setpoints,
             "rejected": self.rejected,
+            "signing": self.signing,
             "origin": self.origin,
             "external_nav": self.external_nav,
             "modes": self.modes,

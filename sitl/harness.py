@@ -153,6 +153,8 @@ def _move_origin_to_takeoff(cfg: Config, raw: dict, out_dir: Path) -> None:
 
 def vehicle_command(cfg: Config, args: argparse.Namespace, log_path: Path,
                     extra_gcs: tuple[str, ...] = ()) -> list[str]:
+    """``python -m sitl.vehicle`` for this config; it signs its companion link with the daemon's
+    ``mavlink.signing_key_file`` when there is one."""
     s = cfg.sitl
     start = takeoff_pose(cfg)
     cmd = [sys.executable, "-m", "sitl.vehicle", "--companion", s.vehicle_url,
@@ -169,6 +171,8 @@ def vehicle_command(cfg: Config, args: argparse.Namespace, log_path: Path,
         cmd.append("--lockstep")
     if args.seconds is not None:
         cmd += ["--seconds", str(args.seconds)]
+    if cfg.mavlink.signing_key_file:
+        cmd += ["--signing-key", str(cfg.resolve(cfg.mavlink.signing_key_file))]
     return cmd
 
 

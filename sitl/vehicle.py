@@ -27,6 +27,14 @@ driven by the vehicle, which makes runs deterministic for a seed:
 
 At exit (``--seconds`` reached, SIGTERM or SIGINT) the flight log (sitl/flight_log.py) is written
 to ``--log`` and the process exits 0; a lockstep reply missing for 60 s exits 3.
+
+Signing: with ``--signing-key FILE`` (the daemon's ``mavlink.signing_key_file``) the companion
+link signs everything it sends and takes only messages signed with that key, with timestamps
+that only go forward (companion/mavlink/signing.py, the daemon's rules); the others are dropped and
+counted in the flight log's ``signing`` (``unsigned_rejected``, ``bad_signatures``), and the first
+is reported on stderr. An unsigned companion can then neither command the vehicle nor, in
+lockstep, start it. Ground-station links stay unsigned; what they send for the companion is
+forwarded as it came, as a router does.
 """
 
 from __future__ import annotations
@@ -43,6 +51,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -52,11 +61,14 @@ from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mav  # noqa: E402
 
 from companion.frames import GRAVITY_MPS2, geodetic_from_ned, ned_from_geodetic, rotation_from_quat  # noqa: E402
+from companion.mavlink.link import load_signing_key  # noqa: E402
+from companion.mavlink.signing import require_signatures  # noqa: E402
 from sitl.copter import SimulatedCopter, WindConfig  # noqa: E402
 from sitl.flight_log import FlightLog  # noqa: E402
 from companion.jitter import JitterCorrection  # noqa: E402
 
 COMPID = mav.MAV_COMP_ID_AUTOPILOT1
+SIGNING_LINK_ID = 0  # the link id in the companion link's signatures
 DEFAULT_HOME = (1.2966, 103.7764, 10.0)
 DEFAULT_STREAM_INTERVAL_US = 250_000  # SET_MESSAGE_INTERVAL with interval 0: "default rate", 4 Hz
 HEARTBEAT_INTERVAL_US = 1_000_000
@@ -129,6 +141,7 @@ class VehicleConfig:
     sysid: int = 1
     legacy_streams: bool = False  # like older firmware: SET_MESSAGE_INTERVAL unknown, REQUEST_DATA_STREAM only
     refuse_intervals: tuple[int, ...] = ()  # message ids whose SET_MESSAGE_INTERVAL fails, as on ArduPilot 4.0
+    signing_key: bytes | None = None  # MAVLink 2 signing on the companion link (--signing-key)
 
 
 def _next_due(due_us: int, interval_us: int, now_us: int) -> int:
@@ -237,6 +250,8 @@ class Vehicle:
         self.links = [Link("companion", cfg.companion, cfg.sysid)]
         self.links += [Link(f"gcs{i}", url, cfg.sysid) for i, url in enumerate(cfg.gcs)]
         self.companion = self.links[0]
+        if cfg.signing_key is not None:
+            require_signatures(self.companion.conn.mav, cfg.signing_key, SIGNING_LINK_ID, self._signature_refused)
         self.n = 0  # ticks done; sim time t = n * tick
         self.t0: float | None = None  # time.monotonic() at sim zero (real time only)
         self.log = FlightLog(seed=cfg.seed, lockstep=cfg.lockstep, monotonic_at_sim_zero=None)
@@ -502,6 +517,15 @@ class Vehicle:
             handler(link, msg)
             self._observe()
         return False
+
+    def _signature_refused(self, signed: bool) -> None:
+        """Signing on: an unsigned (``signed`` False) or badly signed message on the companion link was dropped."""
+        counts = self.log.signing
+        if counts["unsigned_rejected"] + counts["bad_signatures"] == 0:
+            print(f"sitl.vehicle: dropped {'a badly signed' if signed else 'an unsigned'} message on the companion "
+                  "link (--signing-key): does the companion sign with the same key (mavlink.signing_key_file)?",
+                  file=sys.stderr, flush=True)
+        counts["bad_signatures" if signed else "unsigned_rejected"] += 1
 
     def _on_timesync(self, link: Link, msg: mav.MAVLink_message) -> bool:
         """Answer TIMESYNC requests; recognise the companion's reply to the lockstep tick."""
@@ -1026,14 +1050,20 @@ def parse_args(argv: Sequence[str] | None = None) -> VehicleConfig:
     p.add_argument("--legacy-streams", action="store_true",
                    help="answer SET_MESSAGE_INTERVAL with MAV_RESULT_UNSUPPORTED, as firmware that only knows "
                         "REQUEST_DATA_STREAM groups does")
+    p.add_argument("--signing-key", metavar="FILE", default=None,
+                   help="MAVLink 2 signing on the companion link with this key (32 raw bytes or 64 hex characters)")
     a = p.parse_args(argv)
     if a.tick <= 0 or (a.seconds is not None and a.seconds < 0) or not 1 <= a.sysid <= 255:
         p.error("--tick must be > 0, --seconds >= 0 and --sysid 1..255")
+    try:
+        key = load_signing_key(Path(a.signing_key)) if a.signing_key else None
+    except (OSError, ValueError) as exc:
+        p.error(f"--signing-key: {exc}")
     return VehicleConfig(
         companion=a.companion, gcs=tuple(a.gcs), lockstep=a.lockstep, tick_s=a.tick, seed=a.seed,
         seconds=a.seconds, log=a.log, home=a.home, gps=not a.no_gps, position_source=a.position_source,
         wind_ned_mps=a.wind, gust_mps=a.gust, start=a.start, sysid=a.sysid, legacy_streams=a.legacy_streams,
-        refuse_intervals=tuple(a.refuse_interval))
+        refuse_intervals=tuple(a.refuse_interval), signing_key=key)
 
 
 @contextmanager
