@@ -238,7 +238,8 @@ def test_pilot_takeover_stops_setpoints_at_once_and_aborts_the_mission(tmp_path:
         assert ack.result == mav.MAV_RESULT_ACCEPTED
         mission = wait_for(lambda: (m := telemetry.get("mission")).get("state") == "aborted" and m, 5,
                            "the mission aborted")
-        assert mission["reason"] == "pilot took over"
+        assert mission["reason"] == "pilot or ground station changed the mode to LOITER"
+        assert mission["failsafe_counts"] == {}  # a pilot's decision is no failsafe
         time.sleep(1.5)  # would the daemon take the vehicle back?
         assert Processes.stop(vehicle) == 0
     finally:
@@ -251,7 +252,7 @@ def test_pilot_takeover_stops_setpoints_at_once_and_aborts_the_mission(tmp_path:
     assert [t for t in setpoints if t > loiter_at + 0.2] == []  # and stopped at once
     assert [mode for t, mode, _ in flight["modes"] if t >= loiter_at] == ["LOITER"]  # never taken back
     assert not [c for c in flight["commands"] if c[0] > loiter_at and c[1] == mav.MAV_CMD_DO_SET_MODE]
-    assert "mission hover aborted: pilot took over" in procs.output("daemon")
+    assert "mission hover aborted: pilot or ground station changed the mode to LOITER" in procs.output("daemon")
 
 
 def test_origin_statustext_reaches_the_ground_station(tmp_path: Path, procs: Processes) -> None:

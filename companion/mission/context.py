@@ -27,6 +27,7 @@ from companion.mission.failsafe import EstimateStatus, Geofence, classify_estima
 
 log = logging.getLogger("companion.mission")
 
+FAILSAFE_ANNOUNCED_WITHIN_S = 2.0  # an autopilot failsafe text this recent explains a mode change
 RECENT_FAILSAFES = 20  # the mission stream carries the last ones (and counts of all)
 RECOVERED_AFTER_S = 1.0  # an estimate back from lost must stay healthy this long before flying on
 AUTOPILOT_POSITION_MAX_AGE_S = 1.0
@@ -58,13 +59,33 @@ class MissionContext:
     payload: PayloadConfig
     geofence: Geofence | None
     takeover: asyncio.Event = field(default_factory=asyncio.Event)
+    takeover_reason: str = ""  # who changed the mode and to what (on_mode_taken)
+    taken_at: float | None = None  # daemon clock of the takeover
     airborne: bool = False  # from the take-off command to the land command: the estimate is watched
     failsafes: deque[dict] = field(default_factory=lambda: deque(maxlen=RECENT_FAILSAFES))  # kind, t, reason
     failsafe_counts: dict[str, int] = field(default_factory=dict)  # kind -> how often it fired
 
+    def on_mode_taken(self, mode: str) -> None:
+        """Someone else changed the mode (the setpoint stream stopped): the autopilot's own
+        failsafe if it announced one just before (recorded as failsafe ``autopilot``), else the
+        pilot or a ground station."""
+        self.taken_at = clock.now()
+        self.takeover.set()
+        announced = self.state.failsafe_text(self.taken_at - FAILSAFE_ANNOUNCED_WITHIN_S)
+        if announced is not None:
+            self.takeover_reason = f"autopilot failsafe to {mode}: {announced}"
+            self.record_failsafe("autopilot", self.takeover_reason)
+        else:
+            self.takeover_reason = f"pilot or ground station changed the mode to {mode}"
+
+    @property
+    def autopilot_failsafe(self) -> bool:
+        """The mode was taken by the autopilot's own failsafe (not by a pilot)."""
+        return self.takeover_reason.startswith("autopilot failsafe")
+
     def check_takeover(self) -> None:
         if self.takeover.is_set():
-            raise MissionFailed("pilot took over")
+            raise MissionFailed(self.takeover_reason)
 
     def estimate_status(self) -> EstimateStatus:
         return classify_estimate(clock.now(), self.estimate(), self.nav_health(), self.failsafe.estimate_timeout_s)

@@ -1,7 +1,9 @@
 """The mission runner: flies the steps of one mission file once (steps: companion/mission/steps.py).
 
-Outcomes (``status``): ``completed``; ``aborted`` when the pilot changed mode (the setpoint
-stream stopped at that instant: no fighting the pilot); ``failed`` with the reason otherwise.
+Outcomes (``status``): ``completed``; ``aborted`` when the pilot (or a ground station) changed
+mode (the setpoint stream stopped at that instant: no fighting the pilot); ``failed`` with the
+reason otherwise, also when the autopilot's own failsafe changed the mode (it announced it by
+STATUSTEXT, e.g. "EKF Failsafe": the reason quotes it and the failsafe is recorded as ``autopilot``).
 A failed mission leaves an airborne vehicle holding position on the autopilot's estimate (the
 hold setpoint keeps streaming, so PX4 stays in OFFBOARD and ArduPilot in GUIDED) unless a
 failsafe decided to land: then the runner switches to LAND and waits for the disarm. While
@@ -46,7 +48,7 @@ class MissionRunner:
         self.reason = ""
         self.flight: TrajectoryFlight | None = None
         self._takeoff_altitude: float | None = None
-        ctx.setpoints.on_takeover = lambda mode: ctx.takeover.set()
+        ctx.setpoints.on_takeover = ctx.on_mode_taken
 
     def snapshot(self) -> dict:
         steps = self.mission.steps
@@ -125,7 +127,7 @@ class MissionRunner:
         ctx = self.ctx
         if ctx.takeover.is_set():
             ctx.setpoints.stop()  # (stopped at the takeover already; a step may have commanded since)
-            self._set("aborted", "pilot took over")
+            self._set("failed" if ctx.autopilot_failsafe else "aborted", ctx.takeover_reason)
             return
         if not (ctx.airborne and ctx.state.armed):
             ctx.setpoints.stop()
