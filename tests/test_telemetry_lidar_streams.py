@@ -98,7 +98,7 @@ def test_map_is_republished_every_period_and_scans_once_each() -> None:
     for step in range(101):  # 20 s at 5 Hz; a new scan every other call
         clock_t[0] = step * 0.2
         if step % 2 == 0:
-            pipeline.last_horizontal = ProcessedScan(record.scan, 0.0, 0.0, record.fix)
+            pipeline.last_horizontal = ProcessedScan(record.scan, 0.0, 0.0, record.fix, record.lines, record.corners)
         views.publish()
     stats = publisher.stats()
     assert stats["scan"]["offered"] == stats["lines"]["offered"] == stats["corners"]["offered"] == 51

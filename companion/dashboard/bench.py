@@ -65,7 +65,9 @@ def arena_scan(pose: tuple[float, float, float] = (2.0, 2.0, math.radians(30.0))
                           np.array([pose[0], pose[1], -1.0]), (0.0, 0.0, pose[2]), np.random.default_rng(1), 0.01)
     localizer = PlanarLocalizer(world.corner_array(), world.wall_angle_deg, mount=Mount2D(z_m=-0.1),
                                 walls=world.segments_at(1.1), initial_pose=pose)
-    return ProcessedScan(scan, 0.0, 0.0, localizer.update(scan)), localizer
+    fix = localizer.update(scan)
+    assert localizer.last_lines is not None and localizer.last_corners is not None
+    return ProcessedScan(scan, 0.0, 0.0, fix, localizer.last_lines, localizer.last_corners), localizer
 
 
 def free_tcp_port() -> int:

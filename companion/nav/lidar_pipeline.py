@@ -34,6 +34,8 @@ from companion.mavlink.estimate import PoseEstimate
 from companion.nav.fusion import FusionFilter, to_pose_estimate
 from companion.nav.height import HeightEstimator
 from companion.nav.loop import Timings
+from companion.nav.corners import Corners
+from companion.nav.lines import LineSet
 from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer, PlanarParams
 from drivers.scan import Scan
 from sitl.world import World
@@ -71,6 +73,8 @@ class ProcessedScan:
     roll: float  # body attitude the scan was levelled with, rad
     pitch: float
     fix: PlanarFix | None  # what the localizer made of it; None: no pose known (relocalizing)
+    lines: LineSet  # the lines and corners the localizer found in it (sensor frame, levelled)
+    corners: Corners
 
 
 def planar_params(cfg: LidarPipelineConfig) -> PlanarParams:
@@ -166,7 +170,9 @@ class LidarPipeline:
         started = time.perf_counter()
         fix = self.localizer.update(scan, roll=roll, pitch=pitch, yaw_delta=yaw_delta)
         elapsed = (time.perf_counter() - started) * 1e3
-        self.last_horizontal = ProcessedScan(scan, roll, pitch, fix)
+        assert self.localizer.last_lines is not None and self.localizer.last_corners is not None  # set by update()
+        self.last_horizontal = ProcessedScan(scan, roll, pitch, fix, self.localizer.last_lines,
+                                             self.localizer.last_corners)
         if fix is None:
             self.health.report("nav:lidar", State.LOST, self.localizer.last_reason or "no pose: relocalizing")
             return elapsed

@@ -170,6 +170,8 @@ class PlanarLocalizer:
         self.walls = None if walls is None else np.asarray(walls, dtype=float).reshape(-1, 4)
         self.params = params
         self._pose: tuple[float, float, float] | None = None
+        self.last_lines: LineSet | None = None  # what update() extracted from its last scan (never mutated)
+        self.last_corners: Corners | None = None
         self._cov = np.diag([params.lost_variance_m2, params.lost_variance_m2, UNMEASURED_VARIANCE_RAD2])
         self._misses = 0
         self._angles: np.ndarray | None = None
@@ -210,6 +212,7 @@ class PlanarLocalizer:
         t1 = time.perf_counter()
         corners = find_corners(lines, self.params.corners)
         t2 = time.perf_counter()
+        self.last_lines, self.last_corners = lines, corners
         timing = {"lines": (t1 - t0) * 1e3, "corners": (t2 - t1) * 1e3}
         if prior is not None:
             self._pose = (prior[0], prior[1], wrap_pi(prior[2]))

@@ -3,10 +3,9 @@
 What an operator needs to see whether the localization is right: the scan placed on the map
 with the pose the localizer fixed for it, the walls it found, which corners it saw and which
 known corners they matched. Built from the lidar pipeline's newest processed scan
-(:attr:`~companion.nav.lidar_pipeline.LidarPipeline.last_horizontal`) outside the nav cycle,
-at ``telemetry.scan_hz``: the lines and corners are extracted again from that scan with the
-localizer's own levelling and parameters (~0.3 ms for 1081 beams), so the pipeline keeps no
-telemetry state. Payloads: docs/telemetry.md.
+(:attr:`~companion.nav.lidar_pipeline.LidarPipeline.last_horizontal`, which keeps the lines
+and corners the localizer found in it) outside the nav cycle, at ``telemetry.scan_hz``: nothing
+is computed again here, so publishing never delays the nav loop. Payloads: docs/telemetry.md.
 
 Frames: ``*_m`` vectors of ``lines`` and ``corners`` are in the levelled body frame (x forward,
 y right, metres, rotated from the world by the yaw only); ``pose`` [x north m, y east m, yaw
@@ -20,9 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.nav.corners import find_corners
 from companion.nav.lidar_pipeline import LidarPipeline, ProcessedScan
-from companion.nav.lines import extract_lines
 from companion.nav.planar import PlanarLocalizer, associate, rotation
 from companion.telemetry.publisher import TelemetryPublisher
 
@@ -57,9 +54,7 @@ def scan_payloads(record: ProcessedScan, localizer: PlanarLocalizer) -> dict[str
     pose = None if fix is None else (fix.x, fix.y, fix.yaw)
     head = {"sensor": scan.sensor_id, "t_capture": scan.t_capture, "sequence": scan.sequence, "pose": pose}
     mount = localizer.mount
-    points, ok, ranges = localizer.level_points(scan, record.roll, record.pitch)
-    lines = extract_lines(points, ok, localizer.params.lines, ranges)
-    corners = find_corners(lines, localizer.params.corners)
+    lines, corners = record.lines, record.corners
     matched = [] if pose is None else matched_corners(corners.xy, pose, localizer.map, localizer.params.gate_m)
     return {
         "scan": {**head, "sweep_s": scan.sweep_s, "angles_rad": scan.angles_rad, "ranges_m": scan.ranges_m,
