@@ -12,6 +12,7 @@ import logging
 import os
 import resource
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -53,6 +54,9 @@ from sitl.world import load_world
 log = logging.getLogger("companion.daemon")
 
 SHUTDOWN_BUDGET_S = 1.5
+# How long a worker thread (telemetry encoding, zenoh callbacks) may hold the GIL before the event
+# loop's thread gets it back: Python's 5 ms default would add up to 5 ms to a nav-loop wake-up.
+GIL_SWITCH_INTERVAL_S = 0.0005
 STATUSTEXT_SEVERITY = {State.OK: mavlink.MAV_SEVERITY_INFO, State.DEGRADED: mavlink.MAV_SEVERITY_WARNING,
                        State.LOST: mavlink.MAV_SEVERITY_ERROR}
 
@@ -82,6 +86,7 @@ class Daemon:
 
     async def run(self) -> int:
         cfg = self.cfg
+        sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self.request_stop)
