@@ -14,6 +14,7 @@ from companion.frames import GRAVITY_MPS2
 from companion.health import Health
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.link import MavlinkLink, mavlink
+from companion.mavlink.trust import OLD_CLOCK_SILENT_S
 
 SAMPLE_S = 0.02  # 50 Hz
 
@@ -49,8 +50,9 @@ def test_scaled_imu_becomes_specific_force_and_rates_in_si_units() -> None:
 def test_after_an_autopilot_reboot_its_imu_is_used_once_the_reboot_is_confirmed() -> None:
     """The boot clock restarts near 0: the offset learnt before the reboot would place every new
     sample 100 s in the past (stale) until it slid out of the window; a new connection starts over.
-    The link confirms the reboot on the third stamp of the new clock (ATTITUDE, then two IMU
-    samples): the two before it are dropped as off the clock, every one after is used."""
+    After the silence of a boot, the link confirms the reboot on the third stamp of the new clock
+    (ATTITUDE, then two IMU samples): the two before it are dropped as off the clock, every one
+    after is used."""
     async def main() -> tuple[AutopilotState, MavlinkLink, int]:
         link = MavlinkLink(MavlinkConfig(), VehicleConfig(), "udpout:127.0.0.1:9", Health(clock.now))
         state = AutopilotState(link)
@@ -59,6 +61,7 @@ def test_after_an_autopilot_reboot_its_imu_is_used_once_the_reboot_is_confirmed(
             mavlink.MAV_TYPE_QUADROTOR, mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, mavlink.MAV_STATE_STANDBY, 3)))
         await stream_imu(link, 100_000, 10)
         before = len(state.imu)
+        await asyncio.sleep(OLD_CLOCK_SILENT_S)  # booting: silent
         await stream_imu(link, 500, 10)  # its ATTITUDE's boot time goes back: the link confirms a reboot
         return state, link, before
 

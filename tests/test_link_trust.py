@@ -14,10 +14,12 @@ import asyncio
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 
+from companion.health import State
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.commands import Commander
-from companion.mavlink.link import MavlinkLink, mavlink
+from companion.mavlink.link import IDENTITY_ALERT_HOLD_S, MavlinkLink, mavlink
 from companion.mavlink.streams import StreamNegotiator
+from companion.mavlink.trust import OLD_CLOCK_SILENT_S
 from sitl.ardupilot import ArduPilotSitl, SitlOptions, default_defaults
 from tests.ardupilot_helpers import ARDUCOPTER, requires_ardupilot
 from tests.mavlink_peer import FakeAutopilot, make_link
@@ -72,6 +74,7 @@ async def stream_attitude(link: MavlinkLink, fake: FakeAutopilot, count: int, of
 
 def test_a_spoofed_px4_heartbeat_from_the_autopilot_ids_is_counted_and_the_autopilot_stays_ardupilot() -> None:
     state: dict[str, AutopilotState] = {}
+    health: dict[str, dict] = {}
 
     async def body(link: MavlinkLink, fake: FakeAutopilot) -> None:
         state["autopilot"] = AutopilotState(link)
@@ -83,6 +86,10 @@ def test_a_spoofed_px4_heartbeat_from_the_autopilot_ids_is_counted_and_the_autop
         fake.heartbeat(mav_type=mavlink.MAV_TYPE_FIXED_WING)  # the same family, another vehicle type
         await fake.until(lambda: link.stats.identity_changed == 5, "5 refused HEARTBEATs")
         assert link.connected
+        health["during"] = link.health.snapshot()["components"]["autopilot_identity"]
+        await asyncio.sleep(IDENTITY_ALERT_HOLD_S)
+        fake.heartbeat(custom_mode=GUIDED)  # the real autopilot, a second after the last conflict
+        await fake.until(lambda: link.health.get("autopilot_identity").state == State.OK, "identity ok again")
 
     link = run_with_fake(body)
     autopilot = state["autopilot"]
@@ -90,10 +97,12 @@ def test_a_spoofed_px4_heartbeat_from_the_autopilot_ids_is_counted_and_the_autop
     assert autopilot.firmware is not None and autopilot.firmware.label == "ArduPilot copter"
     assert autopilot.mode == "GUIDED"  # the spoofed modes were not taken either
     assert link.stats.identity_changed == 5 and link.stats.identity_impostors == 0
-    identity = link.health.snapshot()["components"]["autopilot_identity"]
+    identity = health["during"]
     assert identity["state"] == "degraded"
     assert "5 HEARTBEATs refused" in identity["reason"]
     assert "ArduPilot fixed_wing (sysid 1 compid 1)" in identity["reason"]
+    after = link.health.snapshot()["components"]["autopilot_identity"]["reason"]
+    assert after == "locked: ArduPilot quadrotor (sysid 1 compid 1); 5 conflicting HEARTBEATs refused before"
 
 
 def test_an_autopilot_heartbeat_from_another_compid_is_an_impostor_a_gimbal_or_companion_is_not() -> None:
@@ -138,6 +147,26 @@ def test_one_backwards_or_far_ahead_boot_time_is_dropped_and_counted_not_a_reboo
     assert connections == []  # nothing restarted: no origin re-sent, no streams re-requested, no state reset
 
 
+def test_a_forger_interleaving_its_own_earlier_clock_with_the_real_one_makes_no_reboot() -> None:
+    connections: list[float] = []
+
+    async def body(link: MavlinkLink, fake: FakeAutopilot) -> None:
+        link.on_connect(lambda: connections.append(1.0))
+        for i in range(100):  # 2 s: four forged stamps on a clock at 5 s for every real one at 100 s
+            if i % 10 == 0:
+                fake.heartbeat()
+            fake.attitude(fake.boot_ms(100_000))
+            for k in range(4):
+                fake.attitude(5_000 + 20 * (4 * i + k), roll=1.0)
+            await asyncio.sleep(0.02)
+        fake.pump()
+        await asyncio.sleep(0.05)
+
+    link = run_with_fake(body)
+    assert link.stats.autopilot_reboots == 0 and connections == []
+    assert link.stats.time_anomalies == 400
+
+
 def test_a_reboot_during_the_connection_is_confirmed_by_the_new_clock_and_starts_a_new_connection() -> None:
     seen: list[int] = []
     connections: list[float] = []
@@ -146,6 +175,7 @@ def test_a_reboot_during_the_connection_is_confirmed_by_the_new_clock_and_starts
         link.subscribe("ATTITUDE", lambda msg: seen.append(msg.time_boot_ms))
         link.on_connect(lambda: connections.append(1.0))
         await stream_attitude(link, fake, 20, offset_ms=100_000)
+        await asyncio.sleep(OLD_CLOCK_SILENT_S)  # booting: silent
         await stream_attitude(link, fake, 20, offset_ms=-fake.boot_ms() + 300)  # rebooted: its clock at 300 ms
 
     link = run_with_fake(body)

@@ -12,7 +12,8 @@ Only the autopilot is listened to (``companion.mavlink.trust``): subscribers get
 autopilot's sysid and compid only (others of its system are counted, ``other_components_rx``); its
 identity (ids, autopilot family, MAV_TYPE) is locked by its first HEARTBEAT, and HEARTBEATs that
 claim another are refused, counted (``identity_changed``, ``identity_impostors``), reported
-(health component ``autopilot_identity`` degraded) and logged; a message whose ``time_boot_ms``
+(health component ``autopilot_identity`` degraded while they arrive, ok again at the autopilot's
+first HEARTBEAT :data:`IDENTITY_ALERT_HOLD_S` after the last one; the counts stay) and logged; a message whose ``time_boot_ms``
 does not fit the autopilot's boot clock is dropped and counted (``time_anomalies``), and only a
 confirmed new, earlier clock is a reboot (``autopilot_reboots``; the clock is kept across link
 loss). With a signing key, everything sent is signed and only correctly signed messages are taken
@@ -55,6 +56,7 @@ from companion.schema import read_regular_file  # noqa: E402
 log = logging.getLogger("companion.mavlink")
 
 CONNECT_TIMEOUT_S = 2.0  # a TCP peer that does not accept within this is retried later
+IDENTITY_ALERT_HOLD_S = 1.0  # autopilot_identity stays degraded this long after the last conflicting HEARTBEAT
 REOPEN_BACKOFF_S = (0.25, 2.0)  # first and longest wait before reopening an ended port
 SIGNING_LINK_ID = 1  # the link id in the daemon's signatures
 
@@ -161,6 +163,7 @@ class MavlinkLink:
         self._ticked = asyncio.Event()  # lockstep: the vehicle's first tick arrived
         self._tick_batch: list[mavlink.MAVLink_message] = []  # lockstep: read, not yet dispatched
         self._identity = IdentityLock(ids.autopilot_sysid, ids.autopilot_compid)
+        self._last_conflict_t = -float("inf")  # daemon clock of the last conflicting HEARTBEAT
         self._boot_clock = BootClock()  # kept across link loss: a link back on an earlier clock is a reboot
         self._stamped_since_connect = False  # a boot time fitted the clock since the last (re)connection
         self._signing_streams: dict[tuple[int, int, int], int] = {}  # newest signing timestamp per stream, all ports
@@ -394,6 +397,8 @@ class MavlinkLink:
             self._identity_conflict(verdict, msg)
         elif self.autopilot is None:
             self._identity_locked()
+        elif clock.now() - self._last_conflict_t >= IDENTITY_ALERT_HOLD_S:
+            self._report_identity_ok()
         return verdict is Heartbeat.AUTOPILOT
 
     def _identity_locked(self) -> None:
@@ -402,7 +407,12 @@ class MavlinkLink:
         self.autopilot = autopilot_name(identity.autopilot)
         log.info("autopilot detected: %s; its identity is locked for the life of this process", identity)
         if self.stats.identity_changed + self.stats.identity_impostors == 0:
-            self.health.report("autopilot_identity", State.OK, f"locked: {identity}")
+            self._report_identity_ok()
+
+    def _report_identity_ok(self) -> None:
+        refused = self.stats.identity_changed + self.stats.identity_impostors
+        history = f"; {refused} conflicting HEARTBEATs refused before" if refused else ""
+        self.health.report("autopilot_identity", State.OK, f"locked: {self._identity.locked}{history}")
 
     def _identity_conflict(self, verdict: Heartbeat, msg: mavlink.MAVLink_message) -> None:
         """A HEARTBEAT claiming to be the autopilot with another identity: counted, reported, logged; not obeyed."""
@@ -411,6 +421,7 @@ class MavlinkLink:
         else:
             self.stats.identity_impostors += 1
         count = self.stats.identity_changed + self.stats.identity_impostors
+        self._last_conflict_t = clock.now()
         claim = f"{Identity.of(msg)}: {verdict.value}"
         self.health.report("autopilot_identity", State.DEGRADED, f"{count} HEARTBEATs refused, last {claim}")
         if often(count):

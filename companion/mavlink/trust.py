@@ -23,7 +23,9 @@ stamp newer (the clock runs; a message may have been delayed more than the next)
 than the last stamp of its own message type (:attr:`Stamp.IN_ORDER`). A stamp that does not fit
 is held back (:attr:`Stamp.DROPPED`): one odd stamp, backwards or far ahead, never moves the
 clock. Only :data:`CONFIRMATIONS` consecutive stamps that fit one another and not the clock
-(no stamp of the old clock between them) make a new clock: an earlier one is a reboot
+(no stamp of the old clock between them), once the old clock has been silent for
+:data:`OLD_CLOCK_SILENT_S` (an autopilot takes longer than that to boot; a forger interleaving
+its own clock with the real one's stamps never gets there), make a new clock: an earlier one is a reboot
 (:attr:`Stamp.REBOOT`), a later one a jump (:attr:`Stamp.JUMP`). The clock is kept across link
 loss, so a link that comes back on an earlier clock is a reboot too. A reboot during a link loss
 that ends with the new clock already past the old one cannot be told from the clock.
@@ -45,6 +47,7 @@ BACKWARD_TOLERANCE_MS = 1000
 FORWARD_SLACK_MS = 1000
 CLOCK_RATE_MARGIN = 2.0  # the autopilot's clock may run up to this many times the daemon's (SITL speed-up)
 CONFIRMATIONS = 3
+OLD_CLOCK_SILENT_S = 1.0  # no stamp on the old clock for this long before a new clock is believed
 
 
 def looks_like_autopilot(msg: mavlink.MAVLink_message) -> bool:
@@ -161,7 +164,7 @@ class BootClock:
             self._run_length += 1
         else:
             self._run, self._run_length = _Mark(ms, t), 1
-        if self._run_length < CONFIRMATIONS:
+        if self._run_length < CONFIRMATIONS or t - self._clock.t < OLD_CLOCK_SILENT_S:
             return Stamp.DROPPED
         earlier = ms < self._clock.ms
         self._clock, self._latest, self._run, self._run_length = None, {}, None, 0

@@ -44,7 +44,12 @@ class Timings:
         return float(np.percentile(np.fromiter(self._values, float), q))
 
     def summary(self) -> dict[str, float | None]:
-        return {"p50": self.percentile(50), "p99": self.percentile(99), "count": len(self._values)}
+        """{p50, p99, count}: both percentiles from one copy of the values (the status task calls
+        this for every stage at telemetry.status_hz, on the event loop)."""
+        if not self._values:
+            return {"p50": None, "p99": None, "count": 0}
+        p50, p99 = np.percentile(np.fromiter(self._values, float, len(self._values)), (50, 99))
+        return {"p50": float(p50), "p99": float(p99), "count": len(self._values)}
 
 
 class NavLoop:
