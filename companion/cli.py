@@ -1,4 +1,4 @@
-"""`companion` command line: run, check-config, setup-autopilot, sitl, dashboard, bench, config-reference."""
+"""`companion` command line: run, check-config, setup-autopilot, sitl, dashboard, bench, experiment, config-reference."""
 
 from __future__ import annotations
 
@@ -125,6 +125,20 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return run_bench(args.repeat)
 
 
+def _cmd_experiment_faults(args: argparse.Namespace) -> int:
+    from sitl.faults import run_faults
+
+    setup_logging(args.log_level or "warning")
+    return run_faults(args)
+
+
+def _cmd_experiment_soak(args: argparse.Namespace) -> int:
+    from sitl.soak import run_soak
+
+    setup_logging(args.log_level or "info")
+    return run_soak(args)
+
+
 def _cmd_config_reference(args: argparse.Namespace) -> int:
     from companion.config_reference import render
 
@@ -187,6 +201,25 @@ def build_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="per-stage timings (median, p99) of every pipeline present")
     bench.add_argument("--repeat", type=int, default=2000)
     bench.set_defaults(func=_cmd_bench)
+
+    experiment = sub.add_parser("experiment", help="experiments against the SITL that print figures")
+    experiments = experiment.add_subparsers(dest="experiment", required=True)
+    faults = experiments.add_parser("faults", help="the fault suite (real time, a few minutes): hostile and broken "
+                                                   "inputs at every edge, recovery of each (sitl/faults.py)")
+    faults.add_argument("--out", required=True, help="write the results (JSON) here")
+    faults.add_argument("-c", "--config", default=str(repo_config_dir() / "sitl-real-driver.yaml"),
+                        help="SITL config with the scanners behind the SCIP bridge (default: config/sitl-real-driver.yaml)")
+    faults.add_argument("--only", help="comma-separated fault names (default: all)")
+    faults.add_argument("--seed", type=int, default=0)
+    faults.set_defaults(func=_cmd_experiment_faults)
+    soak = experiments.add_parser("soak", help="a long real-time flight: the daemon's memory and rates over time "
+                                               "(sitl/soak.py)")
+    soak.add_argument("--out", required=True, help="write the samples and the summary (JSON) here")
+    soak.add_argument("--seconds", type=float, default=3600.0, help="length of the hold (default 3600)")
+    soak.add_argument("-c", "--config", default=str(repo_config_dir() / "sitl-real-driver.yaml"),
+                      help="SITL config (default: config/sitl-real-driver.yaml)")
+    soak.add_argument("--seed", type=int, default=0)
+    soak.set_defaults(func=_cmd_experiment_soak)
 
     ref = sub.add_parser("config-reference", help="print the config reference (docs/config.md)")
     ref.set_defaults(func=_cmd_config_reference)

@@ -59,12 +59,13 @@ class StartFailure(Exception):
 
 
 class TelemetryListener:
-    """Keeps the last JSON payload of every stream of one vehicle (a zenoh peer)."""
+    """Keeps the last JSON payload of every stream of one vehicle, and when it came (a zenoh peer)."""
 
     def __init__(self, connect: list[str], sysid: int) -> None:
         from companion.telemetry.session import open_session
 
         self.latest: dict[str, dict] = {}
+        self.received: dict[str, float] = {}  # time.monotonic() of each stream's last payload
         self._lock = threading.Lock()
         self.session = open_session("peer", [], connect, False, False)
         self.subscriber = self.session.declare_subscriber(f"{KEY_PREFIX}/{sysid}/*", self._on_sample)
@@ -77,10 +78,17 @@ class TelemetryListener:
         stream = str(sample.key_expr).rsplit("/", 1)[-1]
         with self._lock:
             self.latest[stream] = payload
+            self.received[stream] = time.monotonic()
 
     def snapshot(self) -> dict[str, dict]:
         with self._lock:
             return dict(self.latest)
+
+    def age(self, stream: str) -> float:
+        """Seconds since ``stream`` last arrived (inf: never)."""
+        with self._lock:
+            received = self.received.get(stream)
+        return float("inf") if received is None else time.monotonic() - received
 
     def close(self) -> None:
         self.subscriber.undeclare()
