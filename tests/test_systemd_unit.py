@@ -150,6 +150,8 @@ def test_verify_catches_mistakes(section: str, line: str, mentioned: str) -> Non
         ("Service", "User", "companion"),
         ("Service", "Group", "companion"),
         ("Service", "Environment", "PYTHONUNBUFFERED=1"),
+        ("Service", "Nice", "-10"),
+        ("Service", "CPUWeight", "1000"),
         ("Service", "StateDirectory", "companion"),
         ("Service", "ReadWritePaths", "/var/lib/companion"),
         ("Service", "NoNewPrivileges", "yes"),
@@ -329,3 +331,9 @@ def test_install_script_passes_shellcheck() -> None:
         check=False,
     )
     assert proc.returncode == 0, proc.stdout
+
+
+def test_the_fault_suite_runs_the_daemon_at_the_units_priority() -> None:
+    from sitl.rig import SERVICE_NICE
+
+    assert values(SECTIONS, "Service", "Nice") == [str(SERVICE_NICE)]
