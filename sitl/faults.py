@@ -217,6 +217,13 @@ def side_effects(rig: Rig, fault: FlightFault, link_before: dict) -> list[str]:
     return wrong
 
 
+def reboot_pending(rig: Rig, fault: FlightFault, link_before: dict) -> str | None:
+    """Why not recovered yet from a restarted autopilot: the daemon has not counted its reboot
+    (and so has not started over: origin, streams, estimator)."""
+    counted = rig.telemetry("link").get("autopilot_reboots", 0) - link_before.get("autopilot_reboots", 0)
+    return f"reboot not counted yet ({counted} of {fault.reboots})" if counted < fault.reboots else None
+
+
 def measure(rig: Rig, fault: FlightFault, expected: set[str], timeout_s: float = HEALTHY_WITHIN_S) -> FaultResult:
     """Inject one fault and measure the recovery (see the module docstring)."""
     before = rig.counters()
@@ -230,7 +237,7 @@ def measure(rig: Rig, fault: FlightFault, expected: set[str], timeout_s: float =
     why: str | None = None
     deadline = cleared + timeout_s
     while time.monotonic() < deadline:
-        why = rig.unhealthy(expected)
+        why = rig.unhealthy(expected) or reboot_pending(rig, fault, link_before)
         if why is None:
             healthy_at = time.monotonic()
             break

@@ -109,13 +109,18 @@ class Rig:
                               self._extra_gcs)
         self.vehicle = subprocess.Popen(cmd, preexec_fn=raise_priority)
 
-    def restart_vehicle(self) -> None:
-        """Kill the vehicle (SIGKILL: no goodbye) and start a new one on the same ports."""
+    def restart_vehicle(self, timeout_s: float = 15.0) -> None:
+        """Kill the vehicle (SIGKILL: no goodbye), start a new one on the same ports and return
+        when it first speaks to the daemon (through the proxy)."""
         assert self.vehicle is not None
         self.vehicle.kill()
         self.vehicle.wait()
+        with self.proxy.lock:
+            heard = self.proxy.counters.to_daemon
         self.vehicle_restarts += 1
         self._start_vehicle()
+        if not wait_until(lambda: self.proxy.counters.to_daemon > heard, timeout_s):
+            raise RuntimeError(f"the restarted vehicle did not speak within {timeout_s:g} s")
 
     def start_daemon(self) -> None:
         self.daemon = subprocess.Popen([sys.executable, "-m", "companion.cli", "run", "-c", str(self.run_config)],

@@ -11,7 +11,9 @@ import asyncio
 import json
 import math
 import os
+import shutil
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -357,3 +359,21 @@ def write_sitl_config(path: Path, *, vehicle_port: int, gcs_port: int, zenoh_por
     raw["pipelines"]["lidar"]["map"] = str(REPO / "config" / "worlds" / "arena.yaml")
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
     return path
+
+
+def real_driver_config(directory: Path, **sitl: object) -> tuple[Path, dict]:
+    """config/sitl-real-driver.yaml on free loopback ports with absolute paths, beside a copy of
+    config/missions (``--mission NAME`` looks there); ``sitl`` keys override."""
+    raw = yaml.safe_load((REPO / "config" / "sitl-real-driver.yaml").read_text())
+    vehicle_port = free_port()
+    raw["mavlink"]["url"] = f"udpout:127.0.0.1:{vehicle_port}"
+    raw["telemetry"]["listen"] = [f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"]
+    raw["sitl"].update(vehicle_url=f"udpin:127.0.0.1:{vehicle_port}", gcs_urls=[f"udpout:127.0.0.1:{free_port()}"],
+                       world=str(REPO / "config" / "worlds" / "arena.yaml"), **sitl)
+    raw["pipelines"]["lidar"]["map"] = str(REPO / "config" / "worlds" / "arena.yaml")
+    for sensor in raw["sensors"].values():
+        sensor["settings"]["tcp_port"] = free_port(socket.SOCK_STREAM)
+    shutil.copytree(REPO / "config" / "missions", directory / "missions", dirs_exist_ok=True)
+    path = directory / "companion.yaml"
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    return path, raw

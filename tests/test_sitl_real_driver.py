@@ -14,8 +14,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import shutil
-import socket
 import subprocess
 import sys
 from pathlib import Path
@@ -32,7 +30,8 @@ from drivers.mount import Mount
 from sitl.harness import TelemetryListener
 from sitl.scip_bridge import BridgedScanner, SensorSpec, SweptLidar, TruthHistory
 from sitl.world import load_world
-from tests.conftest import REPO, free_port
+from tests.conftest import REPO
+from tests.sitl_helpers import real_driver_config
 
 ARENA = REPO / "config" / "worlds" / "arena.yaml"
 SITL_SECONDS = 30
@@ -106,24 +105,6 @@ def test_the_driver_sees_each_beam_from_the_pose_at_its_own_time(model: str, mou
 
 
 # -- configuration -------------------------------------------------------------------------------
-
-
-def real_driver_config(directory: Path, **sitl: object) -> tuple[Path, dict]:
-    """config/sitl-real-driver.yaml on free loopback ports with absolute paths, beside a copy of
-    config/missions (``--mission NAME`` looks there); ``sitl`` keys override."""
-    raw = yaml.safe_load((REPO / "config" / "sitl-real-driver.yaml").read_text())
-    vehicle_port = free_port()
-    raw["mavlink"]["url"] = f"udpout:127.0.0.1:{vehicle_port}"
-    raw["telemetry"]["listen"] = [f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}"]
-    raw["sitl"].update(vehicle_url=f"udpin:127.0.0.1:{vehicle_port}", gcs_urls=[f"udpout:127.0.0.1:{free_port()}"],
-                       world=str(ARENA), **sitl)
-    raw["pipelines"]["lidar"]["map"] = str(ARENA)
-    for sensor in raw["sensors"].values():
-        sensor["settings"]["tcp_port"] = free_port(socket.SOCK_STREAM)
-    shutil.copytree(REPO / "config" / "missions", directory / "missions", dirs_exist_ok=True)
-    path = directory / "companion.yaml"
-    path.write_text(yaml.safe_dump(raw, sort_keys=False))
-    return path, raw
 
 
 def test_scip_sensors_must_be_real_loopback_scanners_of_an_emulated_model(tmp_path: Path) -> None:
