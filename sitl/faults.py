@@ -27,8 +27,9 @@ Per fault: ``recovered``; ``recovery_s`` (from the moment the fault clears until
 healthy again: estimates reaching the autopilot, every health component that was ok before
 the fault ok again, link up; for SIGTERM and config files: until the process exited);
 ``crashes`` (supervised task restarts, or the daemon dying); ``nonfinite_sent`` (messages to
-the autopilot with a NaN or infinity, counted by the proxy); ``failsafes`` (the mission's
-failsafes, and modes the autopilot changed by itself); ``detail`` (what was seen).
+the autopilot with a NaN or infinity, counted by the proxy); ``failsafes`` (as the flight
+report counts them: the mission's stops, holds and landings and the autopilot's own failsafe
+mode changes; not its slowdowns on a degraded estimate); ``detail`` (what was seen).
 
 The processes of a flight run: sitl/rig.py (priorities included).
 """
@@ -66,6 +67,7 @@ HEALTHY_WITHIN_S = 20.0  # a fault not recovered this long after it cleared is n
 SETTLE_S = 2.0  # healthy this long between two faults
 STORM_HZ = 200.0  # forged messages per second of each type in a storm
 AIRBORNE_TIMEOUT_S = 90.0
+PATROL_STORM_AT = 0.75  # mission progress: the patrol's fly step (index 4 of 6) is half done
 
 
 @dataclass
@@ -336,7 +338,8 @@ def run_patrol_storm(cfg: Config, work: Path, seed: int) -> FaultResult:
         rig.start()
         if not wait_until(lambda: rig.telemetry("mission").get("step_kind") == "fly", AIRBORNE_TIMEOUT_S):
             raise RuntimeError("the patrol did not start flying")
-        wait_until(lambda: (rig.telemetry("mission").get("progress") or 0.0) >= 0.5, 120.0)
+        wait_until(lambda: (rig.telemetry("mission").get("tracking_error_m") is not None
+                            and rig.telemetry("mission").get("progress", 0.0) >= PATROL_STORM_AT), 120.0)
         before = rig.counters()
         started = time.monotonic()
 

@@ -24,6 +24,7 @@ import yaml
 
 from companion.config import Config
 from sitl.fault_proxy import FaultProxy
+from sitl.report import DEGRADED_SLOWDOWN
 from sitl.harness import (TelemetryListener, free_udp_port, scip_bridge_command, scip_ports, vehicle_command,
                           wait_listening, write_run_config)
 
@@ -168,11 +169,12 @@ class Rig:
         return None
 
     def counters(self) -> tuple[int, int, int]:
-        """(task restarts, mission failsafes (the autopilot's own included), non-finite sent) so far."""
+        """(task restarts, failsafes so far as the flight report counts them: the mission's stops, holds
+        and landings and the autopilot's own, not its slowdowns; non-finite values sent) so far."""
         tasks = self.telemetry("health").get("tasks") or self.listener.snapshot().get("health", {}).get("tasks", {})
         restarts = sum(t.get("restarts", 0) for t in tasks.values())
         mission = self.listener.snapshot().get("mission", {})
-        failsafes = sum(mission.get("failsafe_counts", {}).values())
+        failsafes = sum(n for kind, n in mission.get("failsafe_counts", {}).items() if kind != DEGRADED_SLOWDOWN)
         with self.proxy.lock:
             nonfinite = self.proxy.counters.nonfinite_sent
         return restarts, failsafes, nonfinite
