@@ -274,7 +274,7 @@ class Daemon:
                                 "home_at_origin": self.origin.home_confirmed,
                                 "external_nav_in_use": state.external_nav_in_use, "ekf_flags": state.ekf_flags,
                                 "local_position_ned_m": state.local_position_ned,
-                                "streams": dict(self.streams.chosen), "nonfinite_rejected": state.nonfinite_rejected,
+                                "streams": dict(self.streams.chosen),
                                 "imu_rejected": state.imu_rejected})
         t.publish("estimate_stats", {**vars(self.estimate.stats), "reset_counter": self.estimate.reset_counter,
                                      "nonfinite_dropped_link": link.stats.nonfinite_dropped})

@@ -93,3 +93,24 @@ class Health:
         """One line for systemd STATUS=, e.g. 'ok' or 'degraded: link lost (no heartbeat)'."""
         bad = [f"{n} {c.state.label} ({c.reason})" for n, c in sorted(self._components.items()) if c.state != State.OK]
         return self.overall.label + (": " + "; ".join(bad) if bad else "")
+
+
+class Alert:
+    """A component that is degraded while something bad keeps arriving (spoofed heartbeats,
+    garbage values) and ok again at the first good arrival ``hold_s`` after the last bad one;
+    what it counts stays with the caller."""
+
+    def __init__(self, health: Health, name: str, hold_s: float) -> None:
+        self.health = health
+        self.name = name
+        self.hold_s = hold_s
+        self._last_bad = -float("inf")  # health clock of the last bad arrival
+
+    def bad(self, reason: str) -> None:
+        self._last_bad = self.health._clock()
+        self.health.report(self.name, State.DEGRADED, reason)
+
+    def good(self, reason: str) -> None:
+        """A good arrival: ok with ``reason`` unless the last bad one is more recent than ``hold_s``."""
+        if self.health._clock() - self._last_bad >= self.hold_s:
+            self.health.report(self.name, State.OK, reason)

@@ -11,13 +11,16 @@ real MAVLink 2 on loopback UDP: a fake autopilot (tests/mavlink_peer.py) or the 
 from __future__ import annotations
 
 import asyncio
+import math
 from collections.abc import Awaitable, Callable
 from pathlib import Path
+
+import pytest
 
 from companion.health import State
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.commands import Commander
-from companion.mavlink.link import IDENTITY_ALERT_HOLD_S, MavlinkLink, mavlink
+from companion.mavlink.link import ALERT_HOLD_S, MavlinkLink, mavlink
 from companion.mavlink.streams import StreamNegotiator
 from companion.mavlink.trust import OLD_CLOCK_SILENT_S
 from sitl.ardupilot import ArduPilotSitl, SitlOptions, default_defaults
@@ -87,7 +90,7 @@ def test_a_spoofed_px4_heartbeat_from_the_autopilot_ids_is_counted_and_the_autop
         await fake.until(lambda: link.stats.identity_changed == 5, "5 refused HEARTBEATs")
         assert link.connected
         health["during"] = link.health.snapshot()["components"]["autopilot_identity"]
-        await asyncio.sleep(IDENTITY_ALERT_HOLD_S)
+        await asyncio.sleep(ALERT_HOLD_S)
         fake.heartbeat(custom_mode=GUIDED)  # the real autopilot, a second after the last conflict
         await fake.until(lambda: link.health.get("autopilot_identity").state == State.OK, "identity ok again")
 
@@ -314,3 +317,36 @@ def test_an_ack_with_no_targets_as_ardupilot_4_0_sends_completes_the_command() -
 
     link = run_with_fake(body, command_timeout_s=2.0, command_retries=1)
     assert outcome["result"] == mavlink.MAV_RESULT_ACCEPTED and link.stats.acks_ignored == 0
+
+
+# -- values ----------------------------------------------------------------------------------
+
+
+def test_nonfinite_or_absurd_values_are_dropped_before_the_boot_clock_and_counted_per_type() -> None:
+    """A NaN ATTITUDE stamped ahead of the real clock would, if its stamp were taken, hide the real
+    ATTITUDEs stamped before it; it is dropped first. An IMU reading of 1e9 m/s^2 is dropped too."""
+    seen: list[float] = []
+    health: dict[str, dict] = {}
+
+    async def body(link: MavlinkLink, fake: FakeAutopilot) -> None:
+        link.subscribe("ATTITUDE", lambda msg: seen.append(msg.roll))
+        link.subscribe("HIGHRES_IMU", lambda msg: seen.append(msg.xacc))
+        fake.heartbeat()
+        for i in range(30):
+            fake.attitude(fake.boot_ms(100_000), roll=0.1)
+            if i % 3 == 0:
+                fake.attitude(fake.boot_ms(100_800), roll=math.nan)
+                fake.send(mavlink.MAVLink_highres_imu_message(fake.boot_ms(100_000) * 1000, 1e9, 0, -9.8, 0, 0, 0,
+                                                              0, 0, 0, 1013.0, 0, 0, 20.0, 0xFFFF))
+            await asyncio.sleep(0.02)
+        await fake.until(lambda: sum(link.stats.values_rejected.values()) == 20, "20 refused messages")
+        health["during"] = link.health.snapshot()["components"]["autopilot_values"]
+        await asyncio.sleep(ALERT_HOLD_S)
+        fake.attitude(fake.boot_ms(100_000), roll=0.1)
+        await fake.until(lambda: link.health.get("autopilot_values").state == State.OK, "values ok again")
+
+    link = run_with_fake(body)
+    assert seen == pytest.approx([0.1] * 31)  # every real ATTITUDE, nothing else
+    assert link.stats.values_rejected == {"ATTITUDE": 10, "HIGHRES_IMU": 10}
+    assert link.stats.time_anomalies == 0
+    assert health["during"]["state"] == "degraded" and "20 messages dropped" in health["during"]["reason"]

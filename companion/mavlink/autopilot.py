@@ -9,8 +9,8 @@ MAVLink: there the horizontal position flag while no GPS is fused is the best si
 
 Everything is kept in the project frame: LOCAL_POSITION_NED from firmware that reports it
 relative to home (ArduPilot < 4.1) is moved to the EKF origin with the home and origin the
-autopilot itself reports. A message with a non-finite value in a field used here is dropped
-and counted (``nonfinite_rejected``): a NaN from the autopilot never reaches a pipeline.
+autopilot itself reports. Every value used here has been checked by the link (finite, within
+bounds: companion/mavlink/edge.py): a NaN from the autopilot never reaches a pipeline.
 
 Only the autopilot's own messages arrive here (the link's trust rules, companion/mavlink/trust.py):
 from its sysid and compid, HEARTBEATs with the identity locked by the first one (so the firmware
@@ -32,7 +32,6 @@ nav cycles is lost.
 from __future__ import annotations
 
 import logging
-import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -43,7 +42,7 @@ from companion import clock
 from companion.frames import GRAVITY_MPS2, ned_from_geodetic
 from companion.jitter import JitterCorrection
 from companion.mavlink.firmware import Firmware, firmware_from_heartbeat, with_version
-from companion.mavlink.link import MavlinkLink, mavlink, mavutil, often
+from companion.mavlink.link import MavlinkLink, mavlink, mavutil
 
 log = logging.getLogger("companion.autopilot")
 
@@ -59,10 +58,6 @@ MILLI_G = GRAVITY_MPS2 / 1000.0  # SCALED_IMU* (and ArduPilot's RAW_IMU) acceler
 def new_imu_clock() -> JitterCorrection:
     """The mapping of the autopilot's IMU sample times onto the daemon clock."""
     return JitterCorrection(window=IMU_CLOCK_WINDOW)
-
-
-def _finite(*values: float) -> bool:
-    return all(math.isfinite(v) for v in values)
 
 
 @dataclass(frozen=True)
@@ -120,7 +115,6 @@ class AutopilotState:
     imu_source: str | None = None  # the message the IMU is taken from (set by the stream negotiation)
     imu: deque[ImuSample] = field(default_factory=lambda: deque(maxlen=IMU_QUEUE))  # oldest first
     imu_rejected: int = 0  # IMU samples whose time stamp could not be placed (stale, or a clock jump)
-    nonfinite_rejected: int = 0  # messages dropped for a NaN or infinity in a used field
     statustext: list[tuple[float, int, str]] = field(default_factory=list)  # (time, severity, text), the last 50
     _mode_listeners: list[Callable[[str | None, str], None]] = field(default_factory=list)
     _imu_clock: JitterCorrection = field(default_factory=new_imu_clock)
@@ -203,12 +197,6 @@ class AutopilotState:
         offset = self.home_offset_ned()
         return 0.0 if offset is None else -float(offset[2])
 
-    def _nonfinite(self, msg: mavlink.MAVLink_message) -> None:
-        self.nonfinite_rejected += 1
-        if often(self.nonfinite_rejected):
-            log.error("dropped %s with a non-finite field from the autopilot (%d so far)", msg.get_type(),
-                      self.nonfinite_rejected)
-
     def _on_heartbeat(self, msg: mavlink.MAVLink_message) -> None:
         if self.firmware is None:  # the link locked the identity with this HEARTBEAT: it stays
             self.firmware = firmware_from_heartbeat(self.link.autopilot or "unknown", msg.type)
@@ -243,16 +231,10 @@ class AutopilotState:
         self.ekf_flags = msg.flags
 
     def _on_attitude(self, msg: mavlink.MAVLink_message) -> None:
-        if not _finite(msg.roll, msg.pitch, msg.yaw):
-            self._nonfinite(msg)
-            return
         self.attitude_euler = (msg.roll, msg.pitch, msg.yaw)
         self.attitude_time = clock.now()
 
     def _on_local_position(self, msg: mavlink.MAVLink_message) -> None:
-        if not _finite(msg.x, msg.y, msg.z, msg.vx, msg.vy, msg.vz):
-            self._nonfinite(msg)
-            return
         position = np.array([msg.x, msg.y, msg.z], dtype=float)
         if self.firmware is not None and self.firmware.local_position_relative_to_home:
             offset = self.home_offset_ned()
@@ -267,9 +249,6 @@ class AutopilotState:
         if msg.get_type() != self.imu_source:
             return
         accel, gyro = imu_sample(msg)
-        if not (np.all(np.isfinite(accel)) and np.all(np.isfinite(gyro))):
-            self._nonfinite(msg)
-            return
         t = self._imu_clock.correct(imu_remote_time_s(msg), clock.now())
         if t is None or (self.imu and t <= self.imu[-1].t):
             self.imu_rejected += 1

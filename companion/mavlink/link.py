@@ -13,7 +13,10 @@ autopilot's sysid and compid only (others of its system are counted, ``other_com
 identity (ids, autopilot family, MAV_TYPE) is locked by its first HEARTBEAT, and HEARTBEATs that
 claim another are refused, counted (``identity_changed``, ``identity_impostors``), reported
 (health component ``autopilot_identity`` degraded while they arrive, ok again at the autopilot's
-first HEARTBEAT :data:`IDENTITY_ALERT_HOLD_S` after the last one; the counts stay) and logged; a message whose ``time_boot_ms``
+first HEARTBEAT :data:`ALERT_HOLD_S` after the last one; the counts stay) and logged; a message
+with a value the companion reads that is non-finite or out of bounds (``companion.mavlink.edge``)
+is dropped before anything else sees it, counted per type (``values_rejected``) and reported
+(``autopilot_values``, degraded the same way); a message whose ``time_boot_ms``
 does not fit the autopilot's boot clock is dropped and counted (``time_anomalies``), and only a
 confirmed new, earlier clock is a reboot (``autopilot_reboots``; the clock is kept across link
 loss). With a signing key, everything sent is signed and only correctly signed messages are taken
@@ -38,7 +41,7 @@ import os
 import time
 from collections import defaultdict
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 os.environ.setdefault("MAVLINK20", "1")  # before the first pymavlink import, which reads it
@@ -47,7 +50,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 from companion import clock  # noqa: E402
 from companion.config import MavlinkConfig, VehicleConfig  # noqa: E402
-from companion.health import Health, State  # noqa: E402
+from companion.health import Alert, Health, State  # noqa: E402
+from companion.mavlink.edge import BOUNDS, rejection  # noqa: E402
 from companion.mavlink.signing import is_refused, require_signatures  # noqa: E402
 from companion.mavlink.transport import Transport, TransportClosed, open_transport  # noqa: E402
 from companion.mavlink.trust import BootClock, Heartbeat, Identity, IdentityLock, Stamp, autopilot_name  # noqa: E402
@@ -56,7 +60,7 @@ from companion.schema import read_regular_file  # noqa: E402
 log = logging.getLogger("companion.mavlink")
 
 CONNECT_TIMEOUT_S = 2.0  # a TCP peer that does not accept within this is retried later
-IDENTITY_ALERT_HOLD_S = 1.0  # autopilot_identity stays degraded this long after the last conflicting HEARTBEAT
+ALERT_HOLD_S = 1.0  # autopilot_identity / autopilot_values stay degraded this long after the last refusal
 REOPEN_BACKOFF_S = (0.25, 2.0)  # first and longest wait before reopening an ended port
 SIGNING_LINK_ID = 1  # the link id in the daemon's signatures
 
@@ -100,6 +104,7 @@ class LinkStats:
     acks_ignored: int = 0  # COMMAND_ACKs for no pending command of ours, or addressed to someone else (Commander)
     unsigned_rejected: int = 0  # signing on: unsigned messages refused
     bad_signatures: int = 0  # signing on: wrong key, or a replayed / old signing timestamp
+    values_rejected: dict[str, int] = field(default_factory=dict)  # per type: a value read was non-finite or out of bounds
 
 
 def often(count: int) -> bool:
@@ -163,7 +168,8 @@ class MavlinkLink:
         self._ticked = asyncio.Event()  # lockstep: the vehicle's first tick arrived
         self._tick_batch: list[mavlink.MAVLink_message] = []  # lockstep: read, not yet dispatched
         self._identity = IdentityLock(ids.autopilot_sysid, ids.autopilot_compid)
-        self._last_conflict_t = -float("inf")  # daemon clock of the last conflicting HEARTBEAT
+        self._identity_alert = Alert(health, "autopilot_identity", ALERT_HOLD_S)
+        self._values_alert = Alert(health, "autopilot_values", ALERT_HOLD_S)
         self._boot_clock = BootClock()  # kept across link loss: a link back on an earlier clock is a reboot
         self._stamped_since_connect = False  # a boot time fitted the clock since the last (re)connection
         self._signing_streams: dict[tuple[int, int, int], int] = {}  # newest signing timestamp per stream, all ports
@@ -387,7 +393,24 @@ class MavlinkLink:
         if msg.get_srcComponent() != self.ids.autopilot_compid:
             self.stats.other_components_rx += 1
             return False
-        return self._fits_boot_clock(msg)
+        return self._values_ok(msg) and self._fits_boot_clock(msg)
+
+    def _values_ok(self, msg: mavlink.MAVLink_message) -> bool:
+        """Whether the values the companion reads from ``msg`` are usable (companion.mavlink.edge);
+        a message that is not is counted per type and reported, and its boot time never taken."""
+        msg_type = msg.get_type()
+        problem = rejection(msg)
+        if problem is None:
+            if msg_type in BOUNDS:
+                self._values_alert.good("every value read is finite and within bounds")
+            return True
+        rejected = self.stats.values_rejected
+        rejected[msg_type] = rejected.get(msg_type, 0) + 1
+        total = sum(rejected.values())
+        self._values_alert.bad(f"{total} messages dropped, last {msg_type}: {problem}")
+        if often(total):
+            log.error("dropped %s from the autopilot: %s (%d so far)", msg_type, problem, total)
+        return False
 
     def _trusted_heartbeat(self, msg: mavlink.MAVLink_message) -> bool:
         verdict = self._identity.judge(msg)
@@ -395,10 +418,12 @@ class MavlinkLink:
             self.stats.other_components_rx += 1
         elif verdict is not Heartbeat.AUTOPILOT:
             self._identity_conflict(verdict, msg)
-        elif self.autopilot is None:
-            self._identity_locked()
-        elif clock.now() - self._last_conflict_t >= IDENTITY_ALERT_HOLD_S:
-            self._report_identity_ok()
+        else:
+            if self.autopilot is None:
+                self._identity_locked()
+            refused = self.stats.identity_changed + self.stats.identity_impostors
+            history = f"; {refused} conflicting HEARTBEATs refused before" if refused else ""
+            self._identity_alert.good(f"locked: {self._identity.locked}{history}")
         return verdict is Heartbeat.AUTOPILOT
 
     def _identity_locked(self) -> None:
@@ -406,13 +431,6 @@ class MavlinkLink:
         assert identity is not None
         self.autopilot = autopilot_name(identity.autopilot)
         log.info("autopilot detected: %s; its identity is locked for the life of this process", identity)
-        if self.stats.identity_changed + self.stats.identity_impostors == 0:
-            self._report_identity_ok()
-
-    def _report_identity_ok(self) -> None:
-        refused = self.stats.identity_changed + self.stats.identity_impostors
-        history = f"; {refused} conflicting HEARTBEATs refused before" if refused else ""
-        self.health.report("autopilot_identity", State.OK, f"locked: {self._identity.locked}{history}")
 
     def _identity_conflict(self, verdict: Heartbeat, msg: mavlink.MAVLink_message) -> None:
         """A HEARTBEAT claiming to be the autopilot with another identity: counted, reported, logged; not obeyed."""
@@ -421,9 +439,8 @@ class MavlinkLink:
         else:
             self.stats.identity_impostors += 1
         count = self.stats.identity_changed + self.stats.identity_impostors
-        self._last_conflict_t = clock.now()
         claim = f"{Identity.of(msg)}: {verdict.value}"
-        self.health.report("autopilot_identity", State.DEGRADED, f"{count} HEARTBEATs refused, last {claim}")
+        self._identity_alert.bad(f"{count} HEARTBEATs refused, last {claim}")
         if often(count):
             locked = self._identity.locked
             log.warning("refused a HEARTBEAT from %s (%d so far); the autopilot is %s. Its identity is locked for "
