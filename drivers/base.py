@@ -9,7 +9,7 @@ A backend implements :class:`ScanBackend`: ``open()``, ``read()`` returning the 
   frontend counts it and reads on; nothing else is lost.
 - ``OSError`` (including pyserial's SerialException, ConnectionError, EOF as
   :class:`DeviceLost`): the device is gone. The frontend closes it, reports the sensor lost
-  and reopens with backoff (0.5 s doubling to 10 s; reset once scans flow again) until it
+  and reopens with backoff (0.25 s doubling to 1 s; reset once scans flow again) until it
   comes back.
 - :class:`EndOfData`: a replay has no more scans (the frontend stops, health says why).
 
@@ -35,8 +35,9 @@ from drivers.scan import Scan
 
 log = logging.getLogger("companion.drivers")
 
-MIN_BACKOFF_S = 0.5
-MAX_BACKOFF_S = 10.0
+MIN_BACKOFF_S = 0.25
+MAX_BACKOFF_S = 1.0  # a replugged scanner is found within this (an open that fails is cheap)
+LOG_EVERY_ATTEMPTS = 30  # while it stays lost, one log line per this many failed reopens
 
 
 class CorruptFrame(Exception):
@@ -101,6 +102,7 @@ class LidarDriver:
         self.stats = DriverStats()
         self._component = f"sensor:{name}"
         self._backoff = MIN_BACKOFF_S  # wait before the next open after a loss, s
+        self._attempts = 0  # losses and failed reopens since scans last flowed (for the log's rate)
         self._last_t: float | None = None  # capture time of the last scan handed on, daemon clock s
 
     async def run(self) -> None:
@@ -134,7 +136,7 @@ class LidarDriver:
                 continue
             except OSError as exc:
                 return f"{self.backend.description} lost: {exc}"
-            self._backoff = MIN_BACKOFF_S  # scans flow: the next loss starts the backoff afresh
+            self._backoff, self._attempts = MIN_BACKOFF_S, 0  # scans flow: the next loss starts afresh
             problem = scan_problem(scan, self._last_t)
             if problem is not None:
                 self._reject(problem)
@@ -153,6 +155,9 @@ class LidarDriver:
         """Report the loss, then wait the backoff before the next open (doubling each time)."""
         self.stats.last_error = reason
         self.health.report(self._component, State.LOST, reason)
-        log.warning("%s: %s; retrying in %.1f s", self.name, reason, self._backoff)
+        self._attempts += 1
+        if self._attempts % LOG_EVERY_ATTEMPTS == 1:
+            log.warning("%s: %s (attempt %d); retrying every %.2g s at most", self.name, reason, self._attempts,
+                        MAX_BACKOFF_S)
         await asyncio.sleep(self._backoff)
         self._backoff = min(2 * self._backoff, MAX_BACKOFF_S)
