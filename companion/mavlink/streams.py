@@ -16,6 +16,13 @@ interval for a message it never sends). An ArduPilot that does not know SET_MESS
 (MAV_RESULT_UNSUPPORTED) gets its legacy REQUEST_DATA_STREAM groups instead, at the highest rate
 any need of the group asks for (PX4 has no such groups: there it is a refusal). The outcome is reported as the ``streams`` health component
 and on telemetry (``chosen``).
+
+Then the streams a live autopilot always sends (:data:`ALWAYS_SENT`: attitude and IMU; the
+position, for one, stops while the EKF has none) are watched: one that stops arriving while the
+autopilot's HEARTBEATs still do (:func:`stall_after_s`: five periods, at least :data:`MIN_STALL_S`) makes the whole
+negotiation start again (at most every :data:`REASK_EVERY_S`). That is how an autopilot that
+rebooted faster than the link timeout is found: it comes back streaming nothing until asked, so
+without this no boot time would ever show the reboot.
 """
 
 from __future__ import annotations
@@ -34,6 +41,11 @@ from companion.mavlink.link import MavlinkLink, mavlink, run_per_connection
 log = logging.getLogger("companion.streams")
 
 VERIFY_S = 2.0  # an accepted option of a need with alternatives must deliver within this
+MIN_STALL_S = 0.5  # a chosen stream silent this long (and five of its periods) has stopped
+REASK_EVERY_S = 5.0  # a stopped stream is asked for again at most this often
+WATCH_PERIOD_S = 0.25
+ALWAYS_SENT = ("attitude", "imu")  # needs whose messages a live autopilot streams in any state
+HEARTBEAT_RECENT_S = 1.5  # the autopilot is there (1 Hz HEARTBEAT): a hung one is not asked again
 ACCEPTED, REFUSED, UNSUPPORTED = "accepted", "refused", "unsupported"
 
 # ArduPilot's REQUEST_DATA_STREAM groups (ArduCopter/GCS_Mavlink.cpp, STREAM_*_msgs; SITL builds
@@ -74,6 +86,11 @@ def stream_needs(rates: StreamRatesConfig, autopilot: str | None) -> list[Stream
     return [need for need in needs if need.rate_hz > 0]
 
 
+def stall_after_s(rate_hz: float) -> float:
+    """How long a stream at ``rate_hz`` may be silent before it counts as stopped (s)."""
+    return max(MIN_STALL_S, 5.0 / rate_hz)
+
+
 def message_id(name: str) -> int:
     return getattr(mavlink, f"MAVLINK_MSG_ID_{name}")
 
@@ -91,6 +108,7 @@ class StreamNegotiator:
         self.chosen: dict[str, str | None] = {}  # need -> "MSG[+MSG] @ Hz via interval|legacy", None: unmet
         self.negotiations = 0  # completed negotiations (one per connection)
         self._last_seen: dict[str, float] = {}
+        self._watched: dict[str, float] = {}  # chosen message -> its stall time (s)
         self._restart = asyncio.Event()
         link.on_connect(self._restart.set)
         for name in {m for need in stream_needs(rates, None) + stream_needs(rates, "PX4")
@@ -105,12 +123,33 @@ class StreamNegotiator:
         return all(self._last_seen.get(name, -1.0) >= since for name in option)
 
     async def run(self) -> None:
-        await run_per_connection(self._restart, self.negotiate)
+        await run_per_connection(self._restart, self._negotiate_and_watch)
+
+    async def _negotiate_and_watch(self) -> None:
+        """Negotiate, then ask again whenever a chosen stream stops (see the module docstring)."""
+        while True:
+            await self.negotiate()
+            since = clock.now()
+            await self._until_stalled()
+            await asyncio.sleep(max(0.0, since + REASK_EVERY_S - clock.now()))
+
+    async def _until_stalled(self) -> None:
+        while True:
+            await asyncio.sleep(WATCH_PERIOD_S)
+            now = clock.now()
+            stalled = sorted(name for name, after in self._watched.items()
+                             if now - self._last_seen.get(name, -float("inf")) > after)
+            heard = self.link.last_heartbeat
+            if stalled and heard is not None and now - heard < HEARTBEAT_RECENT_S:
+                log.warning("streams stopped while the autopilot still sends HEARTBEATs (%s): asking again",
+                            ", ".join(stalled))
+                self.health.report("streams", State.DEGRADED, f"stopped: {', '.join(stalled)}; asking again")
+                return
 
     async def negotiate(self) -> None:
         """Ask for every need; see the module docstring for the order of things."""
         needs = stream_needs(self.rates, self.link.autopilot)
-        self.chosen = {}
+        self._watched = {}  # (chosen keeps the last outcome of each need until this one replaces it)
         pending = {need.name: list(need.options) for need in needs}
         by_name = {need.name: need for need in needs}
         while pending:
@@ -128,14 +167,14 @@ class StreamNegotiator:
                 elif len(need.options) > 1:
                     to_verify[name] = outcome
                 else:
-                    self.chosen[name] = f"{'+'.join(outcome)} @ {need.rate_hz:g} Hz"
+                    self._choose(need, outcome, f"{'+'.join(outcome)} @ {need.rate_hz:g} Hz")
                     del pending[name]
             if not to_verify:
                 break
             await asyncio.sleep(VERIFY_S)
             for name, option in to_verify.items():
                 if self._delivering(option, asked_at):
-                    self.chosen[name] = f"{'+'.join(option)} @ {by_name[name].rate_hz:g} Hz"
+                    self._choose(by_name[name], option, f"{'+'.join(option)} @ {by_name[name].rate_hz:g} Hz")
                     del pending[name]
                 else:
                     log.warning("stream %s: %s accepted but not delivered within %g s; trying the next option",
@@ -184,10 +223,18 @@ class StreamNegotiator:
                 group_rates[group] = max(group_rates.get(group, 0.0), need.rate_hz)
             if need.name == "imu":
                 self.state.imu_source = option[0]
-            self.chosen[need.name] = f"{'+'.join(option)} via REQUEST_DATA_STREAM"
+            self._choose(need, option, f"{'+'.join(option)} via REQUEST_DATA_STREAM")
         target = self.link.target()
         for group, rate in sorted(group_rates.items()):
             self.link.send(mavlink.MAVLink_request_data_stream_message(*target, group, max(1, round(rate)), 1))
+
+    def _choose(self, need: StreamNeed, option: tuple[str, ...], how: str) -> None:
+        """``option`` serves ``need`` (``how``, for telemetry); its messages are watched from now on
+        if the need is one of :data:`ALWAYS_SENT`."""
+        self.chosen[need.name] = how
+        for name in option if need.name in ALWAYS_SENT else ():
+            self._watched[name] = stall_after_s(need.rate_hz)
+            self._last_seen[name] = max(self._last_seen.get(name, -float("inf")), clock.now())  # grace: from now
 
     def _finish(self) -> None:
         self.negotiations += 1
