@@ -32,6 +32,7 @@ log = logging.getLogger("companion.origin")
 
 MATCH_TOLERANCE_M = 0.5  # origin: an autopilot that kept its own further away than this is reported
 HOME_TOLERANCE_M = 0.05  # home: at the origin within this (ArduPilot keeps home in cm and 1e-7 deg)
+POLL_S = 0.1  # how often a confirming report is looked for
 HOME_ATTEMPTS = 10  # SET_HOME_POSITION sent this often without HOME_POSITION at the origin: give up, say so
 
 
@@ -71,14 +72,17 @@ class OriginSetter:
         return self.confirmed and self.home_done
 
     async def _until_confirmed(self, since: float) -> None:
-        """Send the origin every second until the autopilot reports one (after daemon time ``since``)."""
+        """Send the origin every second until the autopilot reports one (after daemon time ``since``);
+        the report is looked for every :data:`POLL_S`."""
         while True:
             self._send_origin()
             await self._ask_for(mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
-            await asyncio.sleep(1.0)
-            if self.state.origin_time is not None and self.state.origin_time >= since:
-                self._confirm()
-                return
+            resend_at = clock.now() + 1.0
+            while clock.now() < resend_at:
+                await asyncio.sleep(POLL_S)
+                if self.state.origin_time is not None and self.state.origin_time >= since:
+                    self._confirm()
+                    return
 
     async def _until_home_set(self, since: float) -> None:
         """Set home at the origin once the EKF has a horizontal position (see the module docstring):

@@ -18,8 +18,9 @@ any need of the group asks for (PX4 has no such groups: there it is a refusal). 
 and on telemetry (``chosen``).
 
 Then the streams a live autopilot always sends (:data:`ALWAYS_SENT`: attitude and IMU; the
-position, for one, stops while the EKF has none) are watched: one that stops arriving while the
-autopilot's HEARTBEATs still do (:func:`stall_after_s`: five periods, at least :data:`MIN_STALL_S`) makes the whole
+position, for one, stops while the EKF has none) are watched: one whose last message is older
+than the autopilot's last HEARTBEAT by more than :func:`stall_after_s` (five periods, at least
+:data:`MIN_STALL_S`; a hung autopilot sends no HEARTBEAT either, and is not asked) makes the whole
 negotiation start again (at most every :data:`REASK_EVERY_S`). That is how an autopilot that
 rebooted faster than the link timeout is found: it comes back streaming nothing until asked, so
 without this no boot time would ever show the reboot.
@@ -45,7 +46,6 @@ MIN_STALL_S = 0.5  # a chosen stream silent this long (and five of its periods) 
 REASK_EVERY_S = 5.0  # a stopped stream is asked for again at most this often
 WATCH_PERIOD_S = 0.25
 ALWAYS_SENT = ("attitude", "imu")  # needs whose messages a live autopilot streams in any state
-HEARTBEAT_RECENT_S = 1.5  # the autopilot is there (1 Hz HEARTBEAT): a hung one is not asked again
 ACCEPTED, REFUSED, UNSUPPORTED = "accepted", "refused", "unsupported"
 
 # ArduPilot's REQUEST_DATA_STREAM groups (ArduCopter/GCS_Mavlink.cpp, STREAM_*_msgs; SITL builds
@@ -136,11 +136,12 @@ class StreamNegotiator:
     async def _until_stalled(self) -> None:
         while True:
             await asyncio.sleep(WATCH_PERIOD_S)
-            now = clock.now()
-            stalled = sorted(name for name, after in self._watched.items()
-                             if now - self._last_seen.get(name, -float("inf")) > after)
             heard = self.link.last_heartbeat
-            if stalled and heard is not None and now - heard < HEARTBEAT_RECENT_S:
+            if heard is None:
+                continue
+            stalled = sorted(name for name, after in self._watched.items()
+                             if heard - self._last_seen.get(name, -float("inf")) > after)
+            if stalled:
                 log.warning("streams stopped while the autopilot still sends HEARTBEATs (%s): asking again",
                             ", ".join(stalled))
                 self.health.report("streams", State.DEGRADED, f"stopped: {', '.join(stalled)}; asking again")
@@ -171,7 +172,7 @@ class StreamNegotiator:
                     del pending[name]
             if not to_verify:
                 break
-            await asyncio.sleep(VERIFY_S)
+            await self._until_delivering(list(to_verify.values()), asked_at)
             for name, option in to_verify.items():
                 if self._delivering(option, asked_at):
                     self._choose(by_name[name], option, f"{'+'.join(option)} @ {by_name[name].rate_hz:g} Hz")
@@ -227,6 +228,12 @@ class StreamNegotiator:
         target = self.link.target()
         for group, rate in sorted(group_rates.items()):
             self.link.send(mavlink.MAVLink_request_data_stream_message(*target, group, max(1, round(rate)), 1))
+
+    async def _until_delivering(self, options: list[tuple[str, ...]], since: float) -> None:
+        """Until every option delivers (since daemon time ``since``), or VERIFY_S has passed."""
+        deadline = clock.now() + VERIFY_S
+        while clock.now() < deadline and not all(self._delivering(o, since) for o in options):
+            await asyncio.sleep(WATCH_PERIOD_S)
 
     def _choose(self, need: StreamNeed, option: tuple[str, ...], how: str) -> None:
         """``option`` serves ``need`` (``how``, for telemetry); its messages are watched from now on
