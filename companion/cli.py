@@ -32,11 +32,12 @@ def _config_with_logging(args: argparse.Namespace) -> Config | None:
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from companion.clock import LockstepEventLoop
-    from companion.daemon import Daemon
+    from companion.daemon import GIL_SWITCH_INTERVAL_S, Daemon
 
     cfg = _config_with_logging(args)
     if cfg is None:
         return EXIT_CONFIG_ERROR
+    sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)  # the daemon's process: see GIL_SWITCH_INTERVAL_S
     daemon = Daemon(cfg, args.mavlink)
     try:
         if args.lockstep:
@@ -52,34 +53,15 @@ def _cmd_run(args: argparse.Namespace) -> int:
 
 
 def _cmd_check_config(args: argparse.Namespace) -> int:
+    from companion.daemon import load_named_files
+
     try:
-        _load_referenced_files(load_config(args.config))
+        load_named_files(load_config(args.config))
     except ConfigError as exc:
         print(f"companion: {exc}", file=sys.stderr)
         return EXIT_CONFIG_ERROR
     print(f"{args.config}: OK")
     return 0
-
-
-def _load_referenced_files(cfg: Config) -> None:
-    """Load every file ``cfg`` names and the daemon would read (mission, map, world, signing key,
-    recordings); ConfigError at the config key of the first bad one."""
-    from companion.mavlink.link import load_signing_key
-    from companion.mission.steps import load_mission
-    from drivers.lidar_replay import read_recording
-    from sitl.world import load_world
-
-    if cfg.mission.file:
-        cfg.load_referenced("mission.file", load_mission)
-    if cfg.pipelines.lidar is not None:
-        cfg.load_referenced("pipelines.lidar.map", load_world)
-    if any(s.backend == "sim" for s in cfg.sensors.values()):
-        cfg.load_referenced("sitl.world", load_world)
-    if cfg.mavlink.signing_key_file:
-        cfg.load_referenced("mavlink.signing_key_file", load_signing_key)
-    for name, sensor in cfg.sensors.items():
-        if sensor.backend == "replay":
-            cfg.load_referenced(f"sensors.{name}.settings.file", read_recording)
 
 
 def _cmd_setup_autopilot(args: argparse.Namespace) -> int:

@@ -10,6 +10,7 @@ the config key (and line) that names it.
 from __future__ import annotations
 
 from collections.abc import Callable
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, TypeVar
@@ -17,6 +18,7 @@ from typing import Any, Literal, TypeVar
 from companion.schema import Document, SchemaError, meta, read_document
 
 ConfigError = SchemaError
+SENSOR_NAME = re.compile(r"[A-Za-z0-9_-]+")
 T = TypeVar("T")
 
 
@@ -309,6 +311,9 @@ class Config:
     document: Document | None = field(default=None, init=False, repr=False, compare=False)  # for line_of
 
     def validate(self) -> tuple[str, str] | None:
+        for name in self.sensors:
+            if not SENSOR_NAME.fullmatch(name):
+                return f"sensors.{name}", "a sensor name is letters, digits, '_' and '-' (it is part of key paths and topics)"
         if any(s.backend == "sim" for s in self.sensors.values()) and self.mavlink.streams.sim_state <= 0:
             return "mavlink.streams.sim_state", "simulated sensors render from SIM_STATE ground truth: ask for it (e.g. 50)"
         problem = self._check_scip_sensors()
@@ -357,15 +362,15 @@ class Config:
         not loaded from a file."""
         return self.document.line_of(key_path) if self.document is not None else None
 
-    def load_referenced(self, key_path: str, loader: Callable[[Path], T]) -> T:
-        """``loader(path)`` for the file whose path the key ``key_path`` holds (e.g. ``mission.file``,
-        ``sensors.lidar.settings.file``), resolved against the config's directory.
+    def load_referenced(self, key_path: str, value: str, loader: Callable[[Path], T]) -> T:
+        """``loader(path)`` for the file named ``value``, which the key ``key_path`` (e.g.
+        ``mission.file``, ``sensors.lidar.settings.file``) holds, resolved against the config's directory.
 
         What the loader raises about the file (SchemaError: its content, naming its own file, line and key;
         OSError: it cannot be read; ValueError: its content, naming the file) is raised again as a
         ConfigError at this config file, the key's line and the key, with the loader's message after it.
         """
-        path = self.resolve(self._value_at(key_path))
+        path = self.resolve(value)
         try:
             return loader(path)
         except SchemaError as exc:
@@ -377,13 +382,6 @@ class Config:
 
     def _error_at(self, key_path: str, message: str) -> ConfigError:
         return ConfigError(self.source, key_path, self.line_of(key_path), message)
-
-    def _value_at(self, key_path: str) -> Any:
-        """The value at a dotted key path: attributes of the dataclasses, keys of their dicts."""
-        value: Any = self
-        for key in key_path.split("."):
-            value = value[key] if isinstance(value, dict) else getattr(value, key)
-        return value
 
 
 def load_config(path: str | Path) -> Config:

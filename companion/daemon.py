@@ -12,10 +12,10 @@ import logging
 import os
 import resource
 import signal
-import sys
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -33,7 +33,7 @@ from companion.mavlink.streams import StreamNegotiator
 from companion.mission.context import MissionContext
 from companion.mission.failsafe import Geofence
 from companion.mission.runner import MissionRunner
-from companion.mission.steps import load_mission
+from companion.mission.steps import Mission, load_mission
 from companion.nav.lidar_pipeline import LidarPipeline
 from companion.nav.loop import NavLoop, Pipeline
 from companion.sdnotify import Notifier, WatchdogGate, run_watchdog
@@ -43,13 +43,13 @@ from companion.telemetry.publisher import TelemetryPublisher
 from companion.telemetry.session import open_session
 from drivers.base import LidarDriver, ScanBackend
 from drivers.hokuyo import HokuyoScip
-from drivers.lidar_replay import ReplayLidar
+from drivers.lidar_replay import ReplayLidar, read_recording
 from drivers.lidar_sim import SimulatedLidar
 from drivers.mount import Mount
 from drivers.registry import build_settings
 from drivers.scan import Scan
 from drivers.sim_truth import TruthSource
-from sitl.world import load_world
+from sitl.world import World, load_world
 
 log = logging.getLogger("companion.daemon")
 
@@ -59,6 +59,32 @@ SHUTDOWN_BUDGET_S = 1.5
 GIL_SWITCH_INTERVAL_S = 0.0005
 STATUSTEXT_SEVERITY = {State.OK: mavlink.MAV_SEVERITY_INFO, State.DEGRADED: mavlink.MAV_SEVERITY_WARNING,
                        State.LOST: mavlink.MAV_SEVERITY_ERROR}
+
+
+@dataclass(frozen=True)
+class NamedFiles:
+    """The files a config names, loaded (see :func:`load_named_files`)."""
+
+    mission: Mission | None
+    map: World | None  # the lidar pipeline's map
+    sim_world: World | None  # what simulated sensors see
+    signing_key: bytes | None
+
+
+def load_named_files(cfg: Config) -> NamedFiles:
+    """Load every file ``cfg`` names that the daemon reads (mission, map, simulated world, signing
+    key) and check its replay recordings can be read; ConfigError at the config key and line of
+    the first bad one. ``companion check-config`` and the daemon's start both use this."""
+    for name, sensor in cfg.sensors.items():
+        if sensor.kind == "lidar" and sensor.backend == "replay" and "file" in sensor.settings:
+            cfg.load_referenced(f"sensors.{name}.settings.file", sensor.settings["file"], read_recording)
+    lidar, mission, key = cfg.pipelines.lidar, cfg.mission.file, cfg.mavlink.signing_key_file
+    simulated = any(s.backend == "sim" for s in cfg.sensors.values())
+    return NamedFiles(
+        mission=cfg.load_referenced("mission.file", mission, load_mission) if mission else None,
+        map=cfg.load_referenced("pipelines.lidar.map", lidar.map, load_world) if lidar is not None else None,
+        sim_world=cfg.load_referenced("sitl.world", cfg.sitl.world, load_world) if simulated else None,
+        signing_key=cfg.load_referenced("mavlink.signing_key_file", key, load_signing_key) if key else None)
 
 
 class Daemon:
@@ -74,6 +100,7 @@ class Daemon:
         self.started_wall = time.monotonic()
         self.drivers: dict[str, LidarDriver] = {}
         self.truth: TruthSource | None = None  # ground truth, only for simulated sensors
+        self.files: NamedFiles | None = None  # what the config names, loaded at the start of run()
         self._first_contact = True
         self._stop = asyncio.Event()
 
@@ -86,13 +113,12 @@ class Daemon:
 
     async def run(self) -> int:
         cfg = self.cfg
-        sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGTERM, signal.SIGINT):
             loop.add_signal_handler(sig, self.request_stop)
 
-        key = self._load_named_files()
-        self.link = link = MavlinkLink(cfg.mavlink, cfg.vehicle, self.url, self.health, key)
+        files = self.files = load_named_files(cfg)  # before anything starts: a bad file stops here
+        self.link = link = MavlinkLink(cfg.mavlink, cfg.vehicle, self.url, self.health, files.signing_key)
         self.state = state = AutopilotState(link)
         self.commander = commander = Commander(link, state, cfg.mavlink)
         self.origin = origin = OriginSetter(link, state, commander, cfg.origin, self.health)
@@ -126,24 +152,13 @@ class Daemon:
         await self._shutdown()
         return 0
 
-    def _load_named_files(self) -> bytes | None:
-        """Load every file the config names (mission, map, simulated world; the signing key is
-        returned) before anything starts: a bad one ends :meth:`run` with a ConfigError naming
-        the config key and line, and no task has run yet."""
-        cfg = self.cfg
-        self.mission_file = cfg.load_referenced("mission.file", load_mission) if cfg.mission.file else None
-        self.map = cfg.load_referenced("pipelines.lidar.map", load_world) if cfg.pipelines.lidar is not None else None
-        simulated = any(s.backend == "sim" for s in cfg.sensors.values())
-        self.sim_world = cfg.load_referenced("sitl.world", load_world) if simulated else None
-        return cfg.load_referenced("mavlink.signing_key_file", load_signing_key) if cfg.mavlink.signing_key_file else None
-
     def _build_mission(self) -> MissionRunner | None:
         """The configured mission's runner (None without one), flying on the companion's estimate."""
         cfg = self.cfg
-        mission = self.mission_file
+        mission = self.files.mission
         if mission is None:
             return None
-        bounds = self.map.bounds if self.map is not None else None
+        bounds = self.files.map.bounds if self.files.map is not None else None
         ctx = MissionContext(
             state=self.state, commander=self.commander, setpoints=self.setpoints, origin=self.origin,
             estimate=self._mission_estimate, nav_health=lambda: self.health.worst("nav:"), publish=self.telemetry.publish,
@@ -176,7 +191,7 @@ class Daemon:
         pipeline = None
         if lidar_cfg is not None:
             vertical = cfg.sensors[lidar_cfg.vertical_sensor]
-            pipeline = LidarPipeline(lidar_cfg, self.map,
+            pipeline = LidarPipeline(lidar_cfg, self.files.map,
                                      cfg.sensors[lidar_cfg.horizontal_sensor].mount, vertical.mount,
                                      self.state, self.health)
         self.drivers = {}
@@ -199,8 +214,8 @@ class Daemon:
             return ReplayLidar(name, settings, base_dir=self.cfg.base_dir)
         if self.truth is None:
             self.truth = TruthSource(self.link, self.cfg.origin)
-        assert self.sim_world is not None  # loaded by _load_named_files for every sim sensor
-        return SimulatedLidar(name, settings, Mount.from_config(sensor.mount), self.sim_world, self.truth)
+        assert self.files.sim_world is not None  # loaded by load_named_files for every sim sensor
+        return SimulatedLidar(name, settings, Mount.from_config(sensor.mount), self.files.sim_world, self.truth)
 
     def _scan_sink(self, name: str, pipeline: LidarPipeline | None) -> Callable[[Scan], None]:
         lidar_cfg = self.cfg.pipelines.lidar

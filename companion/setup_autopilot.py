@@ -73,7 +73,7 @@ async def setup_autopilot(cfg: Config, url: str, *, apply: bool, reboot: bool, e
     """Run the check (and the writes); (exit status, outcome)."""
     outcome = SetupOutcome()
     health = Health(clock.now)
-    key = cfg.load_referenced("mavlink.signing_key_file", load_signing_key) if cfg.mavlink.signing_key_file else None
+    key = cfg.load_referenced("mavlink.signing_key_file", cfg.mavlink.signing_key_file, load_signing_key) if cfg.mavlink.signing_key_file else None
     link = MavlinkLink(cfg.mavlink, cfg.vehicle, url, health, key)
     state = AutopilotState(link)
     commander = Commander(link, state, cfg.mavlink)

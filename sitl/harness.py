@@ -447,7 +447,7 @@ def run_harness(args: argparse.Namespace) -> int:
         cfg = load_config(args.config)
         if args.mission and not cfg.resolve(f"missions/{args.mission}.yaml").exists():
             raise ConfigError(cfg.source, "mission", None, f"no mission {args.mission!r} in {cfg.resolve('missions')}")
-        cfg.load_referenced("sitl.world", load_world)
+        cfg.load_referenced("sitl.world", cfg.sitl.world, load_world)
     except ConfigError as exc:
         print(f"companion: {exc}", file=sys.stderr)
         return 2

@@ -154,13 +154,21 @@ def test_a_fifo_as_the_signing_key_is_refused_without_blocking(project: Path, co
                         f"{project.parent.resolve() / 'key.fifo'}: cannot read file: not a regular file but a FIFO")
 
 
-def test_check_config_reports_a_missing_replay_recording_at_its_sensor_key(project: Path) -> None:
+@pytest.mark.parametrize("command", COMMANDS)
+def test_a_missing_replay_recording_is_reported_at_its_sensor_key(project: Path, command: str) -> None:
     text = replace_once(project.read_text(), "    backend: sim\n    mount: {position_m: [0.05",
                         "    backend: replay\n    mount: {position_m: [0.05")
     project.write_text(replace_once(text, "settings: {model: URG-04LX, seed: 2}", "settings: {file: scans.npz}"))
-    assert_config_error(companion("check-config", project),
+    assert_config_error(companion(command, project),
                         f"{project}:{line_of(project, 'settings: {file: scans.npz}')}: sensors.lidar_v.settings.file: "
                         f"{project.parent.resolve() / 'scans.npz'}: cannot read file: No such file or directory")
+
+
+def test_a_camera_without_a_driver_and_a_dotted_sensor_name_are_config_errors_not_crashes(project: Path) -> None:
+    project.write_text(replace_once(project.read_text(), "\nsensors:\n",
+                                    "\nsensors:\n  cam.front:\n    kind: camera\n    backend: replay\n"))
+    assert_config_error(companion("check-config", project),
+                        "sensors.cam.front: a sensor name is letters, digits, '_' and '-'")
 
 
 def test_check_config_accepts_the_unbroken_project(project: Path) -> None:
