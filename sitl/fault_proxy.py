@@ -13,11 +13,15 @@ and it watches what the daemon sends the autopilot: every message with a NaN or 
 float field is counted (:attr:`ProxyCounters.nonfinite_sent`: the fault suite's "non-finite
 values sent", measured outside the daemon), and the arrival time of every
 VISION_POSITION_ESTIMATE is kept (the estimate reaching the autopilot, the suite's recovery
-signal). Loopback only; one daemon, one vehicle. Times are ``time.monotonic()`` seconds.
+signal). A datagram that cannot be sent (ENOBUFS, ECONNREFUSED while the vehicle is dead) is
+dropped and counted (:attr:`ProxyCounters.send_errors`), as a radio would lose it: the
+forwarding thread goes on. Loopback only; one daemon, one vehicle. Times are
+``time.monotonic()`` seconds.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import selectors
 import socket
@@ -32,6 +36,8 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 from companion.mavlink.link import nonfinite_fields  # noqa: E402
 
+log = logging.getLogger("companion.fault_proxy")
+
 DATAGRAM_MAX = 65535
 
 
@@ -44,6 +50,7 @@ class ProxyCounters:
     blocked: int = 0  # datagrams dropped by block()
     injected: int = 0  # forged messages sent to the daemon
     nonfinite_sent: int = 0  # daemon -> vehicle messages with a NaN or infinity in a float field
+    send_errors: int = 0  # datagrams that could not be sent (either way, injected ones included): dropped
     estimates: deque[float] = field(default_factory=lambda: deque(maxlen=20000))  # VISION_POSITION_ESTIMATE arrivals
 
 
@@ -99,8 +106,7 @@ class FaultProxy:
         """Send ``data`` to the daemon as one datagram from the autopilot's port."""
         if self._daemon is None:
             return False
-        self._front.sendto(data, self._daemon)
-        return True
+        return self._send(self._front, data, self._daemon)
 
     # -- observation ----------------------------------------------------------------------------
 
@@ -129,10 +135,27 @@ class FaultProxy:
                         data, sender = key.fileobj.recvfrom(DATAGRAM_MAX)  # type: ignore[union-attr]
                     except OSError:
                         continue
-                    if key.fileobj is self._front:
-                        self._from_daemon(data, sender)
-                    else:
-                        self._from_vehicle(data)
+                    try:
+                        if key.fileobj is self._front:
+                            self._from_daemon(data, sender)
+                        else:
+                            self._from_vehicle(data)
+                    except Exception:  # a bug here must not end the link silently
+                        log.exception("fault proxy: datagram dropped")
+
+    def _send(self, sock: socket.socket, data: bytes, address: tuple[str, int]) -> bool:
+        """``sock.sendto``; False (counted in ``send_errors``) if the OS refused it."""
+        try:
+            sock.sendto(data, address)
+        except OSError as exc:
+            with self.lock:
+                self.counters.send_errors += 1
+                errors = self.counters.send_errors
+            if errors == 1 or errors % 100 == 0:
+                log.warning("fault proxy: cannot send to %s:%d (%s); %d datagrams dropped so far",
+                            *address, exc, errors)
+            return False
+        return True
 
     def _is_blocked(self) -> bool:
         with self.lock:
@@ -143,9 +166,8 @@ class FaultProxy:
 
     def _from_daemon(self, data: bytes, sender: tuple[str, int]) -> None:
         self._daemon = sender
-        if self._is_blocked():
+        if self._is_blocked() or not self._send(self._back, data, self.vehicle):
             return
-        self._back.sendto(data, self.vehicle)
         now = time.monotonic()
         messages = self._parser.parse_buffer(data) or []
         with self.lock:
@@ -159,8 +181,7 @@ class FaultProxy:
                     self.counters.estimates.append(now)
 
     def _from_vehicle(self, data: bytes) -> None:
-        if self._daemon is None or self._is_blocked():
+        if self._daemon is None or self._is_blocked() or not self._send(self._front, data, self._daemon):
             return
-        self._front.sendto(data, self._daemon)
         with self.lock:
             self.counters.to_daemon += 1
