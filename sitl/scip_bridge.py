@@ -63,7 +63,7 @@ import sys
 import threading
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Coroutine, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -386,12 +386,28 @@ def _read_fault_commands(loop: asyncio.AbstractEventLoop, emulators: dict[str, S
         loop.call_soon_threadsafe(fault)
 
 
+_fault_tasks: set[asyncio.Task] = set()  # unplugs in progress: the loop keeps only weak references to tasks
+
+
+def _start_task(coro: Coroutine[object, object, object]) -> None:
+    """Run ``coro`` on the running loop, holding a reference until it is done."""
+    task = asyncio.ensure_future(coro)
+    _fault_tasks.add(task)
+    task.add_done_callback(_fault_task_done)
+
+
+def _fault_task_done(task: asyncio.Task) -> None:
+    _fault_tasks.discard(task)
+    if not task.cancelled() and task.exception() is not None:
+        print(f"sitl.scip_bridge: fault command failed: {task.exception()!r}", file=sys.stderr, flush=True)
+
+
 def _fault_command(words: list[str], emulators: dict[str, ScipEmulator]) -> Callable[[], object]:
     """The call applying one parsed fault command (run on the bridge's loop)."""
     command, emulator = words[0], emulators[words[1]]
     if command == "unplug":
         down_s = float(words[2])
-        return lambda: asyncio.ensure_future(emulator.disconnect(down_s))
+        return lambda: _start_task(emulator.disconnect(down_s))
     if command == "corrupt":
         n = int(words[2])
         return lambda: emulator.corrupt_scans(n)
