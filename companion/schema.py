@@ -169,7 +169,10 @@ def _decode_utf8(data: bytes, file: str) -> str:
 def _yaml_problem(exc: yaml.YAMLError, text: str) -> tuple[int | None, str]:
     """(1-based line or None, what is wrong) of a YAML parse error."""
     if isinstance(exc, yaml.reader.ReaderError):  # a character YAML does not allow (NUL, control)
-        return text.count("\n", 0, exc.position) + 1, f"character #x{exc.character:04x} is not allowed"
+        # libyaml counts the position in bytes of UTF-8, PyYAML's own reader in characters
+        before = text.encode("utf-8")[:exc.position].decode("utf-8", "ignore") if _COMPOSER is not yaml.SafeLoader \
+            else text[:exc.position]
+        return before.count("\n") + 1, f"character #x{exc.character:04x} is not allowed"
     mark = getattr(exc, "problem_mark", None)
     return (mark.line + 1 if mark is not None else None), getattr(exc, "problem", None) or str(exc)
 

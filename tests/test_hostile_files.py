@@ -209,3 +209,9 @@ def test_run_with_telemetry_on_stops_at_a_bad_mission_before_any_task_starts(pro
     text = replace_once(text, "tcp/127.0.0.1:7447", f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}")
     project.write_text(replace_once(text, "file: missions/hover.yaml", "file: missions/not-there.yaml"))
     assert_config_error(companion("run", project), f"{project}:{line_of(project, 'not-there.yaml')}: mission.file: ")
+
+
+def test_a_control_character_after_multibyte_text_is_reported_on_its_own_line(tmp_path: Path) -> None:
+    config = tmp_path / "c.yaml"
+    config.write_text("a: 1\nb: 2\nc: 3\nd: \"" + "é" * 31 + "\"\ne: \"x\x01\"\n", encoding="utf-8")
+    assert_config_error(companion("check-config", config), f"{config}:5: invalid YAML: character #x0001 is not allowed")
