@@ -15,7 +15,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -282,7 +282,7 @@ class Daemon:
         t.publish("health", {**self.health.snapshot(), "tasks": self.supervisor.snapshot()})
         t.publish("link", {"connected": link.connected, "autopilot": link.autopilot, "url": self.url,
                            "heartbeat_age_s": None if link.last_heartbeat is None else clock.now() - link.last_heartbeat,
-                           **vars(link.stats)})
+                           **asdict(link.stats)})  # copies: the encoder thread reads them later
         t.publish("autopilot", {"mode": state.mode, "armed": state.armed,
                                 "firmware": state.firmware.label if state.firmware else None,
                                 "origin_confirmed": self.origin.confirmed,  # as health "origin" says
@@ -291,13 +291,13 @@ class Daemon:
                                 "local_position_ned_m": state.local_position_ned,
                                 "streams": dict(self.streams.chosen),
                                 "imu_rejected": state.imu_rejected})
-        t.publish("estimate_stats", {**vars(self.estimate.stats), "reset_counter": self.estimate.reset_counter,
+        t.publish("estimate_stats", {**asdict(self.estimate.stats), "reset_counter": self.estimate.reset_counter,
                                      "nonfinite_dropped_link": link.stats.nonfinite_dropped})
         t.publish("system", {**process_usage(self.started_wall),
                              "loop_jitter_ms": self.nav.jitter_ms.summary(),
                              "stage_ms": self.nav.stage_summaries(),
                              "pipelines": {p.name: p.snapshot() for p in self.nav.pipelines},
-                             "drivers": {n: vars(d.stats) for n, d in self.drivers.items()},
+                             "drivers": {n: asdict(d.stats) for n, d in self.drivers.items()},
                              "setpoints_sent": self.setpoints.sent})
         t.publish("rates", {"streams": t.stats()})
         if self.mission is not None:

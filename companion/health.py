@@ -64,6 +64,10 @@ class Health:
             for listener in self._listeners:
                 listener(name, new, old)
 
+    def now(self) -> float:
+        """The health clock (the daemon clock), s."""
+        return self._clock()
+
     def get(self, name: str) -> ComponentHealth | None:
         return self._components.get(name)
 
@@ -104,13 +108,16 @@ class Alert:
         self.health = health
         self.name = name
         self.hold_s = hold_s
+        self.active = False  # degraded by bad(), until good() clears it
         self._last_bad = -float("inf")  # health clock of the last bad arrival
 
     def bad(self, reason: str) -> None:
-        self._last_bad = self.health._clock()
+        self.active = True
+        self._last_bad = self.health.now()
         self.health.report(self.name, State.DEGRADED, reason)
 
     def good(self, reason: str) -> None:
         """A good arrival: ok with ``reason`` unless the last bad one is more recent than ``hold_s``."""
-        if self.health._clock() - self._last_bad >= self.hold_s:
+        if self.health.now() - self._last_bad >= self.hold_s:
+            self.active = False
             self.health.report(self.name, State.OK, reason)

@@ -114,6 +114,7 @@ class LidarDriver:
                 await self._lost(f"cannot open {self.backend.description}: {exc}")
                 continue
             self.health.report(self._component, State.OK, f"{self.backend.description} streaming")
+            self._last_t = None  # a reopened device's clock is mapped afresh
             try:
                 reason = await self._read_until_lost()
             except EndOfData:
@@ -143,11 +144,13 @@ class LidarDriver:
                 continue
             self._last_t = scan.t_capture
             self.stats.scans += 1
+            self.health.report(self._component, State.OK, f"{self.backend.description} streaming")
             self.on_scan(scan)
 
     def _reject(self, problem: str) -> None:
         rejected = self.stats.rejected_scans
         rejected[problem] = rejected.get(problem, 0) + 1
+        self.health.report(self._component, State.DEGRADED, f"scans dropped: {problem}")
         if rejected[problem] == 1 or rejected[problem] % 100 == 0:
             log.error("%s: scan dropped: %s (%d so far)", self.name, problem, rejected[problem])
 

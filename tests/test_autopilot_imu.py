@@ -69,3 +69,15 @@ def test_after_an_autopilot_reboot_its_imu_is_used_once_the_reboot_is_confirmed(
     assert link.stats.autopilot_reboots == 1 and link.stats.time_anomalies == 2
     assert before == 10
     assert len(state.imu) == 19 and state.imu_rejected == 0
+
+
+def test_a_failsafe_announcement_is_found_but_not_one_that_says_the_failsafe_ended() -> None:
+    async def main() -> AutopilotState:
+        return AutopilotState(MavlinkLink(MavlinkConfig(), VehicleConfig(), "udpout:127.0.0.1:9", Health(clock.now)))
+
+    state = asyncio.run(main())
+    state.statustext = [(1.0, 2, "EKF Failsafe: changed to LAND mode"), (2.0, 6, "EKF Failsafe Cleared")]
+    assert state.failsafe_text(0.5) == "EKF Failsafe: changed to LAND mode"
+    assert state.failsafe_text(1.5) is None  # only the "cleared" one since
+    state.statustext.append((3.0, 2, "GCS Failsafe Off"))
+    assert state.failsafe_text(1.5) is None

@@ -114,7 +114,8 @@ def test_an_autopilot_heartbeat_from_another_compid_is_an_impostor_a_gimbal_or_c
     async def body(link: MavlinkLink, fake: FakeAutopilot) -> None:
         fake.heartbeat(autopilot=mavlink.MAV_AUTOPILOT_INVALID, mav_type=mavlink.MAV_TYPE_GIMBAL, compid=GIMBAL_COMPID)
         fake.heartbeat(mav_type=mavlink.MAV_TYPE_ONBOARD_CONTROLLER, compid=191)  # another companion computer
-        await fake.until(lambda: link.stats.other_components_rx == 2, "the gimbal's and companion's HEARTBEATs")
+        fake.heartbeat(mav_type=mavlink.MAV_TYPE_GPS, compid=125)  # an AP_Periph node: ArduPilot, but no vehicle
+        await fake.until(lambda: link.stats.other_components_rx == 3, "the gimbal's, companion's and GPS's HEARTBEATs")
         health["before"] = link.health.snapshot()["components"]["autopilot_identity"]
         fake.heartbeat(compid=2)  # an autopilot at another component id of system 1
         await fake.until(lambda: link.stats.identity_impostors == 1, "the impostor")

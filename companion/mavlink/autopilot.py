@@ -52,6 +52,7 @@ IMU_MESSAGES = ("HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "RAW_
 IMU_QUEUE = 64  # samples kept: > 1 s at 50 Hz, far more than one nav cycle
 IMU_CLOCK_WINDOW = 50  # samples in the clock-offset minimum (1 s at 50 Hz)
 FAILSAFE_WORDS = ("failsafe", "ekf variance")  # in an autopilot STATUSTEXT: it acted by itself
+FAILSAFE_OVER_WORDS = ("clear", " off", "resolved")  # ... unless the text says a failsafe ended
 MILLI_G = GRAVITY_MPS2 / 1000.0  # SCALED_IMU* (and ArduPilot's RAW_IMU) accelerations are in mG
 
 
@@ -174,11 +175,13 @@ class AutopilotState:
 
     def failsafe_text(self, since: float) -> str | None:
         """The newest failsafe announcement the autopilot made after daemon time ``since`` (ArduPilot:
-        "EKF Failsafe...", "GCS Failsafe...", "Battery Failsafe", "EKF variance"), or None."""
+        "EKF Failsafe...", "GCS Failsafe...", "Battery Failsafe", "EKF variance"; not "... Cleared"
+        or "... Off"), or None."""
         for t, _, text in reversed(self.statustext):
             if t < since:
                 return None
-            if any(word in text.lower() for word in FAILSAFE_WORDS):
+            lower = text.lower()
+            if any(w in lower for w in FAILSAFE_WORDS) and not any(w in lower for w in FAILSAFE_OVER_WORDS):
                 return text
         return None
 

@@ -13,7 +13,7 @@ autopilot's sysid and compid only (others of its system are counted, ``other_com
 identity (ids, autopilot family, MAV_TYPE) is locked by its first HEARTBEAT, and HEARTBEATs that
 claim another are refused, counted (``identity_changed``, ``identity_impostors``), reported
 (health component ``autopilot_identity`` degraded while they arrive, ok again at the autopilot's
-first HEARTBEAT :data:`ALERT_HOLD_S` after the last one; the counts stay) and logged; a message
+first message :data:`ALERT_HOLD_S` after the last one; the counts stay) and logged; a message
 with a value the companion reads that is non-finite or out of bounds (``companion.mavlink.edge``)
 is dropped before anything else sees it, counted per type (``values_rejected``) and reported
 (``autopilot_values``, degraded the same way); a message whose ``time_boot_ms``
@@ -389,11 +389,15 @@ class MavlinkLink:
         identity, anything else from its compid with a boot time (if any) that fits its clock.
         What is not is counted (and a conflicting identity reported)."""
         if msg.get_type() == "HEARTBEAT":
-            return self._trusted_heartbeat(msg)
-        if msg.get_srcComponent() != self.ids.autopilot_compid:
+            trusted = self._trusted_heartbeat(msg)
+        elif msg.get_srcComponent() != self.ids.autopilot_compid:
             self.stats.other_components_rx += 1
             return False
-        return self._values_ok(msg) and self._fits_boot_clock(msg)
+        else:
+            trusted = self._values_ok(msg) and self._fits_boot_clock(msg)
+        if trusted and self._identity_alert.active:
+            self._identity_ok()
+        return trusted
 
     def _values_ok(self, msg: mavlink.MAVLink_message) -> bool:
         """Whether the values the companion reads from ``msg`` are usable (companion.mavlink.edge);
@@ -401,7 +405,7 @@ class MavlinkLink:
         msg_type = msg.get_type()
         problem = rejection(msg)
         if problem is None:
-            if msg_type in BOUNDS:
+            if msg_type in BOUNDS and (self._values_alert.active or self.health.get("autopilot_values") is None):
                 self._values_alert.good("every value read is finite and within bounds")
             return True
         rejected = self.stats.values_rejected
@@ -418,13 +422,16 @@ class MavlinkLink:
             self.stats.other_components_rx += 1
         elif verdict is not Heartbeat.AUTOPILOT:
             self._identity_conflict(verdict, msg)
-        else:
-            if self.autopilot is None:
-                self._identity_locked()
-            refused = self.stats.identity_changed + self.stats.identity_impostors
-            history = f"; {refused} conflicting HEARTBEATs refused before" if refused else ""
-            self._identity_alert.good(f"locked: {self._identity.locked}{history}")
+        elif self.autopilot is None:
+            self._identity_locked()
+            self._identity_ok()
         return verdict is Heartbeat.AUTOPILOT
+
+    def _identity_ok(self) -> None:
+        """The autopilot spoke: identity ok, unless a conflict came within ALERT_HOLD_S."""
+        refused = self.stats.identity_changed + self.stats.identity_impostors
+        history = f"; {refused} conflicting HEARTBEATs refused before" if refused else ""
+        self._identity_alert.good(f"locked: {self._identity.locked}{history}")
 
     def _identity_locked(self) -> None:
         identity = self._identity.locked

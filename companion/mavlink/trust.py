@@ -5,7 +5,7 @@ counts, reports and drops what is refused.
 
 **Identity** (:class:`IdentityLock`). The first HEARTBEAT from the configured autopilot ids
 (``vehicle.autopilot_sysid`` / ``autopilot_compid``) that looks like an autopilot
-(``autopilot`` not MAV_AUTOPILOT_INVALID, ``type`` neither GCS nor onboard controller) locks the
+(``autopilot`` not MAV_AUTOPILOT_INVALID, ``type`` a vehicle: not in :data:`NOT_VEHICLE_TYPES`) locks the
 identity: those ids, that autopilot family and that MAV_TYPE. Refused from then on: a HEARTBEAT
 from the locked ids with another family or type (:attr:`Heartbeat.CHANGED`). Refused before the
 lock as after: an autopilot-looking HEARTBEAT from the autopilot's system with another component
@@ -42,7 +42,11 @@ AUTOPILOT_NAMES = {
     mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA: "ArduPilot",
     mavlink.MAV_AUTOPILOT_PX4: "PX4",
 }
-NOT_AUTOPILOT_TYPES = frozenset({mavlink.MAV_TYPE_GCS, mavlink.MAV_TYPE_ONBOARD_CONTROLLER})
+# MAV_TYPEs that are not vehicles: a component of such a type (GCS, companion, gimbal, camera,
+# ADS-B, an AP_Periph CAN node, ...) is no autopilot, whatever autopilot family it reports.
+NOT_VEHICLE_TYPES = frozenset(getattr(mavlink, f"MAV_TYPE_{name}") for name in (
+    "ANTENNA_TRACKER", "GCS", "ONBOARD_CONTROLLER", "GIMBAL", "ADSB", "CAMERA", "CHARGING_STATION", "FLARM",
+    "SERVO", "ODID", "BATTERY", "PARACHUTE", "LOG", "OSD", "IMU", "GPS", "WINCH", "ILLUMINATOR", "GRIPPER"))
 BACKWARD_TOLERANCE_MS = 1000
 FORWARD_SLACK_MS = 1000
 CLOCK_RATE_MARGIN = 2.0  # the autopilot's clock may run up to this many times the daemon's (SITL speed-up)
@@ -51,8 +55,8 @@ OLD_CLOCK_SILENT_S = 1.0  # no stamp on the old clock for this long before a new
 
 
 def looks_like_autopilot(msg: mavlink.MAVLink_message) -> bool:
-    """Whether a HEARTBEAT claims an autopilot: a family other than INVALID, and not a GCS or companion."""
-    return msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID and msg.type not in NOT_AUTOPILOT_TYPES
+    """Whether a HEARTBEAT claims an autopilot: a family other than INVALID, and a vehicle type."""
+    return msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID and msg.type not in NOT_VEHICLE_TYPES
 
 
 def autopilot_name(autopilot: int) -> str:
