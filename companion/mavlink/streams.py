@@ -20,8 +20,9 @@ and on telemetry (``chosen``).
 Then the streams a live autopilot always sends (:data:`ALWAYS_SENT`: attitude and IMU; the
 position, for one, stops while the EKF has none) are watched: one whose last message is older
 than the autopilot's last HEARTBEAT by more than :func:`stall_after_s` (five periods, at least
-:data:`MIN_STALL_S`; a hung autopilot sends no HEARTBEAT either, and is not asked) makes the whole
-negotiation start again (at most every :data:`REASK_EVERY_S`). That is how an autopilot that
+:data:`MIN_STALL_S`, on two checks in a row; a hung autopilot sends no HEARTBEAT either, and is
+not asked) is asked for again as it was chosen, and if that is refused or it still does not come,
+the whole negotiation starts again (at most every :data:`REASK_EVERY_S`). That is how an autopilot that
 rebooted faster than the link timeout is found: it comes back streaming nothing until asked, so
 without this no boot time would ever show the reboot.
 """
@@ -106,9 +107,10 @@ class StreamNegotiator:
         self.rates = rates
         self.health = health
         self.chosen: dict[str, str | None] = {}  # need -> "MSG[+MSG] @ Hz via interval|legacy", None: unmet
-        self.negotiations = 0  # completed negotiations (one per connection)
+        self.negotiations = 0  # completed negotiations and successful re-asks
         self._last_seen: dict[str, float] = {}
-        self._watched: dict[str, float] = {}  # chosen message -> its stall time (s)
+        self._watched: dict[str, tuple[float, float]] = {}  # chosen message -> (rate Hz, stall time s)
+        self._legacy_groups: dict[int, float] = {}  # REQUEST_DATA_STREAM group -> rate Hz, when used
         self._restart = asyncio.Event()
         link.on_connect(self._restart.set)
         for name in {m for need in stream_needs(rates, None) + stream_needs(rates, "PX4")
@@ -127,30 +129,48 @@ class StreamNegotiator:
 
     async def _negotiate_and_watch(self) -> None:
         """Negotiate, then ask again whenever a chosen stream stops (see the module docstring)."""
+        await self.negotiate()
         while True:
-            await self.negotiate()
-            since = clock.now()
-            await self._until_stalled()
-            await asyncio.sleep(max(0.0, since + REASK_EVERY_S - clock.now()))
+            stalled = await self._until_stalled()
+            asked_at = clock.now()
+            if not await self._ask_again(stalled, asked_at):
+                await self.negotiate()
+            await asyncio.sleep(max(0.0, asked_at + REASK_EVERY_S - clock.now()))
 
-    async def _until_stalled(self) -> None:
+    async def _until_stalled(self) -> list[str]:
+        """The watched messages once they have stopped on two checks in a row (see the module docstring)."""
+        previous: list[str] = []
         while True:
             await asyncio.sleep(WATCH_PERIOD_S)
             heard = self.link.last_heartbeat
-            if heard is None:
-                continue
-            stalled = sorted(name for name, after in self._watched.items()
-                             if heard - self._last_seen.get(name, -float("inf")) > after)
-            if stalled:
+            stalled = [] if heard is None else sorted(
+                name for name, (_, after) in self._watched.items()
+                if heard - self._last_seen.get(name, -float("inf")) > after)
+            if stalled and stalled == previous:
                 log.warning("streams stopped while the autopilot still sends HEARTBEATs (%s): asking again",
                             ", ".join(stalled))
                 self.health.report("streams", State.DEGRADED, f"stopped: {', '.join(stalled)}; asking again")
-                return
+                return stalled
+            previous = stalled
+
+    async def _ask_again(self, names: list[str], asked_at: float) -> bool:
+        """Ask for the stopped messages again as they were chosen; whether they deliver again."""
+        if self._legacy_groups:
+            self._send_legacy_groups()
+        else:
+            results = [await self._set_interval(name, self._watched[name][0]) for name in names]
+            if any(result != ACCEPTED for result in results):
+                return False
+        await self._until_delivering([tuple(names)], asked_at)
+        if not self._delivering(tuple(names), asked_at):
+            return False
+        self._finish()
+        return True
 
     async def negotiate(self) -> None:
         """Ask for every need; see the module docstring for the order of things."""
         needs = stream_needs(self.rates, self.link.autopilot)
-        self._watched = {}  # (chosen keeps the last outcome of each need until this one replaces it)
+        self._watched, self._legacy_groups = {}, {}  # (chosen keeps the last outcome of each need until this one replaces it)
         pending = {need.name: list(need.options) for need in needs}
         by_name = {need.name: need for need in needs}
         while pending:
@@ -192,8 +212,6 @@ class StreamNegotiator:
             if UNSUPPORTED in results:
                 return UNSUPPORTED
             if all(r == ACCEPTED for r in results):
-                if need.name == "imu":
-                    self.state.imu_source = option[0]
                 return option
             log.info("stream %s: %s refused; trying the next option", need.name, "+".join(option))
             await self._stop(tuple(n for n, r in zip(option, results) if r == ACCEPTED))
@@ -222,11 +240,13 @@ class StreamNegotiator:
             for name in option:
                 group = LEGACY_GROUPS[name]
                 group_rates[group] = max(group_rates.get(group, 0.0), need.rate_hz)
-            if need.name == "imu":
-                self.state.imu_source = option[0]
             self._choose(need, option, f"{'+'.join(option)} via REQUEST_DATA_STREAM")
+        self._legacy_groups = group_rates
+        self._send_legacy_groups()
+
+    def _send_legacy_groups(self) -> None:
         target = self.link.target()
-        for group, rate in sorted(group_rates.items()):
+        for group, rate in sorted(self._legacy_groups.items()):
             self.link.send(mavlink.MAVLink_request_data_stream_message(*target, group, max(1, round(rate)), 1))
 
     async def _until_delivering(self, options: list[tuple[str, ...]], since: float) -> None:
@@ -239,8 +259,10 @@ class StreamNegotiator:
         """``option`` serves ``need`` (``how``, for telemetry); its messages are watched from now on
         if the need is one of :data:`ALWAYS_SENT`."""
         self.chosen[need.name] = how
+        if need.name == "imu":
+            self.state.imu_source = option[0]
         for name in option if need.name in ALWAYS_SENT else ():
-            self._watched[name] = stall_after_s(need.rate_hz)
+            self._watched[name] = (need.rate_hz, stall_after_s(need.rate_hz))
             self._last_seen[name] = max(self._last_seen.get(name, -float("inf")), clock.now())  # grace: from now
 
     def _finish(self) -> None:
