@@ -16,6 +16,11 @@ from dataclasses import dataclass
 log = logging.getLogger("companion.health")
 
 
+def often(count: int) -> bool:
+    """Whether the ``count``-th occurrence of a repeated event is worth a log line (1st, 100th, 200th, ...)."""
+    return count == 1 or count % 100 == 0
+
+
 class State(enum.IntEnum):
     """Ordered so that max() gives the worst."""
 

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.health import Health, State
+from companion.health import Health, State, often
 from drivers.scan import Scan
 
 log = logging.getLogger("companion.drivers")
@@ -151,7 +151,7 @@ class LidarDriver:
         rejected = self.stats.rejected_scans
         rejected[problem] = rejected.get(problem, 0) + 1
         self.health.report(self._component, State.DEGRADED, f"scans dropped: {problem}")
-        if rejected[problem] == 1 or rejected[problem] % 100 == 0:
+        if often(rejected[problem]):
             log.error("%s: scan dropped: %s (%d so far)", self.name, problem, rejected[problem])
 
     async def _lost(self, reason: str) -> None:

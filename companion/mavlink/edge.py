@@ -7,7 +7,7 @@ reports and only catch garbage: a NaN, an infinity, a corrupted or forged value 
 otherwise reach the fusion. Fields not listed are not read by the companion (PX4 legitimately
 sends NaN for some "unknown" values, e.g. HOME_POSITION's approach vector) and are left alone.
 
-Units as MAVLink defines them: rad, rad/s, m, m/s, m/s^2, hPa, degE7.
+Units as MAVLink defines them: rad, rad/s, m, m/s, m/s^2, hPa, degE7, mm.
 """
 
 from __future__ import annotations
@@ -27,7 +27,8 @@ LON_E7 = 180 * 10**7
 _EULER = {"roll": ANGLE_RAD, "pitch": ANGLE_RAD, "yaw": ANGLE_RAD}
 _RATES = {"rollspeed": RATE_RADS, "pitchspeed": RATE_RADS, "yawspeed": RATE_RADS}
 _IMU = {**{f"{axis}acc": ACCEL_MPS2 for axis in "xyz"}, **{f"{axis}gyro": RATE_RADS for axis in "xyz"}}
-_LOCATION = {"latitude": LAT_E7, "longitude": LON_E7}
+ALTITUDE_MM = 1.0e7  # AMSL, mm (10 km)
+_LOCATION = {"latitude": LAT_E7, "longitude": LON_E7, "altitude": ALTITUDE_MM}
 
 # message type -> {field: largest magnitude accepted}
 BOUNDS: dict[str, dict[str, float]] = {
@@ -38,8 +39,8 @@ BOUNDS: dict[str, dict[str, float]] = {
     "GPS_GLOBAL_ORIGIN": _LOCATION,
     "HOME_POSITION": _LOCATION,
     "SIM_STATE": {"q1": 1.01, "q2": 1.01, "q3": 1.01, "q4": 1.01, "lat": 90.0, "lon": 180.0, "alt": 1.0e5,
-                  "vn": SPEED_MPS, "ve": SPEED_MPS, "vd": SPEED_MPS},
-    "SIMSTATE": {**_EULER, **_IMU, "lat": LAT_E7, "lng": LON_E7},
+                  "vn": SPEED_MPS, "ve": SPEED_MPS, "vd": SPEED_MPS, "lat_int": LAT_E7, "lon_int": LON_E7},
+    "SIMSTATE": {**_EULER, "lat": LAT_E7, "lng": LON_E7},
     "SCALED_PRESSURE": {"press_abs": 2000.0},
 }
 
@@ -47,7 +48,7 @@ BOUNDS: dict[str, dict[str, float]] = {
 def rejection(msg: mavlink.MAVLink_message) -> str | None:
     """Why ``msg`` must not be used ("non-finite yaw", "xacc beyond 2000"), or None."""
     for name, bound in BOUNDS.get(msg.get_type(), {}).items():
-        value = getattr(msg, name)
+        value = getattr(msg, name, 0)  # (an extension field an older sender leaves out reads 0)
         if not math.isfinite(value):
             return f"non-finite {name}"
         if abs(value) > bound:

@@ -50,7 +50,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink  # noqa: E402
 
 from companion import clock  # noqa: E402
 from companion.config import MavlinkConfig, VehicleConfig  # noqa: E402
-from companion.health import Alert, Health, State  # noqa: E402
+from companion.health import Alert, Health, State, often  # noqa: E402
 from companion.mavlink.edge import BOUNDS, rejection  # noqa: E402
 from companion.mavlink.signing import is_refused, require_signatures  # noqa: E402
 from companion.mavlink.transport import Transport, TransportClosed, open_transport  # noqa: E402
@@ -105,11 +105,6 @@ class LinkStats:
     unsigned_rejected: int = 0  # signing on: unsigned messages refused
     bad_signatures: int = 0  # signing on: wrong key, or a replayed / old signing timestamp
     values_rejected: dict[str, int] = field(default_factory=dict)  # per type: a value read was non-finite or out of bounds
-
-
-def often(count: int) -> bool:
-    """Whether the ``count``-th occurrence of a repeated event is worth a log line (1st, 100th, 200th, ...)."""
-    return count == 1 or count % 100 == 0
 
 
 SIGNING_KEY_MAX_BYTES = 1024  # a key file is 32 or 64 bytes, with room for whitespace around a hex key

@@ -60,7 +60,7 @@ class MissionContext:
     geofence: Geofence | None
     takeover: asyncio.Event = field(default_factory=asyncio.Event)
     takeover_reason: str = ""  # who changed the mode and to what (on_mode_taken)
-    taken_at: float | None = None  # daemon clock of the takeover
+    autopilot_failsafe: bool = False  # the autopilot's own failsafe took the mode (not a pilot)
     airborne: bool = False  # from the take-off command to the land command: the estimate is watched
     failsafes: deque[dict] = field(default_factory=lambda: deque(maxlen=RECENT_FAILSAFES))  # kind, t, reason
     failsafe_counts: dict[str, int] = field(default_factory=dict)  # kind -> how often it fired
@@ -69,19 +69,14 @@ class MissionContext:
         """Someone else changed the mode (the setpoint stream stopped): the autopilot's own
         failsafe if it announced one just before (recorded as failsafe ``autopilot``), else the
         pilot or a ground station."""
-        self.taken_at = clock.now()
         self.takeover.set()
-        announced = self.state.failsafe_text(self.taken_at - FAILSAFE_ANNOUNCED_WITHIN_S)
+        announced = self.state.failsafe_text(clock.now() - FAILSAFE_ANNOUNCED_WITHIN_S)
+        self.autopilot_failsafe = announced is not None
         if announced is not None:
             self.takeover_reason = f"autopilot failsafe to {mode}: {announced}"
             self.record_failsafe("autopilot", self.takeover_reason)
         else:
             self.takeover_reason = f"pilot or ground station changed the mode to {mode}"
-
-    @property
-    def autopilot_failsafe(self) -> bool:
-        """The mode was taken by the autopilot's own failsafe (not by a pilot)."""
-        return self.takeover_reason.startswith("autopilot failsafe")
 
     def check_takeover(self) -> None:
         if self.takeover.is_set():
