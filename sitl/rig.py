@@ -2,10 +2,13 @@
 the SCIP bridge (real Hokuyo driver, ``--faults-from-stdin``) and the daemon, the daemon's MAVLink
 link through a :class:`sitl.fault_proxy.FaultProxy`; real time, loopback only.
 
-The daemon, the vehicle and the bridge run at the service's priority (:data:`SERVICE_NICE`, the
-``Nice=`` of systemd/companion.service) when this process may raise priorities (root); the
-vehicle and the bridge stand for hardware that does not share the companion's CPU. The daemon
-publishes its status at 10 Hz by default here (recovery times to 0.1 s).
+The daemon, the vehicle and the bridge are given the service's priority (:data:`SERVICE_NICE`,
+the ``Nice=`` of systemd/companion.service) right after they start, where this process may raise
+priorities (root, or CAP_SYS_NICE; not every container grants it); the vehicle and the bridge
+stand for hardware that does not share the companion's CPU. What each process actually got is
+measured (:attr:`Rig.priorities`): the fault suite reports it and applies its timing checks only
+where the priority was the service's. The daemon publishes its status at 10 Hz by default here
+(recovery times to 0.1 s).
 """
 
 from __future__ import annotations
@@ -17,8 +20,9 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import NamedTuple
 
 import yaml
 
@@ -35,14 +39,50 @@ TELEMETRY_PERIOD_S = 0.1  # status at 10 Hz in the run config
 TELEMETRY_FRESH_S = 0.5
 
 
-def raise_priority() -> None:
-    """preexec_fn: the service's priority, where this process may set it."""
+def set_service_priority(pid: int) -> int | None:
+    """Give process ``pid`` the service's priority where this process may; the nice value it has
+    then (None: it is gone).
+
+    Called right after ``Popen`` returns: the child has just exec'd its interpreter and has one
+    thread, and the threads it starts later inherit its nice value (on Linux, nice is per thread).
+    Not a ``preexec_fn``: that runs between fork and exec in a copy of this process, whose other
+    threads (the fault proxy's, zenoh's) may hold locks the child then waits for forever."""
     with contextlib.suppress(PermissionError):
-        os.setpriority(os.PRIO_PROCESS, 0, SERVICE_NICE)
+        os.setpriority(os.PRIO_PROCESS, pid, SERVICE_NICE)
+    try:
+        return os.getpriority(os.PRIO_PROCESS, pid)
+    except ProcessLookupError:
+        return None
 
 
-def may_raise_priority() -> bool:
-    return os.geteuid() == 0
+def start_at_service_priority(cmd: list[str], **popen: object) -> tuple[subprocess.Popen, int | None]:
+    """``Popen(cmd, **popen)`` at the service's priority where permitted: (process, its nice value)."""
+    proc = subprocess.Popen(cmd, **popen)  # type: ignore[call-overload]
+    return proc, set_service_priority(proc.pid)
+
+
+class Counters(NamedTuple):
+    """Totals so far (see :meth:`Rig.counters`); compare two to measure one fault."""
+
+    restarts: int  # supervised task restarts in the daemon
+    failsafes: int  # as the flight report counts them: the mission's stops, holds and landings and
+    # the autopilot's own failsafe mode changes, not its slowdowns on a degraded estimate
+    nonfinite_sent: int  # messages to the autopilot with a NaN or infinity (counted by the proxy)
+
+
+@contextlib.contextmanager
+def sigterm_exits() -> Iterator[None]:
+    """Inside: SIGTERM raises SystemExit(143) in the main thread, so that the ``finally`` blocks
+    stop the vehicle, the bridge, the daemon and any CPU hog, and the report is written (what
+    SIGINT already does through KeyboardInterrupt). The previous handler is restored on the way out."""
+    def exit_now(signum: int, frame: object) -> None:
+        raise SystemExit(128 + signum)
+
+    previous = signal.signal(signal.SIGTERM, exit_now)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 def stop_process(proc: subprocess.Popen, budget_s: float = STOP_BUDGET_S) -> tuple[int | None, float]:
@@ -63,9 +103,10 @@ def stop_process(proc: subprocess.Popen, budget_s: float = STOP_BUDGET_S) -> tup
 class Rig:
     """Vehicle + SCIP bridge + daemon, the daemon's link through a :class:`FaultProxy` (real time)."""
 
-    def __init__(self, cfg: Config, mission: str, work: Path, seed: int,
+    def __init__(self, cfg: Config, mission: str | Path, work: Path, seed: int,
                  status_period_s: float = TELEMETRY_PERIOD_S) -> None:
-        """``status_period_s``: the daemon's ``telemetry.status_hz`` period (short: precise recovery
+        """``mission``: a mission name (``missions/NAME.yaml`` beside the config) or a mission file.
+        ``status_period_s``: the daemon's ``telemetry.status_hz`` period (short: precise recovery
         times; the deployed 1 s: what a vehicle's daemon does)."""
         self.cfg = cfg
         self.work = work
@@ -80,10 +121,15 @@ class Rig:
         self.daemon: subprocess.Popen | None = None
         self.listener: TelemetryListener | None = None
         self.vehicle_restarts = 0
+        self._extra_gcs: tuple[str, ...] = ()  # the vehicle's links besides the daemon's (the bridge's)
+        self.priorities: dict[str, int | None] = {}  # nice value of the daemon, vehicle, bridge (latest start)
 
-    def _write_run_config(self, mission: str, status_period_s: float) -> Path:
-        path = write_run_config(self.cfg, mission, self.work, f"udpout:127.0.0.1:{self.proxy.port}")
+    def _write_run_config(self, mission: str | Path, status_period_s: float) -> Path:
+        name = mission if isinstance(mission, str) else None
+        path = write_run_config(self.cfg, name, self.work, f"udpout:127.0.0.1:{self.proxy.port}")
         raw = yaml.safe_load(path.read_text())
+        if isinstance(mission, Path):
+            raw.setdefault("mission", {})["file"] = str(mission.resolve())
         raw.setdefault("telemetry", {})["status_hz"] = 1.0 / status_period_s
         path.write_text(yaml.safe_dump(raw, sort_keys=False))
         return path
@@ -95,20 +141,20 @@ class Rig:
         self.proxy.start()
         bridge_port = free_udp_port()
         if self.cfg.sitl.scip_sensors:
-            self.bridge = subprocess.Popen(
+            self.bridge, self.priorities["bridge"] = start_at_service_priority(
                 [*scip_bridge_command(self.cfg, self._args(), f"udpin:127.0.0.1:{bridge_port}"), "--faults-from-stdin"],
-                stdin=subprocess.PIPE, text=True, preexec_fn=raise_priority)
-        self._start_vehicle((f"udpout:127.0.0.1:{bridge_port}",) if self.bridge else ())
+                stdin=subprocess.PIPE, text=True)
+            self._extra_gcs = (f"udpout:127.0.0.1:{bridge_port}",)
+        self._start_vehicle()
         if self.bridge is not None and not wait_listening(self.bridge, scip_ports(self.cfg), 15.0):
             raise RuntimeError("the SCIP bridge did not come up")
         self.start_daemon()
         self.listener = TelemetryListener(self.cfg.telemetry.listen, self.cfg.vehicle.sysid)
 
-    def _start_vehicle(self, extra_gcs: tuple[str, ...] = ()) -> None:
-        self._extra_gcs = extra_gcs or getattr(self, "_extra_gcs", ())
+    def _start_vehicle(self) -> None:
         cmd = vehicle_command(self.cfg, self._args(), self.work / f"vehicle-{self.vehicle_restarts}.json",
                               self._extra_gcs)
-        self.vehicle = subprocess.Popen(cmd, preexec_fn=raise_priority)
+        self.vehicle, self.priorities["vehicle"] = start_at_service_priority(cmd)
 
     def restart_vehicle(self, timeout_s: float = 15.0) -> None:
         """Kill the vehicle (SIGKILL: no goodbye), start a new one on the same ports and return
@@ -124,8 +170,13 @@ class Rig:
             raise RuntimeError(f"the restarted vehicle did not speak within {timeout_s:g} s")
 
     def start_daemon(self) -> None:
-        self.daemon = subprocess.Popen([sys.executable, "-m", "companion.cli", "run", "-c", str(self.run_config)],
-                                       preexec_fn=raise_priority)
+        self.daemon, self.priorities["daemon"] = start_at_service_priority(
+            [sys.executable, "-m", "companion.cli", "run", "-c", str(self.run_config)])
+
+    def at_service_priority(self, role: str = "daemon") -> bool:
+        """Whether ``role`` (daemon, vehicle, bridge) was last started at the service's priority."""
+        nice = self.priorities.get(role)
+        return nice is not None and nice <= SERVICE_NICE
 
     def bridge_command(self, line: str) -> None:
         assert self.bridge is not None and self.bridge.stdin is not None
@@ -168,19 +219,21 @@ class Rig:
             return "not ok: " + ", ".join(sorted(missing))
         return None
 
-    def counters(self) -> tuple[int, int, int]:
-        """(task restarts, failsafes so far as the flight report counts them: the mission's stops, holds
-        and landings and the autopilot's own, not its slowdowns; non-finite values sent) so far."""
+    def counters(self) -> Counters:
+        """The totals so far: task restarts, failsafes, non-finite values sent (see :class:`Counters`)."""
+        assert self.listener is not None
         tasks = self.telemetry("health").get("tasks") or self.listener.snapshot().get("health", {}).get("tasks", {})
         restarts = sum(t.get("restarts", 0) for t in tasks.values())
         mission = self.listener.snapshot().get("mission", {})
         failsafes = sum(n for kind, n in mission.get("failsafe_counts", {}).items() if kind != DEGRADED_SLOWDOWN)
         with self.proxy.lock:
             nonfinite = self.proxy.counters.nonfinite_sent
-        return restarts, failsafes, nonfinite
+        return Counters(restarts, failsafes, nonfinite)
 
     def boot_ms(self) -> int:
-        """A plausible autopilot boot time (ms) for forged messages: the daemon's uptime."""
+        """A boot time (ms) near the autopilot's, for forged messages: the daemon's uptime (the
+        vehicle starts just before the daemon)."""
+        assert self.listener is not None
         system = self.listener.snapshot().get("system", {})
         return int(system.get("uptime_s", 10.0) * 1000)
 
