@@ -760,6 +760,8 @@ def run_faults(args: argparse.Namespace) -> int:
 def priority_summary(priorities: dict[str, dict]) -> str:
     """What the processes ran at, in a few words."""
     values = {nice for run in priorities.values() for nice in run.values()}
+    if not values:
+        return "no daemon started"
     if values == {SERVICE_NICE}:
         return f"every process at nice {SERVICE_NICE}"
     return f"not every process at nice {SERVICE_NICE}: {json.dumps(priorities)}"
