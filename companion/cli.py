@@ -186,7 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     experiment = sub.add_parser("experiment", help="experiments against the SITL that print figures")
     experiments = experiment.add_subparsers(dest="experiment", required=True)
-    faults = experiments.add_parser("faults", help="the fault suite (real time, a few minutes): hostile and broken "
+    faults = experiments.add_parser("faults", help="the fault suite (real time, about 5 minutes): hostile and broken "
                                                    "inputs at every edge, recovery of each (sitl/faults.py)")
     faults.add_argument("--out", required=True, help="write the results (JSON) here")
     faults.add_argument("-c", "--config", default=str(repo_config_dir() / "sitl-real-driver.yaml"),
@@ -197,7 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     soak = experiments.add_parser("soak", help="a long real-time flight: the daemon's memory and rates over time "
                                                "(sitl/soak.py)")
     soak.add_argument("--out", required=True, help="write the samples and the summary (JSON) here")
-    soak.add_argument("--seconds", type=float, default=3600.0, help="length of the hold (default 3600)")
+    soak.add_argument("--seconds", type=float, default=3600.0, help="how long to sample the hold (the mission holds 30 s longer; default 3600)")
     soak.add_argument("-c", "--config", default=str(repo_config_dir() / "sitl-real-driver.yaml"),
                       help="SITL config (default: config/sitl-real-driver.yaml)")
     soak.add_argument("--seed", type=int, default=0)
