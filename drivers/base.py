@@ -37,7 +37,7 @@ log = logging.getLogger("companion.drivers")
 
 MIN_BACKOFF_S = 0.25
 MAX_BACKOFF_S = 1.0  # a replugged scanner is found within this (an open that fails is cheap)
-LOG_EVERY_ATTEMPTS = 30  # while it stays lost, one log line per this many failed reopens
+LOG_EVERY_ATTEMPTS = 30  # while it stays lost, one warning per this many failed reopens (the others: debug)
 
 
 class CorruptFrame(Exception):
@@ -159,8 +159,8 @@ class LidarDriver:
         self.stats.last_error = reason
         self.health.report(self._component, State.LOST, reason)
         self._attempts += 1
-        if self._attempts % LOG_EVERY_ATTEMPTS == 1:
-            log.warning("%s: %s (attempt %d); retrying every %.2g s at most", self.name, reason, self._attempts,
-                        MAX_BACKOFF_S)
+        level = logging.WARNING if self._attempts % LOG_EVERY_ATTEMPTS == 1 else logging.DEBUG
+        log.log(level, "%s: %s (attempt %d); retrying every %.2g s at most", self.name, reason, self._attempts,
+                MAX_BACKOFF_S)
         await asyncio.sleep(self._backoff)
         self._backoff = min(2 * self._backoff, MAX_BACKOFF_S)

@@ -80,8 +80,8 @@ def test_sensors_that_cannot_be_read_are_reported_lost_not_ignored(tmp_path: Pat
         "telemetry: {enabled: false}\n"
         "sensors:\n  cam: {kind: camera, backend: real}\n"
         "  lidar_h: {kind: lidar, backend: real, settings: {port: /dev/ttyNOSUCHDEVICE}}\n")
-    proc = subprocess.Popen([sys.executable, "-m", "companion.cli", "run", "-c", str(cfg)],
-                            cwd=REPO, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-m", "companion.cli", "--log-level", "debug", "run", "-c", str(cfg)],
+                            cwd=REPO, stderr=subprocess.PIPE, text=True)  # debug: every retry is logged
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.extend(proc.stderr), daemon=True)
     reader.start()
