@@ -87,6 +87,14 @@ def stream_needs(rates: StreamRatesConfig, autopilot: str | None) -> list[Stream
     return [need for need in needs if need.rate_hz > 0]
 
 
+def _raise_if_cancelling() -> None:
+    """Python 3.11's asyncio.wait_for can swallow a cancellation that meets a result (an ACK arriving
+    as the connection is replaced): a loop that never ends must still stop once cancelled."""
+    task = asyncio.current_task()
+    if task is not None and task.cancelling():
+        raise asyncio.CancelledError
+
+
 def stall_after_s(rate_hz: float) -> float:
     """How long a stream at ``rate_hz`` may be silent before it counts as stopped (s)."""
     return max(MIN_STALL_S, 5.0 / rate_hz)
@@ -131,6 +139,7 @@ class StreamNegotiator:
         """Negotiate, then ask again whenever a chosen stream stops (see the module docstring)."""
         await self.negotiate()
         while True:
+            _raise_if_cancelling()
             stalled = await self._until_stalled()
             asked_at = clock.now()
             if not await self._ask_again(stalled, asked_at):
@@ -141,6 +150,7 @@ class StreamNegotiator:
         """The watched messages once they have stopped on two checks in a row (see the module docstring)."""
         previous: list[str] = []
         while True:
+            _raise_if_cancelling()
             await asyncio.sleep(WATCH_PERIOD_S)
             heard = self.link.last_heartbeat
             stalled = [] if heard is None else sorted(
