@@ -11,7 +11,7 @@ import pytest
 
 from companion import clock
 from companion.config import MavlinkConfig, VehicleConfig
-from companion.control.rpt import ControlOutput
+from companion.control.outer_loop import ControlOutput
 from companion.frames import geodetic_from_ned
 from companion.health import Health
 from companion.mavlink.autopilot import AutopilotState

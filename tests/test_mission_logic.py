@@ -102,9 +102,9 @@ def test_the_timeline_pauses_at_a_hold_at_rest_and_finishes_at_the_end() -> None
         timeline.advance(0.02, 1.0)
         steps += 1
     assert timeline.tau == t_stop and t_stop <= steps * 0.02 < t_stop + 0.02 + 1e-9
-    reference, _ = timeline.reference()
-    np.testing.assert_allclose(reference.position_ned, [2, 0, -1], atol=1e-9)
-    assert np.all(reference.velocity_ned == 0.0) and np.all(reference.acceleration_ned == 0.0)
+    reference = timeline.reference()
+    np.testing.assert_allclose(reference.position, [2, 0, -1], atol=1e-9)
+    assert np.all(reference.velocity == 0.0) and np.all(reference.acceleration == 0.0) and reference.yaw_rate == 0.0
     for _ in range(50):  # one second of hold: tau stands still
         timeline.advance(0.02, 1.0)
     assert timeline.tau == t_stop

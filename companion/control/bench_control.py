@@ -18,8 +18,10 @@ from companion.control.pid import PID_XY, PID_Z, PidAxis, PidController
 from companion.control.response import (PAPER_MODEL, PAPER_XY, PAPER_Z, AxisPlant, FigureEight, PlantModel,
                                         compare_tracking, step_response)
 from companion.timing import percentiles_ms
-from companion.control.rpt import (ACCELERATION, VELOCITY, XY_PARAMS, Z_PARAMS, AxisLimits, MeasuredState,
-                                   Reference, RptAxis, RptController, RptLimits)
+from companion.control.outer_loop import MeasuredState
+from companion.control.reference import Reference
+from companion.control.rpt import (ACCELERATION, VELOCITY, XY_PARAMS, Z_PARAMS, AxisLimits, RptAxis, RptController,
+                                   RptLimits)
 
 _STEP_DT_S = 0.02
 
@@ -33,10 +35,10 @@ def _time_controller(controller, repeat: int, as_arrays: bool) -> tuple[float, f
     for k in range(n):
         r = traj.sample(k * _STEP_DT_S)
         noise = rng.normal(0.0, 0.01, 6)
-        p = tuple(float(r.position_ned[i] + noise[i]) for i in range(3))
-        v = tuple(float(r.velocity_ned[i] + noise[3 + i]) for i in range(3))
+        p = tuple(float(r.position[i] + noise[i]) for i in range(3))
+        v = tuple(float(r.velocity[i] + noise[3 + i]) for i in range(3))
         if as_arrays:
-            refs.append(Reference(np.array(r.position_ned), np.array(r.velocity_ned), np.array(r.acceleration_ned)))
+            refs.append(Reference(np.array(r.position), np.array(r.velocity), np.array(r.acceleration)))
             meas.append(MeasuredState(np.array(p), np.array(v)))
         else:
             refs.append(r)

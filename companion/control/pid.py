@@ -30,8 +30,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from companion.control.rpt import (ACCELERATION, VELOCITY, XY_PARAMS, Z_PARAMS, AxisLimits, OuterLoopController,
-                                   RptAxis, RptGains, RptLimits, RptParams)
+from companion.control.outer_loop import OuterLoopController
+from companion.control.rpt import (ACCELERATION, VELOCITY, XY_PARAMS, Z_PARAMS, AxisLimits, RptAxis, RptGains,
+                                   RptLimits, RptParams, outer_loop_axes)
 
 
 @dataclass(frozen=True)
@@ -81,4 +82,6 @@ class PidController(OuterLoopController):
                  anti_windup: bool = True) -> None:
         self.xy_gains = xy
         self.z_gains = z
-        super().__init__(xy.axis_gains(ACCELERATION), z.axis_gains(VELOCITY), limits, anti_windup)
+        limits = limits if limits is not None else RptLimits()
+        super().__init__(*outer_loop_axes(xy.axis_gains(ACCELERATION), z.axis_gains(VELOCITY), limits, anti_windup),
+                         limits)

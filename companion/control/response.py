@@ -25,8 +25,9 @@ from typing import NamedTuple
 
 import numpy as np
 
-from companion.control.rpt import (ACCELERATION, VELOCITY, MeasuredState, OuterLoopController, Reference,
-                                   RptAxis, as_reference)
+from companion.control.outer_loop import MeasuredState, OuterLoopController
+from companion.control.reference import Reference
+from companion.control.rpt import ACCELERATION, VELOCITY, RptAxis
 
 CONTROL_DT_S = 0.02  # the 50 Hz nav loop
 
@@ -178,8 +179,8 @@ def step_response(axis: RptAxis, plant: AxisPlant | None = None, amplitude: floa
 class Trajectory:
     """A reference trajectory: ``sample(t) -> Reference`` over ``[0, duration_s]``.
 
-    :func:`compare_tracking` also takes any object with ``sample(t)`` returning something
-    :func:`companion.control.rpt.as_reference` converts and a ``duration_s`` or ``duration``.
+    :func:`compare_tracking` also takes any object with ``sample(t) -> Reference`` and a
+    ``duration_s`` or ``duration``, e.g. a planned :class:`companion.control.trajectory.Trajectory`.
     """
 
     duration_s: float
@@ -229,24 +230,23 @@ def simulate_tracking(trajectory: Trajectory, plant: PlantModel, controller: Out
                       dt: float = CONTROL_DT_S,
                       disturbance: Callable[[float], tuple[float, float, float]] | None = None) -> np.ndarray:
     """Fly ``controller`` along ``trajectory`` from its start state; returns the (n, 3) position errors."""
-    ref0 = as_reference(trajectory.sample(0.0))
+    ref0 = trajectory.sample(0.0)
     duration = getattr(trajectory, "duration_s", None)
     duration = float(trajectory.duration if duration is None else duration)  # type: ignore[attr-defined]
-    states = [AxisState(ref0.position_ned[i], ref0.velocity_ned[i], ref0.acceleration_ned[i]) for i in range(3)]
+    states = [AxisState(ref0.position[i], ref0.velocity[i], ref0.acceleration[i]) for i in range(3)]
     if plant.z.kind == VELOCITY:
-        states[2].a = ref0.acceleration_ned[2]
+        states[2].a = ref0.acceleration[2]
     controller.reset()
-    controller.engage(MeasuredState(ref0.position_ned, ref0.velocity_ned), ref0,
-                      acceleration_ned=ref0.acceleration_ned)
+    controller.engage(MeasuredState(ref0.position, ref0.velocity), ref0, acceleration_ned=ref0.acceleration)
     n = int(round(duration / dt)) + 1
     errors = np.empty((n, 3))
     plants = (plant.xy, plant.xy, plant.z)
     for k in range(n):
         t = k * dt
-        ref = as_reference(trajectory.sample(t))
+        ref = trajectory.sample(t)
         meas = MeasuredState((states[0].p, states[1].p, states[2].p), (states[0].v, states[1].v, states[2].v))
         out = controller.step(dt, ref, meas)
-        errors[k] = [ref.position_ned[i] - states[i].p for i in range(3)]
+        errors[k] = [ref.position[i] - states[i].p for i in range(3)]
         d = disturbance(t) if disturbance is not None else (0.0, 0.0, 0.0)
         inputs = (out.acceleration_ned[0], out.acceleration_ned[1], out.velocity_ned_z)
         for i in range(3):

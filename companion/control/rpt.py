@@ -5,7 +5,7 @@ The three axes are decoupled (the outer dynamics are differentially flat in x, y
 x and y are double integrators driven by an acceleration reference (eq. 12), z is a single
 integrator driven by a velocity reference (the autopilot's vertical velocity loop, eq. 17).
 Output, in the autopilot's terms: acceleration references for x, y (m/s^2) and a velocity
-reference for z (m/s), see :class:`ControlOutput`.
+reference for z (m/s), see :class:`companion.control.outer_loop.ControlOutput`.
 
 Derivation of the gains (eqs. 13-18; the seed text's eq. 15 is garbled, so derived here)
 ---------------------------------------------------------------------------------------
@@ -126,21 +126,17 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple, Sequence
 
 import numpy as np
+
+from companion.control.outer_loop import CLIP, NonFiniteInput, OuterLoopController, nonfinite
 
 ACCELERATION = "acceleration"  # an x or y axis: the output is an acceleration reference
 VELOCITY = "velocity"  # the z axis: the output is a velocity reference
 _KINDS = (ACCELERATION, VELOCITY)
 
-_CLIP = 1.0e6  # |error|, |velocity error|, |feed-forward| beyond this are clipped (numerical safety)
 _ETA_HARD = 1.0e9  # |eta| bound even without anti-windup (m s): keeps every product finite
 _INF = math.inf
-
-
-class NonFiniteInput(ValueError):
-    """A non-finite input arrived before any finite measurement: there is nothing to hold."""
 
 
 # ------------------------------------------------------------------ parameters and gains
@@ -321,11 +317,6 @@ class AxisLimits:
 
 
 # ------------------------------------------------------------------ one axis
-def _nonfinite(*values: float) -> bool:
-    """True if any value is NaN or infinite (``x * 0.0`` is 0 exactly for finite ``x``)."""
-    return sum(v * 0.0 for v in values) != 0.0
-
-
 class RptAxis:
     """One channel: the law of :class:`RptGains` with limits, anti-windup and bumpless engage.
 
@@ -396,24 +387,24 @@ class RptAxis:
     def law(self, p_r: float, v_r: float, a_r: float, p: float, v: float) -> float:
         """The unlimited output for finite inputs (does not change the integrator)."""
         e = p_r - p
-        e = _CLIP if e > _CLIP else (-_CLIP if e < -_CLIP else e)
+        e = CLIP if e > CLIP else (-CLIP if e < -CLIP else e)
         self._e = e
         if self._vel:
             ff = self._fv * v_r
-            ff = _CLIP if ff > _CLIP else (-_CLIP if ff < -_CLIP else ff)
+            ff = CLIP if ff > CLIP else (-CLIP if ff < -CLIP else ff)
             return ff + self._kp * e + self._ki * self._eta
         d = self._fv * v_r - v
-        d = _CLIP if d > _CLIP else (-_CLIP if d < -_CLIP else d)
+        d = CLIP if d > CLIP else (-CLIP if d < -CLIP else d)
         ff = self._fa * a_r
-        ff = _CLIP if ff > _CLIP else (-_CLIP if ff < -_CLIP else ff)
+        ff = CLIP if ff > CLIP else (-CLIP if ff < -CLIP else ff)
         return ff + self._kp * e + self._kd * d + self._ki * self._eta
 
     def law_rate(self, v_r: float, a_r: float, v: float) -> float:
         """d/dt of a velocity axis's unlimited output: ``velocity_ff a_r + k_p (v_r - v) + k_int e``."""
         d = v_r - v
-        d = _CLIP if d > _CLIP else (-_CLIP if d < -_CLIP else d)
+        d = CLIP if d > CLIP else (-CLIP if d < -CLIP else d)
         ff = self._fv * a_r
-        ff = _CLIP if ff > _CLIP else (-_CLIP if ff < -_CLIP else ff)
+        ff = CLIP if ff > CLIP else (-CLIP if ff < -CLIP else ff)
         return ff + self._kp * d + self._ki * self._e
 
     def commit(self, dt: float, u_lin: float, u_out: float) -> None:
@@ -436,7 +427,7 @@ class RptAxis:
         velocity ``v`` for a velocity axis. The integrator absorbs the difference between the
         law and the continuation (within its clamp); the rate limiter starts from it.
         """
-        if _nonfinite(p_r, v_r, a_r, p, v):
+        if nonfinite(p_r, v_r, a_r, p, v):
             raise NonFiniteInput("RptAxis.engage needs finite inputs")
         if continuation is None:
             continuation = v if self._vel else 0.0
@@ -454,7 +445,7 @@ class RptAxis:
 
     def step(self, dt: float, p_r: float, v_r: float, a_r: float, p: float, v: float) -> float:
         """One control step: the limited output (a held safe output for non-finite input)."""
-        if _nonfinite(dt, p_r, v_r, a_r, p, v):
+        if nonfinite(dt, p_r, v_r, a_r, p, v):
             return self.hold(dt)
         if dt <= 0.0:
             raise ValueError(f"dt must be > 0, got {dt!r}")
@@ -465,7 +456,7 @@ class RptAxis:
         u_lin = self.law(p_r, v_r, a_r, p, v)
         lo, hi = lim.output_min, lim.output_max
         if not self._vel and (lim.speed_max < _INF or lim.speed_min > -_INF):
-            vc = _CLIP if v > _CLIP else (-_CLIP if v < -_CLIP else v)
+            vc = CLIP if v > CLIP else (-CLIP if v < -CLIP else v)
             room_hi, room_lo = lim.speed_max - vc, vc - lim.speed_min
             cap_hi = lim.speed_gain * room_hi
             cap_lo = -lim.speed_gain * room_lo
@@ -510,269 +501,24 @@ class RptAxis:
 
 
 # ------------------------------------------------------------------ three axes
-Vec3 = Sequence[float]
-
-
-class Reference(NamedTuple):
-    """A trajectory sample in LOCAL_NED: position (m), velocity (m/s), acceleration (m/s^2)."""
-
-    position_ned: Vec3
-    velocity_ned: Vec3 = (0.0, 0.0, 0.0)
-    acceleration_ned: Vec3 = (0.0, 0.0, 0.0)
-
-
-class MeasuredState(NamedTuple):
-    """The estimate in LOCAL_NED; ``acceleration_ned`` (optional) is only used by ``engage``."""
-
-    position_ned: Vec3
-    velocity_ned: Vec3
-    acceleration_ned: Vec3 | None = None
-
-
-class ControlOutput(NamedTuple):
-    """One step's output in the autopilot's terms (LOCAL_NED).
-
-    ``acceleration_ned``: x, y acceleration references (m/s^2) and, in z, the rate of the z
-    velocity reference (its feed-forward); ``velocity_ned_z``: the z velocity reference (m/s);
-    ``position_ned`` / ``velocity_ned``: what to send with them under a position + velocity +
-    acceleration type mask: the reference position (m) and the horizontal reference velocity
-    with the z velocity reference (m/s); ``measured_position_ned`` / ``measured_velocity_ned``:
-    the state the law saw; ``saturated``: per axis, a limit changed the law's output;
-    ``valid``: False for the held safe output returned on non-finite input (then the position
-    is the last finite measured one and the horizontal velocity 0: hold there).
-    """
-
-    acceleration_ned: tuple[float, float, float]
-    velocity_ned_z: float
-    position_ned: tuple[float, float, float]
-    velocity_ned: tuple[float, float, float]
-    measured_position_ned: tuple[float, float, float]
-    measured_velocity_ned: tuple[float, float, float]
-    saturated: tuple[bool, bool, bool]
-    valid: bool = True
-
-    def setpoint_fields(self) -> dict[str, np.ndarray]:
-        """Keyword arguments for ``companion.mavlink.setpoints.Setpoint`` (mask 3072)."""
-        return {"position_ned": np.array(self.position_ned), "velocity_ned": np.array(self.velocity_ned),
-                "acceleration_ned": np.array(self.acceleration_ned)}
-
-    def position_velocity_fields(self, vel_gain_xy: float = 2.0) -> dict[str, np.ndarray]:
-        """``Setpoint`` keyword arguments for autopilots that take position + velocity but no
-        acceleration targets (type_mask 3520, 2496 with yaw; ArduPilot Copter < 4.1 ignores 3072).
-
-        The autopilot's velocity loop demands ``K_v (v_target - v)`` on top of its position
-        correction, so the horizontal x, y acceleration reaches it as a velocity raised by
-        ``a / K_v`` (``K_v``: ArduPilot ``PSC_VELXY_P``): through its P term, the same demand as
-        type_mask 3072, filtered by PSC_ACC_XY_FILT; its I and D terms act on the raised velocity
-        too, so this is an approximation of the feed-forward. z is unchanged (the z velocity
-        reference). On the held safe output the velocity is the held one.
-        """
-        vx, vy, vz = self.velocity_ned
-        ax, ay, _ = self.acceleration_ned if self.valid else (0.0, 0.0, 0.0)
-        return {"position_ned": np.array(self.position_ned),
-                "velocity_ned": np.array([vx + ax / vel_gain_xy, vy + ay / vel_gain_xy, vz])}
-
-
-def position_only_target(output: ControlOutput, *, pos_gain_xy: float = 1.0, vel_gain_xy: float = 2.0,
-                         pos_gain_z: float = 1.0, max_lead_m: float = 2.0) -> tuple[float, float, float]:
-    """The position target to send when the autopilot only takes positions (mask 3576).
-
-    The autopilot's own linear cascade is ``v_c = K_p (p_sp - p)``, ``a = K_v (v_c - v)``
-    (ArduPilot ``PSC_POSXY_P``, ``PSC_VELXY_P``, ``PSC_POSZ_P``; PX4 ``MPC_XY_P``,
-    ``MPC_XY_VEL_P_ACC``, ``MPC_Z_P``). Inverting it, the target that makes it demand the RPT
-    output is ``p + (v + a / K_v) / K_p`` horizontally and ``p + v_z_ref / K_pz`` vertically.
-    The lead (target - position) is limited to ``max_lead_m`` per axis group, because real
-    autopilots leave the linear region (square-root controller) for large errors. Its
-    integrators and the sampling of position targets make this an approximation of the RPT
-    loop, not the RPT loop itself; prefer mask 3072 (:meth:`ControlOutput.setpoint_fields`).
-    """
-    px, py, pz = output.measured_position_ned
-    vx, vy, _ = output.measured_velocity_ned
-    ax, ay, _ = output.acceleration_ned
-    lx = (vx + ax / vel_gain_xy) / pos_gain_xy
-    ly = (vy + ay / vel_gain_xy) / pos_gain_xy
-    lz = output.velocity_ned_z / pos_gain_z
-    n = math.hypot(lx, ly)
-    if n > max_lead_m:
-        lx, ly = lx * max_lead_m / n, ly * max_lead_m / n
-    lz = max(-max_lead_m, min(max_lead_m, lz))
-    if not output.valid:  # held output: hold the last finite position
-        lx = ly = lz = 0.0
-    return (px + lx, py + ly, pz + lz)
-
-
-def _vec(v: Vec3) -> Sequence[float]:
-    return v.tolist() if isinstance(v, np.ndarray) else v
-
-
-def as_reference(sample: object) -> Reference:
-    """A :class:`Reference` from a trajectory sample: one already, or any object with
-    ``position``, ``velocity``, ``acceleration`` (NED, e.g. ``companion.control.trajectory``'s)."""
-    if isinstance(sample, Reference):
-        return sample
-    s = sample
-    return Reference(_vec(s.position), _vec(s.velocity), _vec(s.acceleration))  # type: ignore[attr-defined]
-
-
-class OuterLoopController:
-    """Three axes (x, y acceleration; z velocity) of one law with the limits of :class:`RptLimits`.
-
-    :class:`RptController` builds the gains from :class:`RptParams`; the PID baseline
-    (``companion.control.pid``) from PID gains. ``step`` auto-engages (continuation: hover,
-    current vertical velocity) if :meth:`engage` was not called.
-    """
-
-    def __init__(self, xy_gains: RptGains, z_gains: RptGains, limits: RptLimits | None = None,
-                 anti_windup: bool = True) -> None:
-        self.limits = limits if limits is not None else RptLimits()
-        lim = self.limits
-        xy_lim = AxisLimits.from_limits(lim, ACCELERATION)
-        self.x = RptAxis(xy_gains, ACCELERATION, xy_lim, anti_windup)
-        self.y = RptAxis(xy_gains, ACCELERATION, xy_lim, anti_windup)
-        self.z = RptAxis(z_gains, VELOCITY, AxisLimits.from_limits(lim, VELOCITY), anti_windup)
-        self.anti_windup = anti_windup
-        self.engaged = False
-        self.nonfinite_inputs = 0
-        self._last_position: tuple[float, float, float] | None = None
-        self._amax, self._jmax = lim.accel_xy_mps2, lim.jerk_xy_mps3
-        self._vmax, self._ks, self._max_dt = lim.speed_xy_mps, lim.speed_gain, lim.max_dt_s
-
-    def reset(self) -> None:
-        for axis in (self.x, self.y, self.z):
-            axis.reset()
-        self.engaged = False
-
-    def engage(self, measured: MeasuredState, reference: Reference,
-               acceleration_ned: Vec3 | None = None) -> None:
-        """Bumpless start: the first output continues the vehicle's current motion.
-
-        The x, y continuation is ``acceleration_ned`` if given, else ``measured.acceleration_ned``
-        if set, else 0 (hover); the z continuation is the measured vertical velocity. Each
-        integrator is set so that the law outputs exactly that for these inputs (within the
-        integral clamp) and the rate limiters start from it; with a reference that starts at
-        the vehicle's state the integrators start near 0.
-        """
-        p = _vec(measured.position_ned)
-        v = _vec(measured.velocity_ned)
-        pr, vr, ar = _vec(reference.position_ned), _vec(reference.velocity_ned), _vec(reference.acceleration_ned)
-        acc = acceleration_ned if acceleration_ned is not None else measured.acceleration_ned
-        acc = _vec(acc) if acc is not None else (0.0, 0.0, 0.0)
-        if _nonfinite(*p, *v, *pr, *vr, *ar, acc[0], acc[1]):
-            raise NonFiniteInput("engage needs a finite measured state, reference and continuation")
-        ax, ay = float(acc[0]), float(acc[1])
-        n = math.hypot(ax, ay)
-        if n > self._amax:
-            ax, ay = ax * self._amax / n, ay * self._amax / n
-        self.x.engage(pr[0], vr[0], ar[0], p[0], v[0], ax)
-        self.y.engage(pr[1], vr[1], ar[1], p[1], v[1], ay)
-        self.z.engage(pr[2], vr[2], ar[2], p[2], v[2], None)
-        self._last_position = (float(p[0]), float(p[1]), float(p[2]))
-        self.engaged = True
-
-    def step(self, dt: float, reference: Reference, measured: MeasuredState) -> ControlOutput:
-        """One control step (see :class:`ControlOutput`); non-finite input -> the held safe output."""
-        prx, pry, prz = _vec(reference.position_ned)
-        vrx, vry, vrz = _vec(reference.velocity_ned)
-        arx, ary, arz = _vec(reference.acceleration_ned)
-        px, py, pz = _vec(measured.position_ned)
-        vx, vy, vz = _vec(measured.velocity_ned)
-        if (dt * 0.0 + prx * 0.0 + pry * 0.0 + prz * 0.0 + vrx * 0.0 + vry * 0.0 + vrz * 0.0 + arx * 0.0
-                + ary * 0.0 + arz * 0.0 + px * 0.0 + py * 0.0 + pz * 0.0 + vx * 0.0 + vy * 0.0 + vz * 0.0) != 0.0:
-            return self.held_output(dt)
-        if dt <= 0.0:
-            raise ValueError(f"dt must be > 0, got {dt!r}")
-        if not self.engaged:
-            self.engage(measured, reference)
-        if dt > self._max_dt:
-            dt = self._max_dt
-        xa, ya = self.x, self.y
-        ux_lin = xa.law(prx, vrx, arx, px, vx)
-        uy_lin = ya.law(pry, vry, ary, py, vy)
-        ux, uy = ux_lin, uy_lin
-        # speed guard: cap the acceleration along the direction of motion
-        vmax = self._vmax
-        hx = hy = 0.0  # unit direction of motion while the guard bites
-        if vmax < _INF:
-            cx = _CLIP if vx > _CLIP else (-_CLIP if vx < -_CLIP else vx)
-            cy = _CLIP if vy > _CLIP else (-_CLIP if vy < -_CLIP else vy)
-            sp = math.sqrt(cx * cx + cy * cy)
-            if sp > 1e-6:
-                room = vmax - sp
-                cap = self._ks * room
-                if room > 0.0:  # and no faster than the jerk limit can bring it back to 0
-                    cap = min(cap, math.sqrt(2.0 * self._jmax * room))
-                a_par = (ux * cx + uy * cy) / sp
-                if a_par > cap:
-                    k = (a_par - cap) / sp
-                    ux -= k * cx
-                    uy -= k * cy
-                    hx, hy = cx / sp, cy / sp
-        # acceleration norm
-        amax = self._amax
-        n = math.sqrt(ux * ux + uy * uy)
-        if n > amax:
-            s = amax / n
-            ux *= s
-            uy *= s
-        # jerk: rate limiter on the acceleration vector
-        ox, oy = xa._out, ya._out
-        dx, dy = ux - ox, uy - oy
-        r = self._jmax * dt
-        n = math.sqrt(dx * dx + dy * dy)
-        if n > r:
-            if hx == 0.0 and hy == 0.0:
-                s = r / n
-                ux = ox + dx * s
-                uy = oy + dy * s
-            else:  # braking first: the change along the motion gets the jerk budget before the turn
-                d_par = dx * hx + dy * hy
-                d_par = r if d_par > r else (-r if d_par < -r else d_par)
-                qx, qy = dx - (dx * hx + dy * hy) * hx, dy - (dx * hx + dy * hy) * hy
-                q = math.sqrt(qx * qx + qy * qy)
-                rest = math.sqrt(max(0.0, r * r - d_par * d_par))
-                s = rest / q if q > rest else 1.0
-                ux = ox + d_par * hx + qx * s
-                uy = oy + d_par * hy + qy * s
-        xa.commit(dt, ux_lin, ux)
-        ya.commit(dt, uy_lin, uy)
-        za = self.z
-        wz = za.step(dt, prz, vrz, arz, pz, vz)
-        self._last_position = (px, py, pz)
-        return ControlOutput((ux, uy, za.feedforward), wz, (prx, pry, prz), (vrx, vry, wz), (px, py, pz),
-                             (vx, vy, vz), (xa.saturated, ya.saturated, za.saturated), True)
-
-    def held_output(self, dt: float) -> ControlOutput:
-        """The held safe output (non-finite input): accelerations and z velocity ramp to 0 under
-        their rate limits, hold the last finite position, integrators frozen, ``valid=False``."""
-        if self._last_position is None:
-            raise NonFiniteInput("non-finite input before any finite measurement: nothing to hold")
-        self.nonfinite_inputs += 1
-        if not (dt * 0.0 == 0.0) or dt <= 0.0:
-            dt = 0.02
-        dt = min(dt, self._max_dt)
-        ox, oy = self.x._out, self.y._out
-        n = math.hypot(ox, oy)
-        r = self._jmax * dt
-        s = max(0.0, n - r) / n if n > 0.0 else 0.0
-        self.x._out, self.y._out = ox * s, oy * s
-        for axis in (self.x, self.y):
-            axis.valid = False
-            axis.saturated = False
-            axis.nonfinite_inputs += 1
-        wz = self.z.hold(dt)
-        return ControlOutput((ox * s, oy * s, self.z.feedforward), wz, self._last_position, (0.0, 0.0, wz),
-                             self._last_position, (0.0, 0.0, 0.0), (False, False, False), False)
+def outer_loop_axes(xy: RptGains, z: RptGains, limits: RptLimits,
+                    anti_windup: bool = True) -> tuple[RptAxis, RptAxis, RptAxis]:
+    """x, y (acceleration) and z (velocity) axes of one law under ``limits``, for an :class:`OuterLoopController`."""
+    xy_lim = AxisLimits.from_limits(limits, ACCELERATION)
+    return (RptAxis(xy, ACCELERATION, xy_lim, anti_windup), RptAxis(xy, ACCELERATION, xy_lim, anti_windup),
+            RptAxis(z, VELOCITY, AxisLimits.from_limits(limits, VELOCITY), anti_windup))
 
 
 class RptController(OuterLoopController):
     """The paper's outer loop: RPT with integral action on x, y (eq. 15) and z (eq. 18).
 
     ``RptController()`` uses the paper's parameters and :class:`RptLimits` defaults;
-    ``step(dt, Reference(...), MeasuredState(...)) -> ControlOutput``.
+    ``step(dt, Reference(...), MeasuredState(...)) -> ControlOutput`` (companion/control/outer_loop.py).
     """
 
     def __init__(self, xy: RptParams = XY_PARAMS, z: RptParams = Z_PARAMS, limits: RptLimits | None = None,
                  anti_windup: bool = True) -> None:
         self.xy_params = xy
         self.z_params = z
-        super().__init__(xy.gains(ACCELERATION), z.gains(VELOCITY), limits, anti_windup)
+        limits = limits if limits is not None else RptLimits()
+        super().__init__(*outer_loop_axes(xy.gains(ACCELERATION), z.gains(VELOCITY), limits, anti_windup), limits)

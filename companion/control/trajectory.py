@@ -81,6 +81,8 @@ from typing import Literal
 import numpy as np
 from numpy.polynomial import polynomial as P
 
+from companion.control.reference import Reference
+
 Kind = Literal["minimum_jerk", "minimum_snap"]
 YawMode = Literal["hold", "face_next", "fixed"]
 
@@ -95,19 +97,6 @@ ALLOCATION_DAMPING = 0.5  # the per-segment factor is ratio ** this
 ALLOCATION_PATIENCE = 10  # stop after this many solves without a 0.1 % shorter candidate
 SPLIT_ROUNDS = 8  # corridor: rounds of splitting before corners become stops
 MIN_SPLIT_M = 0.02  # segments shorter than this are not split further
-
-
-@dataclass(frozen=True)
-class Reference:
-    """A trajectory reference: NED position (m), velocity (m/s), acceleration (m/s^2), yaw (rad,
-    [-pi, pi)) and yaw rate (rad/s). From ``sample`` the vectors are (3,) and the yaw floats;
-    from ``sample_many`` they are (M, 3) and (M,)."""
-
-    position: np.ndarray
-    velocity: np.ndarray
-    acceleration: np.ndarray
-    yaw_rad: float | np.ndarray
-    yaw_rate: float | np.ndarray
 
 
 def _wrap(a: np.ndarray | float) -> np.ndarray:

@@ -16,7 +16,7 @@ import numpy as np
 
 from companion import clock
 from companion.config import ControlConfig, FailsafeConfig, PayloadConfig
-from companion.control.rpt import MeasuredState
+from companion.control.outer_loop import MeasuredState
 from companion.health import State
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.commands import Commander

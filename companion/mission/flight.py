@@ -30,8 +30,9 @@ import numpy as np
 from companion import clock
 from companion.config import ControlConfig
 from companion.control.pid import PidController, PidGains
-from companion.control.rpt import (ACCELERATION, VELOCITY, ControlOutput, MeasuredState, OuterLoopController,
-                                   Reference, RptController, RptLimits, RptParams, position_only_target)
+from companion.control.outer_loop import ControlOutput, MeasuredState, OuterLoopController, position_only_target
+from companion.control.reference import Reference
+from companion.control.rpt import ACCELERATION, VELOCITY, RptController, RptLimits, RptParams
 from companion.control.trajectory import Trajectory, plan
 from companion.health import State
 from companion.mavlink.firmware import Firmware
@@ -167,7 +168,7 @@ class TrajectoryFlight:
             status = ctx.estimate_status()
             if status.state == State.LOST:
                 started = clock.now()
-                await ctx.ride_out_estimate_loss(status, timeline.reference()[1])
+                await ctx.ride_out_estimate_loss(status, float(timeline.reference().yaw_rad))
                 self._deadline += clock.now() - started
                 return self._left_to_fly(flight, timeline)
             if (status.state == State.DEGRADED) != degraded:
@@ -176,7 +177,8 @@ class TrajectoryFlight:
                     ctx.record_failsafe("estimate_degraded", f"{status.reason}: slowing to "
                                         f"{ctx.failsafe.degraded_speed_factor:g} of the speed")
             timeline.advance(dt, ctx.failsafe.degraded_speed_factor if degraded else 1.0)
-            reference, yaw = timeline.reference()
+            reference = timeline.reference()
+            yaw = float(reference.yaw_rad)
             measured = ctx.measured()  # None only for a pipeline without velocity and no autopilot velocity
             if measured is not None:
                 self._check(measured, reference, passes)  # before sending anything from this estimate
@@ -218,14 +220,14 @@ class TrajectoryFlight:
         path (lagging along it does not bring the vehicle nearer the frame)."""
         ctx = self.ctx
         p = np.asarray(measured.position_ned)
-        r = np.asarray(reference.position_ned)
+        r = np.asarray(reference.position)
         error = p - r
         self.tracking_error_m = float(np.linalg.norm(error))
         if ctx.geofence is not None:
             why = ctx.geofence.violation(p)
             if why is not None:
                 self._stop("geofence", f"geofence breach: {why}")
-        v = np.asarray(reference.velocity_ned)
+        v = np.asarray(reference.velocity)
         speed = float(np.linalg.norm(v))
         across = error - (error @ v) * v / speed**2 if speed > MOVING_MPS else error
         for point, waypoint in passes:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from companion.control.rpt import Reference
+from companion.control.reference import Reference
 from companion.control.trajectory import Trajectory
 
 
@@ -80,11 +80,14 @@ class Timeline:
         if self._holds and self.warp.tau >= self._holds[0][0]:
             self.warp.tau, self.hold_left, self.held = self._holds.pop(0)
 
-    def reference(self) -> tuple[Reference, float]:
-        """The controller's reference now, and the yaw reference (rad)."""
+    def reference(self) -> Reference:
+        """The reference now: the trajectory's at ``tau``, its rates scaled by the warp (0 while
+        holding and at the end, where ``tau`` stands still)."""
         sample = self.trajectory.sample(self.tau)
         if self.holding or self.warp.tau >= self.trajectory.duration:
             velocity = acceleration = np.zeros(3)
+            yaw_rate = 0.0
         else:
             velocity, acceleration = self.warp.scale(sample.velocity, sample.acceleration)
-        return Reference(sample.position, velocity, acceleration), float(sample.yaw_rad)
+            yaw_rate = float(sample.yaw_rate) * self.warp.rate
+        return Reference(sample.position, velocity, acceleration, float(sample.yaw_rad), yaw_rate)
