@@ -61,20 +61,6 @@ def rotation_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
     return rotation_from_quat(quat_from_euler(roll, pitch, yaw))
 
 
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a * b of two quaternions [w, x, y, z]."""
-    aw, ax, ay, az = a
-    bw, bx, by, bz = b
-    return np.array(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ]
-    )
-
-
 def wrap_pi(angle: float) -> float:
     """Angle wrapped to [-pi, pi)."""
     return (angle + math.pi) % (2 * math.pi) - math.pi

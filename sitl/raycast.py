@@ -82,10 +82,6 @@ class WorldGeometry:
     top_max: np.ndarray  # (T, 2) x, y maximum corner
     ceiling_z: float  # NED z of the ceiling plane (-inf: no ceiling)
 
-    @property
-    def panel_count(self) -> int:
-        return len(self.s_half)
-
     @classmethod
     def from_world(cls, world: World) -> WorldGeometry:
         """Precompute the surfaces of ``world`` (walls cut by their openings, obstacle boxes)."""

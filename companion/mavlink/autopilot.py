@@ -149,11 +149,6 @@ class AutopilotState:
         """Call ``listener(old_mode, new_mode)`` when the HEARTBEAT mode changes."""
         self._mode_listeners.append(listener)
 
-    @property
-    def commandable(self) -> bool:
-        """True when the autopilot is in a mode that follows companion setpoints."""
-        return self.mode in COMMANDABLE_MODES
-
     def custom_mode_for(self, name: str) -> tuple[int, int]:
         """(base_mode, custom_mode) to request mode ``name`` from this autopilot."""
         base = mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
