@@ -150,6 +150,13 @@ def test_it_serves_its_page_and_nothing_else(dashboard: Dashboard) -> None:
     assert _request(dashboard, "GET", "/", host=f"localhost:{dashboard.port}").status == 200
 
 
+def test_it_serves_an_icon_so_the_browser_console_shows_no_404(dashboard: Dashboard) -> None:
+    assert '<link rel="icon" href="/static/favicon.svg"' in (STATIC / "index.html").read_text()
+    for path in ("/static/favicon.svg", "/favicon.ico"):  # the linked icon, and where browsers look without a link
+        icon = _request(dashboard, "GET", path)
+        assert icon.status == 200 and icon.getheader("Content-Type") == "image/svg+xml", path
+
+
 def test_assets_are_self_contained_package_data() -> None:
     files = {p.name for p in STATIC.iterdir()}
     assert all(p.is_file() for p in STATIC.iterdir())  # `static/*` in pyproject covers them all

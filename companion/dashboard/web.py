@@ -1,7 +1,8 @@
 """The dashboard's web server: the page, its assets and the event stream, nothing else.
 
 Plain asyncio HTTP/1.1, one request per connection: ``GET /`` (the page), ``GET /static/NAME``
-(its scripts and style sheet) and ``GET /events`` (server-sent events: every hub event as one
+(its scripts, style sheet and icon; the icon also as ``/favicon.ico``, where browsers look
+for it without a link) and ``GET /events`` (server-sent events: every hub event as one
 ``data:`` line, ``retry: 1000`` so the browser reconnects within a second). The dashboard is
 read-only and so is the server: another method is 405, another path 404. Bound to loopback
 (the default) it answers only requests whose Host header names loopback, so that a web page
@@ -43,6 +44,7 @@ def load_assets() -> dict[str, tuple[bytes, str]]:
         if item.is_file() and suffix in CONTENT_TYPES:
             assets[f"/static/{item.name}"] = (item.read_bytes(), CONTENT_TYPES[suffix])
     assets["/"] = assets["/static/index.html"]
+    assets["/favicon.ico"] = assets["/static/favicon.svg"]
     return assets
 
 
