@@ -1,0 +1,235 @@
+"""Simulated camera: grey images rendered from simulator ground truth (``kind: camera, backend: sim``).
+
+Intrinsics: a :class:`~companion.calibration.CameraCalibration`, from the settings (pinhole ``fx``,
+``fy`` or ``hfov_deg``, ``cx``, ``cy``, OpenCV plumb_bob ``distortion``) or from a calibration file
+(plumb_bob or equidistant). Each pixel's ray is found once (sitl/camera_lens.py), so that a point
+projected with cv2.projectPoints lands where the renderer draws it; pixels the lens model cannot
+reach (beyond a fold of the distortion polynomial) stay black.
+
+Frames: the optical frame (OpenCV: x right, y down in the image, z along the optical axis) is
+fixed in the camera's sensor frame, which its mount (``sensors.<name>.mount``, drivers/mount.py)
+places in body FRD. The sensor frame is FRD-like, as for a scanner: x along the optical axis,
+y towards the image's right, z towards the image's bottom. Mount rpy [0, 0, 0] looks forward
+with the image upright; [0, -90, 0] looks down with the image's top towards the body's front.
+
+Scene: the floor, floor markers (ArUco), walls and obstacles of the world (sitl/camera_scene.py).
+
+Timing: capture times ``t`` (mid-exposure, the Frame's ``t_capture``, daemon clock s) lie on a
+grid ``t0 + k / fps`` from :meth:`SimulatedCamera.open`; the frame arrives at ``t + exposure_s / 2
++ latency_s`` (the end of the exposure plus readout and transfer) plus the rendering time,
+waited for on the daemon clock like the simulated scanner (sitl/lidar_sim.py). ``sequence`` is the
+grid index k: a reader more than a period late skips to the latest due frame, and a frame without
+truth yields nothing. Rendering runs on a worker thread (inline in lockstep: companion.clock.compute).
+
+Motion blur (``motion_blur: true``): the image is the mean of K renders at poses spread evenly over
+the exposure, positions linear and attitude along the shortest rotation between the truth at its
+start and at its end; K is the largest image motion in pixels (from the rotation, and from the
+translation over the nearest surface), 1 to :data:`MAX_BLUR_SAMPLES`. Noise: Gaussian, independent
+per pixel, ``noise_sigma`` grey levels, added after the blur, from a generator seeded with
+(``seed``, k); the image is then rounded and clipped to 0..255.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from companion import clock
+from companion.calibration import CameraCalibration
+from companion.messages import Frame
+from companion.schema import meta
+from companion.world import World
+from drivers.base import Backend
+from drivers.mount import Mount
+from sitl.camera_lens import PixelRays
+from sitl.camera_scene import Scene
+from sitl.lidar_sim import TruthLike, TruthPose
+
+# v_sensor = OPTICAL_TO_SENSOR @ v_optical: optical z -> sensor x, optical x -> sensor y, optical y -> sensor z
+OPTICAL_TO_SENSOR = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+MAX_BLUR_SAMPLES = 16
+NEAREST_SURFACE_MIN_M = 0.05  # for the blur's sample count
+NEAR_M = 1e-3  # what is nearer to the camera's image plane is not drawn, m
+
+_INTRINSICS = ("width", "height", "hfov_deg", "fx", "fy", "cx", "cy", "distortion")
+
+
+@dataclass(frozen=True)
+class SimCameraSettings:
+    """``settings:`` of a camera with ``backend: sim`` (a companion.schema dataclass)."""
+
+    width: int | None = field(default=None, metadata=meta("Image width, pixels; null = 640.", (16, 4096)))
+    height: int | None = field(default=None, metadata=meta("Image height, pixels; null = 480.", (16, 4096)))
+    hfov_deg: float | None = field(default=None, metadata=meta(
+        "Horizontal field of view of the pinhole, degrees (instead of fx); null with fx null = 90.", (5, 170)))
+    fx: float | None = field(default=None, metadata=meta("Focal length along x, pixels.", (1, 100000)))
+    fy: float | None = field(default=None, metadata=meta("Focal length along y, pixels; null = fx.", (1, 100000)))
+    cx: float | None = field(default=None, metadata=meta(
+        "Principal point column, pixels (integers at pixel centres); null = the image centre.", (0, 4096)))
+    cy: float | None = field(default=None, metadata=meta("Principal point row, pixels; null = the image centre.",
+                                                         (0, 4096)))
+    distortion: tuple[float, ...] | None = field(default=None, metadata=meta(
+        "OpenCV plumb_bob coefficients k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4]]]; null = none.", (-100, 100)))
+    calibration: str | None = field(default=None, metadata=meta(
+        "Calibration file (OpenCV or ROS YAML, relative to the config) giving all the intrinsics instead of the "
+        "keys above."))
+    fps: float = field(default=30.0, metadata=meta("Frame rate, Hz.", (0.5, 200)))
+    exposure_s: float = field(default=0.005, metadata=meta("Exposure time, seconds.", (1e-5, 0.5)))
+    latency_s: float = field(default=0.02, metadata=meta(
+        "From the end of the exposure to the frame's delivery (readout, transfer), seconds.", (0, 1)))
+    noise_sigma: float = field(default=2.0, metadata=meta("Pixel noise, 1-sigma grey levels.", (0, 100)))
+    motion_blur: bool = field(default=False, metadata=meta(
+        "Blur along the image motion during the exposure (costs up to 16 renders per frame)."))
+    seed: int = field(default=0, metadata=meta("Seed of the pixel noise.", (0, 999999)))
+    floor_seed: int = field(default=0, metadata=meta(
+        "Seed of the floor texture: give every camera of one simulation the same, so they see one floor.",
+        (0, 999999)))
+
+    def validate(self) -> tuple[str, str] | None:
+        given = [k for k in _INTRINSICS if getattr(self, k) is not None]
+        if self.calibration is not None and given:
+            return given[0], "the calibration file gives the intrinsics: leave this out, or leave out calibration"
+        if self.fx is not None and self.hfov_deg is not None:
+            return "hfov_deg", "give fx or hfov_deg, not both"
+        if self.fy is not None and self.fx is None:
+            return "fy", "needs fx"
+        for key, size in (("cx", self.width or 640), ("cy", self.height or 480)):
+            if (getattr(self, key) or 0.0) > size:
+                return key, f"the principal point must lie in the image, {size} pixels across"
+        if self.distortion is not None and len(self.distortion) not in (4, 5, 8, 12):
+            return "distortion", f"give 4, 5, 8 or 12 coefficients (no tilted sensor), got {len(self.distortion)}"
+        if self.exposure_s >= 1.0 / self.fps:
+            return "exposure_s", f"must be shorter than the frame period 1/fps = {1.0 / self.fps:g} s"
+        return None
+
+    def intrinsics(self) -> CameraCalibration:
+        """The plumb_bob calibration the intrinsics keys describe (those not given take their defaults)."""
+        width, height = self.width or 640, self.height or 480
+        fx = self.fx if self.fx is not None else (width / 2) / math.tan(math.radians(self.hfov_deg or 90.0) / 2)
+        fy = self.fy if self.fy is not None else fx
+        cx = self.cx if self.cx is not None else (width - 1) / 2
+        cy = self.cy if self.cy is not None else (height - 1) / 2
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        return CameraCalibration(width, height, K, np.array(self.distortion or (), dtype=float))
+
+
+class SimulatedCamera(Backend[Frame]):
+    """A camera of ``calibration`` on ``mount``, seeing ``world`` from ``truth``'s poses."""
+
+    def __init__(self, camera_id: str, settings: SimCameraSettings, calibration: CameraCalibration, mount: Mount,
+                 world: World, truth: TruthLike) -> None:
+        self.camera_id = camera_id
+        self.settings = settings
+        self.calibration = calibration
+        self.mount = mount
+        self.truth = truth
+        self.scene = Scene(world, settings.floor_seed)
+        self.rays = PixelRays.make(calibration)
+        self.period_s = 1.0 / settings.fps
+        self.description = f"simulated camera {calibration.width}x{calibration.height}"
+        self._t0 = 0.0  # daemon time of frame slot 0 (mid-exposure), s
+        self._slot = 0  # next frame slot
+
+    async def open(self) -> None:
+        """Start the frame grid at the current daemon time."""
+        self._t0 = asyncio.get_running_loop().time()
+        self._slot = 0
+
+    async def read(self) -> Frame:
+        """The next frame, once exposed and transferred (see the module docstring for the timing)."""
+        loop = asyncio.get_running_loop()
+        half = self.settings.exposure_s / 2
+        delay = half + self.settings.latency_s
+        while True:
+            due = math.floor((loop.time() - delay - self._t0) / self.period_s)
+            self._slot = max(self._slot, due)  # more than a period late: skip to the latest due frame
+            slot = self._slot
+            self._slot += 1
+            t = self._t0 + slot * self.period_s
+            await asyncio.sleep(max(0.0, t + delay - loop.time()))
+            blur = self.settings.motion_blur
+            start = self.truth.at(t - half if blur else t)
+            end = self.truth.at(t + half) if blur else None
+            if start is not None and (end is not None or not blur):
+                return await clock.compute(self.render, t, start, end, slot)
+
+    async def close(self) -> None:
+        """Nothing to release."""
+
+    def camera_pose(self, pose: TruthPose) -> tuple[np.ndarray, np.ndarray]:
+        """(rotation optical -> NED (3x3), camera centre in NED (3,) m) for the vehicle ``pose``."""
+        rotation, origin = self.mount.sensor_to_world(pose.position_ned, pose.quat)
+        return rotation @ OPTICAL_TO_SENSOR, origin
+
+    def render(self, t_capture: float, start: TruthPose, end: TruthPose | None = None, sequence: int = 0) -> Frame:
+        """The frame exposed while the vehicle moved from ``start`` to ``end`` (None: stood still at
+        ``start``), stamped ``t_capture`` (daemon clock, s, mid-exposure)."""
+        views = self.exposure_views(start, end)
+        image = self.view(*views[0])
+        for rotation, origin in views[1:]:
+            image += self.view(rotation, origin)
+        image *= np.float32(1.0 / len(views))
+        if self.settings.noise_sigma > 0:
+            noise = np.random.default_rng((self.settings.seed, sequence)).standard_normal(image.shape, np.float32)
+            image = cv2.scaleAdd(noise, self.settings.noise_sigma, image)
+        pixels = cv2.add(image, 0.0, dtype=cv2.CV_8U)  # rounded, saturated to 0..255
+        return Frame(self.camera_id, t_capture, pixels, sequence, self.settings.exposure_s)
+
+    def exposure_views(self, start: TruthPose, end: TruthPose | None) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The camera poses (rotation optical -> NED, centre NED m) to average over the exposure."""
+        r0, o0 = self.camera_pose(start)
+        if end is None:
+            return [(r0, o0)]
+        r1, o1 = self.camera_pose(end)
+        rvec = cv2.Rodrigues(r0.T @ r1)[0].ravel()  # from start to end, in the start's optical frame
+        nearest = max(min(self.scene.nearest_distance(o0), self.scene.nearest_distance(o1)), NEAREST_SURFACE_MIN_M)
+        motion_px = (np.linalg.norm(rvec) + np.linalg.norm(o1 - o0) / nearest) / self.rays.min_angle_rad
+        k = int(np.clip(math.ceil(motion_px), 1, MAX_BLUR_SAMPLES))
+        return [(r0 @ cv2.Rodrigues(rvec * f)[0], o0 + f * (o1 - o0)) for f in (np.arange(k) + 0.5) / k]
+
+    def view(self, rotation: np.ndarray, origin: np.ndarray) -> np.ndarray:
+        """The noiseless (H, W) float32 grey image of a camera at ``origin`` (NED, m) with
+        ``rotation`` (optical -> NED) at one instant."""
+        r = rotation.astype(np.float32)
+        x, y, z = self.rays.x, self.rays.y, self.rays.z
+        rays = tuple(r[i, 0] * x + r[i, 1] * y + r[i, 2] * z for i in range(3))
+        image = self.scene.shade(origin, rays, self.rays.footprint_k, functools.partial(self.window, rotation, origin))
+        image[~self.rays.reached] = 0.0
+        return image
+
+    def window(self, rotation: np.ndarray, origin: np.ndarray, corners: np.ndarray) -> tuple[slice, slice] | None:
+        """The image rows and columns (slices) that may show a flat convex polygon with (N, 3)
+        ``corners`` (NED, m) to a camera at ``origin`` (NED, m) with ``rotation`` (optical -> NED);
+        None if it is out of view. Conservative: every row and column holding a ray that passes
+        within the bounding box (in normalised image coordinates) of the polygon's visible part."""
+        front = in_front(((corners - origin) @ rotation), NEAR_M)  # optical frame
+        if len(front) == 0:
+            return None
+        xy = front[:, :2] / front[:, 2:]
+        box = np.array([*xy.min(axis=0), *xy.max(axis=0)])  # x_lo, y_lo, x_hi, y_hi
+
+        def overlapping(spans: np.ndarray) -> np.ndarray:
+            return np.flatnonzero((spans[:, 0] <= box[2]) & (spans[:, 1] >= box[0])
+                                  & (spans[:, 2] <= box[3]) & (spans[:, 3] >= box[1]))
+
+        rows, cols = overlapping(self.rays.row_spans), overlapping(self.rays.col_spans)
+        if rows.size == 0 or cols.size == 0:
+            return None
+        return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
+
+
+def in_front(polygon: np.ndarray, near: float) -> np.ndarray:
+    """The (M, 3) corners of the part of the flat convex ``polygon`` (N, 3) (optical frame, m) with
+    z >= ``near`` (m); empty if none."""
+    out = []
+    for p, q in zip(polygon, np.roll(polygon, -1, axis=0)):
+        if p[2] >= near:
+            out.append(p)
+        if (p[2] >= near) != (q[2] >= near):
+            out.append(p + (q - p) * (near - p[2]) / (q[2] - p[2]))
+    return np.array(out).reshape(-1, 3)
