@@ -11,7 +11,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from companion.mavlink.estimate import PoseEstimate, is_finite, upper_triangle
+from companion.mavlink.estimate import upper_triangle
+from companion.messages import PoseEstimate
 from companion.mavlink.link import mavlink, nonfinite_fields
 from companion.mavlink.setpoints import Setpoint, setpoint_message
 from companion.telemetry.publisher import encode_json
@@ -24,7 +25,7 @@ def _estimate_output_stage() -> Callable[[], object]:
     est = PoseEstimate(1.0, np.array([1.0, 2.0, -1.0]), (0.01, 0.02, 0.5), cov, np.zeros(3), np.eye(3) * 0.01)
 
     def stage() -> bytes:
-        assert is_finite(est)
+        assert est.is_finite()
         msg = mavlink.MAVLink_vision_position_estimate_message(
             int(est.t_capture * 1e6), *map(float, est.position_ned), *est.euler_rad, upper_triangle(est.pose_covariance), 0)
         assert not nonfinite_fields(msg)
@@ -46,7 +47,7 @@ def _telemetry_stage() -> Callable[[], object]:
 
 def _lidar_streams_stage() -> Callable[[], object]:
     from companion.dashboard.bench import arena_scan
-    from companion.telemetry.lidar_streams import scan_payloads
+    from companion.nav.lidar_streams import scan_payloads
 
     record, localizer = arena_scan()
     return lambda: scan_payloads(record, localizer)
@@ -54,7 +55,7 @@ def _lidar_streams_stage() -> Callable[[], object]:
 
 def _scan_encode_stage() -> Callable[[], object]:
     from companion.dashboard.bench import arena_scan
-    from companion.telemetry.lidar_streams import scan_payloads
+    from companion.nav.lidar_streams import scan_payloads
     from companion.telemetry.scan_codec import encode_scan
 
     payload = scan_payloads(*arena_scan())["scan"]

@@ -56,7 +56,12 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
     from companion.daemon import load_named_files
 
     try:
-        load_named_files(load_config(args.config))
+        cfg = load_config(args.config)
+        load_named_files(cfg)
+        if cfg.sitl.scip_sensors:  # a config for `companion sitl` with the SCIP bridge
+            from sitl.harness import check_sitl_section
+
+            check_sitl_section(cfg)
     except ConfigError as exc:
         print(f"companion: {exc}", file=sys.stderr)
         return EXIT_CONFIG_ERROR

@@ -15,7 +15,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal, TypeVar
 
-from companion.schema import Document, SchemaError, meta, read_document
+import yaml
+
+from companion import plugins
+from companion.schema import Document, SchemaError, load_text, meta, read_document
 
 ConfigError = SchemaError
 SENSOR_NAME = re.compile(r"[A-Za-z0-9_-]+")
@@ -39,7 +42,9 @@ class StreamRatesConfig:
     imu: float = field(default=50.0, metadata=meta(
         "HIGHRES_IMU, else SCALED_IMU, RAW_IMU (ArduPilot) or SCALED_IMU2: the fusion's prediction input.", (0, 400)))
     local_position: float = field(default=10.0, metadata=meta("LOCAL_POSITION_NED.", (0, 100)))
-    gps_raw: float = field(default=5.0, metadata=meta("GPS_RAW_INT.", (0, 50)))
+    gps_raw: float = field(default=5.0, metadata=meta("GPS_RAW_INT (a gnss sensor with backend autopilot, instance 1).", (0, 50)))
+    gps2_raw: float = field(default=0.0, metadata=meta(
+        "GPS2_RAW: the autopilot's second receiver (a gnss sensor with backend autopilot, instance 2).", (0, 50)))
     home_position: float = field(default=0.5, metadata=meta("HOME_POSITION.", (0, 10)))
     estimator_status: float = field(default=2.0, metadata=meta("EKF_STATUS_REPORT (ArduPilot) / ESTIMATOR_STATUS (PX4).", (0, 50)))
     sim_state: float = field(default=0.0, metadata=meta(
@@ -85,36 +90,33 @@ class MountConfig:
 @dataclass
 class SensorConfig:
     kind: Literal["lidar", "camera", "imu", "gnss"] = field(metadata=meta("What the sensor measures."))
-    backend: Literal["real", "sim", "replay"] = field(metadata=meta("real device, simulated from ground truth, or replay of a recording."))
+    backend: str = field(metadata=meta(
+        "Which backend reads it: real (the device), sim (simulated from ground truth; plugin sitl.sim_backends), "
+        "replay (a recording), autopilot (the autopilot's own sensor over MAVLink), nmea (a serial NMEA "
+        "receiver). `companion config-reference` lists the backends of each kind."))
     mount: MountConfig = field(default_factory=MountConfig, metadata=meta("Mount pose in the body frame."))
     settings: dict[str, Any] = field(default_factory=dict, metadata=meta(
-        "Backend settings (port, model, file...), validated by the driver: see drivers/registry.py."))
-
-    def validate(self) -> tuple[str, str] | None:
-        from drivers.registry import check_settings  # drivers import this module
-
-        return check_settings(self.kind, self.backend, self.settings)
-
-
-@dataclass
-class LidarPipelineConfig:
-    """The two-lidar localization of Wang et al. (horizontal: x, y, yaw; vertical: height)."""
-
-    horizontal_sensor: str = field(metadata=meta("Name (in `sensors`) of the horizontal scanner."))
-    vertical_sensor: str = field(metadata=meta("Name (in `sensors`) of the vertical scanner: height above the floor."))
-    map: str = field(default="worlds/arena.yaml", metadata=meta(
-        "Map (world YAML: walls, known corners, wall_angle_deg), relative to this file."))
-    initial_pose: tuple[float, float, float] | None = field(default=None, metadata=meta(
-        "Start pose [north m, east m, yaw deg] in the map; null = relocalize globally from the first scans."))
-    correspondence_gate_m: float = field(default=0.5, metadata=meta(
-        "Nearest-neighbour gate between an observed and a map corner.", (0.05, 5)))
+        "Backend settings (port, model, file...), typed and checked by the backend: docs/config.md, Backends."))
 
 
 @dataclass
 class PipelinesConfig:
-    fix_rate_hz: float = field(default=10.0, metadata=meta("Nominal rate of sensor fixes (lidar, camera).", (1, 100)))
     fusion_rate_hz: float = field(default=50.0, metadata=meta("Rate of the fused output loop (the nav loop).", (10, 400)))
-    lidar: LidarPipelineConfig | None = field(default=None, metadata=meta("Two-lidar localization; null = off."))
+    sources: list[str] | None = field(default=None, metadata=meta(
+        "Pose sources in priority order (pipeline names), as ArduPilot's EK3_SRC sets: the first one with a fresh "
+        "estimate feeds the autopilot and the missions. null = the enabled pose pipelines in the order written."))
+    source_timeout_s: float = field(default=0.3, metadata=meta(
+        "A source with no estimate for this long is lost: the next one in `sources` takes over.", (0.05, 5)))
+    source_return_s: float = field(default=2.0, metadata=meta(
+        "A higher-priority source takes back over after delivering estimates this long without a gap.", (0, 60)))
+    attitude_alarm_deg: float = field(default=10.0, metadata=meta(
+        "An attitude-only estimate differing from the autopilot's ATTITUDE by more than this (largest axis) ...", (0.5, 90)))
+    attitude_alarm_s: float = field(default=2.0, metadata=meta(
+        "... for this long raises the cross-check alarm (health crosscheck:<pipeline>, STATUSTEXT).", (0, 60)))
+    sections: dict[str, Any] = field(default_factory=dict, metadata=meta(
+        "One section per enabled pipeline, named as the pipeline (`lidar`, ...): its settings, typed by the pipeline "
+        "(docs/config.md, Pipelines); null = off.", rest=True))
+    enabled: dict[str, Any] = field(default_factory=dict, init=False, repr=False, compare=False)  # typed sections
 
 
 @dataclass
@@ -299,6 +301,9 @@ class Config:
     origin: OriginConfig = field(metadata=meta("EKF origin sent to the autopilot (SET_GPS_GLOBAL_ORIGIN + SET_HOME_POSITION)."))
     vehicle: VehicleConfig = field(default_factory=VehicleConfig, metadata=meta("MAVLink identities."))
     mavlink: MavlinkConfig = field(default_factory=MavlinkConfig, metadata=meta("The autopilot link."))
+    plugins: list[str] = field(default_factory=list, metadata=meta(
+        "Python modules imported first that register more sensor backends or pipelines (e.g. sitl.sim_backends, "
+        "the simulated sensors; docs/extending.md)."))
     sensors: dict[str, SensorConfig] = field(default_factory=dict, metadata=meta("Sensors by name."))
     pipelines: PipelinesConfig = field(default_factory=PipelinesConfig, metadata=meta("Navigation pipelines."))
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig, metadata=meta("zenoh telemetry."))
@@ -316,23 +321,78 @@ class Config:
                 return f"sensors.{name}", "a sensor name is letters, digits, '_' and '-' (it is part of key paths and topics)"
         if any(s.backend == "sim" for s in self.sensors.values()) and self.mavlink.streams.sim_state <= 0:
             return "mavlink.streams.sim_state", "simulated sensors render from SIM_STATE ground truth: ask for it (e.g. 50)"
-        problem = self._check_scip_sensors()
-        if problem is not None:
-            return problem
-        lidar = self.pipelines.lidar
-        if lidar is None:
-            return None
-        for key in ("horizontal_sensor", "vertical_sensor"):
-            name = getattr(lidar, key)
-            sensor = self.sensors.get(name)
-            if sensor is None or sensor.kind != "lidar":
-                return f"pipelines.lidar.{key}", f"{name!r} is not a lidar in `sensors` ({', '.join(self.sensors) or 'none'})"
+        for i, module in enumerate(self.plugins):
+            try:
+                plugins.load([module])
+            except ImportError as exc:
+                return f"plugins[{i}]", f"cannot import {module!r}: {exc}"
+        plugins.load()
+        return (self._check_sensors() or self._check_gnss_streams() or self._check_pipelines()
+                or self._check_scip_sensors())
+
+    def _check_sensors(self) -> tuple[str, str] | None:
+        """Every sensor's backend exists and its settings are what the backend takes."""
+        for name, sensor in self.sensors.items():
+            entry = plugins.backend(sensor.kind, sensor.backend)
+            if entry is None:
+                known = ", ".join(e.backend for e in plugins.backends() if e.kind == sensor.kind) or "none"
+                hint = "; simulated backends come with the plugin sitl.sim_backends (add it to `plugins`)" \
+                    if sensor.backend == "sim" else ""
+                return f"sensors.{name}.backend", f"no {sensor.kind} backend {sensor.backend!r} (known: {known}){hint}"
+            try:
+                typed(sensor.settings, entry.settings)
+            except SchemaError as exc:
+                return f"sensors.{name}.settings" + (f".{exc.key_path}" if exc.key_path else ""), exc.message
         return None
 
-    def _check_scip_sensors(self) -> tuple[str, str] | None:
-        """sitl.scip_sensors: real lidars on loopback, of a model the bridge emulates, on distinct ports."""
-        from drivers.lidar_models import MODELS  # drivers import this module
+    def _check_gnss_streams(self) -> tuple[str, str] | None:
+        """An autopilot gnss sensor's message is asked of the autopilot."""
+        for name, sensor in self.sensors.items():
+            if sensor.kind == "gnss" and sensor.backend == "autopilot":
+                second = sensor.settings.get("instance", 1) == 2
+                key, message = ("gps2_raw", "GPS2_RAW") if second else ("gps_raw", "GPS_RAW_INT")
+                if getattr(self.mavlink.streams, key) <= 0:
+                    return f"mavlink.streams.{key}", f"sensor {name} reads {message} from the autopilot: ask for it (e.g. 5)"
+        return None
 
+    def _check_pipelines(self) -> tuple[str, str] | None:
+        """Every pipeline section names a registered pipeline, is valid, and names sensors of the right kind;
+        every source is an enabled pipeline. Fills ``pipelines.enabled`` with the typed sections."""
+        p = self.pipelines
+        p.enabled = {}
+        for name, raw in p.sections.items():
+            entry = plugins.pipeline(name)
+            if entry is None:
+                known = ", ".join(e.name for e in plugins.pipelines()) or "none"
+                return f"pipelines.{name}", f"no pipeline {name!r} (known: {known})"
+            if raw is None:
+                continue
+            try:
+                section = typed(raw, entry.config)
+            except SchemaError as exc:
+                return f"pipelines.{name}" + (f".{exc.key_path}" if exc.key_path else ""), exc.message
+            for key, kind in section.sensor_inputs().items():
+                sensor_name = getattr(section, key)
+                sensor = self.sensors.get(sensor_name)
+                if sensor is None or sensor.kind != kind:
+                    return (f"pipelines.{name}.{key}",
+                            f"{sensor_name!r} is not a {kind} in `sensors` ({', '.join(self.sensors) or 'none'})")
+            p.enabled[name] = section
+        for i, name in enumerate(p.sources or []):
+            if name not in p.enabled or not plugins.pipeline(name).poses:
+                posing = ", ".join(n for n in p.enabled if plugins.pipeline(n).poses) or "none"
+                return f"pipelines.sources[{i}]", f"{name!r} is not an enabled pose pipeline ({posing})"
+        return None
+
+    def source_priority(self) -> list[str]:
+        """The pose sources in priority order (``pipelines.sources``, or every enabled pipeline that
+        produces poses, in the order written)."""
+        if self.pipelines.sources is not None:
+            return list(self.pipelines.sources)
+        return [name for name in self.pipelines.enabled if plugins.pipeline(name).poses]
+
+    def _check_scip_sensors(self) -> tuple[str, str] | None:
+        """sitl.scip_sensors: real lidars on loopback, on distinct ports (the harness checks the model)."""
         ports: dict[int, str] = {}
         for i, name in enumerate(self.sitl.scip_sensors):
             key = f"sitl.scip_sensors[{i}]"
@@ -344,8 +404,6 @@ class Config:
             settings = sensor.settings
             if settings.get("host") != "127.0.0.1":
                 return key, f"sensor {name!r}: the SCIP bridge listens on loopback: set settings.host: 127.0.0.1"
-            if settings.get("model") not in MODELS:
-                return key, f"sensor {name!r}: settings.model must name the emulated model ({', '.join(sorted(MODELS))})"
             port = int(settings.get("tcp_port", 10940))
             if port in ports:
                 return key, f"sensor {name!r}: settings.tcp_port {port} is also {ports[port]!r}'s"
@@ -392,3 +450,9 @@ def load_config(path: str | Path) -> Config:
     cfg.source = str(path)
     cfg.document = document
     return cfg
+
+
+def typed(raw: Any, schema: type[T]) -> T:
+    """A settings mapping (``sensors.<name>.settings``, ``pipelines.<name>``) as its typed dataclass;
+    SchemaError with the key path relative to the mapping."""
+    return load_text(yaml.safe_dump({} if raw is None else raw), schema)

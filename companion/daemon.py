@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import os
 import resource
 import signal
@@ -20,36 +21,32 @@ from pathlib import Path
 
 import numpy as np
 
-from companion import clock
-from companion.config import Config, SensorConfig
+from companion import clock, plugins
+from companion.config import Config
+from companion.crosscheck import AttitudeCrossCheck
 from companion.health import ComponentHealth, Health, State
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.commands import Commander
-from companion.mavlink.estimate import EstimateSender, PoseEstimate
+from companion.mavlink.distance import DistanceSender
+from companion.mavlink.estimate import EstimateSender
 from companion.mavlink.link import MavlinkLink, load_signing_key, mavlink
 from companion.mavlink.origin import OriginSetter
 from companion.mavlink.setpoints import SetpointStream
 from companion.mavlink.streams import StreamNegotiator
+from companion.messages import PoseEstimate
 from companion.mission.context import MissionContext
 from companion.mission.failsafe import Geofence
 from companion.mission.runner import MissionRunner
 from companion.mission.steps import Mission, load_mission
-from companion.nav.lidar_pipeline import LidarPipeline
-from companion.nav.loop import NavLoop, Pipeline
+from companion.navloop import NavLoop, NavOutputs
+from companion.pipeline import Pipeline, PipelineContext
 from companion.sdnotify import Notifier, WatchdogGate, run_watchdog
+from companion.selection import SourceSelector
+from companion.sensors import SensorContext, build_driver, check_sensor_files
 from companion.supervisor import Supervisor
-from companion.telemetry.lidar_streams import MAP_PERIOD_S, LidarTelemetry
 from companion.telemetry.publisher import TelemetryPublisher
 from companion.telemetry.session import open_session
-from drivers.base import LidarDriver, ScanBackend
-from drivers.hokuyo import HokuyoScip
-from drivers.lidar_replay import ReplayLidar, read_recording
-from drivers.lidar_sim import SimulatedLidar
-from drivers.mount import Mount
-from drivers.registry import build_settings
-from drivers.scan import Scan
-from drivers.sim_truth import TruthSource
-from sitl.world import World, load_world
+from drivers.base import SensorDriver
 
 log = logging.getLogger("companion.daemon")
 
@@ -57,33 +54,31 @@ SHUTDOWN_BUDGET_S = 1.5
 # How long a worker thread (telemetry encoding, zenoh callbacks) may hold the GIL before the event
 # loop's thread gets it back: Python's 5 ms default would add up to 5 ms to a nav-loop wake-up.
 GIL_SWITCH_INTERVAL_S = 0.0005
+STATIC_STREAM_PERIOD_S = 2.0  # pipelines' static streams (a map) are re-published this often for late listeners
 STATUSTEXT_SEVERITY = {State.OK: mavlink.MAV_SEVERITY_INFO, State.DEGRADED: mavlink.MAV_SEVERITY_WARNING,
                        State.LOST: mavlink.MAV_SEVERITY_ERROR}
 
 
 @dataclass(frozen=True)
 class NamedFiles:
-    """The files a config names, loaded (see :func:`load_named_files`)."""
+    """The files a config names that the daemon itself reads (see :func:`load_named_files`)."""
 
     mission: Mission | None
-    map: World | None  # the lidar pipeline's map
-    sim_world: World | None  # what simulated sensors see
     signing_key: bytes | None
 
 
 def load_named_files(cfg: Config) -> NamedFiles:
-    """Load every file ``cfg`` names that the daemon reads (mission, map, simulated world, signing
-    key) and check its replay recordings can be read; ConfigError at the config key and line of
-    the first bad one. ``companion check-config`` and the daemon's start both use this."""
-    for name, sensor in cfg.sensors.items():
-        if sensor.kind == "lidar" and sensor.backend == "replay" and "file" in sensor.settings:
-            cfg.load_referenced(f"sensors.{name}.settings.file", sensor.settings["file"], read_recording)
-    lidar, mission, key = cfg.pipelines.lidar, cfg.mission.file, cfg.mavlink.signing_key_file
-    simulated = any(s.backend == "sim" for s in cfg.sensors.values())
+    """Load every file ``cfg`` names (mission, signing key, and through the registry each sensor's and
+    pipeline's: recordings, maps, the simulated world); ConfigError at the config key and line of the
+    first bad one. ``companion check-config`` and the daemon's start both use this."""
+    for name, section in cfg.pipelines.enabled.items():
+        entry = plugins.pipeline(name)
+        if entry is not None and entry.check_files is not None:
+            entry.check_files(cfg, section)
+    check_sensor_files(cfg)
+    mission, key = cfg.mission.file, cfg.mavlink.signing_key_file
     return NamedFiles(
         mission=cfg.load_referenced("mission.file", mission, load_mission) if mission else None,
-        map=cfg.load_referenced("pipelines.lidar.map", lidar.map, load_world) if lidar is not None else None,
-        sim_world=cfg.load_referenced("sitl.world", cfg.sitl.world, load_world) if simulated else None,
         signing_key=cfg.load_referenced("mavlink.signing_key_file", key, load_signing_key) if key else None)
 
 
@@ -98,10 +93,10 @@ class Daemon:
         self.supervisor = Supervisor(self.health)
         self.session = None
         self.started_wall = time.monotonic()
-        self.drivers: dict[str, LidarDriver] = {}
-        self.truth: TruthSource | None = None  # ground truth, only for simulated sensors
+        self.drivers: dict[str, SensorDriver] = {}
         self.files: NamedFiles | None = None  # what the config names, loaded at the start of run()
         self._first_contact = True
+        self._static_due = -math.inf  # daemon time the pipelines' static streams are next published
         self._stop = asyncio.Event()
 
     def request_stop(self) -> None:
@@ -126,11 +121,18 @@ class Daemon:
         self.telemetry = telemetry = self._open_telemetry()
         self.estimate = EstimateSender(link, cfg.mavlink.estimate_rate_hz, self.health, clock.now,
                                        on_alert=self.statustext)
+        self.distance = DistanceSender(link)
         self.setpoints = setpoints = SetpointStream(link, state, cfg.mavlink.setpoint_rate_hz)
-        self.mission = self._build_mission()
+        pipelines = self.build_pipelines()
+        self.selector = self._build_selector(pipelines)
+        self.mission = self._build_mission(pipelines)
         gate = WatchdogGate(max_age=1.0, clock=clock.now)
-        self.nav = NavLoop(self.build_pipelines(), self.estimate, telemetry, gate, cfg.pipelines.fusion_rate_hz,
-                           clock.now)
+        p = cfg.pipelines
+        crosscheck = AttitudeCrossCheck(lambda: state.attitude_euler, self.health, telemetry.publish,
+                                        p.attitude_alarm_deg, p.attitude_alarm_s)
+        outputs = NavOutputs(pose=self.estimate.submit, range=self.distance.submit, attitude=crosscheck.submit,
+                             publish=telemetry.publish)
+        self.nav = NavLoop(pipelines, self.selector, outputs, gate, p.fusion_rate_hz, clock.now)
         self.health.on_change(self._announce)
         link.on_connect(self._on_autopilot_found)
 
@@ -152,28 +154,28 @@ class Daemon:
         await self._shutdown()
         return 0
 
-    def _build_mission(self) -> MissionRunner | None:
+    def _build_mission(self, pipelines: list[Pipeline]) -> MissionRunner | None:
         """The configured mission's runner (None without one), flying on the companion's estimate."""
         cfg = self.cfg
         mission = self.files.mission
         if mission is None:
             return None
-        bounds = self.files.map.bounds if self.files.map is not None else None
+        area = next((a for a in (p.operating_area() for p in pipelines) if a is not None), None)
         ctx = MissionContext(
             state=self.state, commander=self.commander, setpoints=self.setpoints, origin=self.origin,
             estimate=self._mission_estimate, nav_health=lambda: self.health.worst("nav:"), publish=self.telemetry.publish,
             control=cfg.control, failsafe=cfg.mission.failsafe, payload=cfg.mission.payload,
-            geofence=Geofence.from_config(cfg.mission.geofence, None if bounds is None else (bounds.min, bounds.max)))
+            geofence=Geofence.from_config(cfg.mission.geofence, area))
         if ctx.geofence is None:
             log.warning("mission %s: no companion geofence (mission.geofence disabled, or neither its box_ned_m "
-                        "nor a lidar map); the autopilot's own fence still applies", mission.name)
+                        "nor a pipeline's operating area); the autopilot's own fence still applies", mission.name)
         return MissionRunner(mission, cfg.mission.allow_arm, ctx, cfg.mission.on_daemon_stop)
 
     def _mission_estimate(self) -> PoseEstimate | None:
-        """What missions fly on: the newest fused estimate, or the autopilot's own (LOCAL_POSITION_NED)
-        when this daemon runs no navigation pipeline (e.g. a GPS vehicle)."""
-        if self.nav.pipelines:
-            return self.nav.last_estimate
+        """What missions fly on: the active pose source's newest estimate, or the autopilot's own
+        (LOCAL_POSITION_NED) when this daemon runs no pose pipeline (e.g. a GPS vehicle)."""
+        if self.selector is not None:
+            return self.selector.current
         s = self.state
         if s.local_position_ned is None or s.local_position_time is None:
             return None
@@ -181,50 +183,41 @@ class Daemon:
                             np.zeros((6, 6)), s.local_velocity_ned, np.zeros((3, 3)), source="autopilot")
 
     def build_pipelines(self) -> list[Pipeline]:
-        """The navigation pipelines of this config and their sensor drivers (one task each).
-
-        A configured sensor without a driver in this version (camera, IMU, GNSS) is reported
-        lost, loudly; it is never silently ignored.
-        """
+        """The enabled pipelines, each subscribed to its sensors' drivers (one supervised task per
+        sensor). The registry builds both; nothing here is written for one sensor or pipeline."""
         cfg = self.cfg
-        lidar_cfg = cfg.pipelines.lidar
-        pipeline = None
-        if lidar_cfg is not None:
-            vertical = cfg.sensors[lidar_cfg.vertical_sensor]
-            pipeline = LidarPipeline(lidar_cfg, self.files.map,
-                                     cfg.sensors[lidar_cfg.horizontal_sensor].mount, vertical.mount,
-                                     self.state, self.health)
-        self.drivers = {}
-        for name, sensor in cfg.sensors.items():
-            if sensor.kind != "lidar":
-                reason = f"no {sensor.kind} driver with backend {sensor.backend!r} in this version"
-                log.error("sensor %s: %s; it is not read", name, reason)
-                self.health.report(f"sensor:{name}", State.LOST, reason)
-                continue
-            driver = LidarDriver(name, self._lidar_backend(name, sensor), self.health, self._scan_sink(name, pipeline))
-            self.drivers[name] = driver
+        ctx = SensorContext(cfg, self.health, self.link, self.state)
+        self.drivers = {name: build_driver(name, sensor, ctx) for name, sensor in cfg.sensors.items()}
+        pipeline_ctx = PipelineContext(cfg, self.health)
+        pipelines = [plugins.pipeline(name).build(section, pipeline_ctx) for name, section in cfg.pipelines.enabled.items()]
+        for pipeline in pipelines:
+            for sensor, handler in pipeline.subscriptions().items():
+                self.drivers[sensor].subscribe(handler)
+            self.telemetry.add_streams(pipeline.telemetry_streams)
+        for name, driver in self.drivers.items():
+            if not driver.subscribers:
+                log.warning("sensor %s feeds no pipeline; its data is counted and dropped", name)
             self.supervisor.spawn(f"driver:{name}", driver.run)
-        return [pipeline] if pipeline is not None else []
+        return pipelines
 
-    def _lidar_backend(self, name: str, sensor: SensorConfig) -> ScanBackend:
-        settings = build_settings(sensor.kind, sensor.backend, sensor.settings)
-        if sensor.backend == "real":
-            return HokuyoScip(settings, sensor_id=name)
-        if sensor.backend == "replay":
-            return ReplayLidar(name, settings, base_dir=self.cfg.base_dir)
-        if self.truth is None:
-            self.truth = TruthSource(self.link, self.cfg.origin)
-        assert self.files.sim_world is not None  # loaded by load_named_files for every sim sensor
-        return SimulatedLidar(name, settings, Mount.from_config(sensor.mount), self.files.sim_world, self.truth)
+    def _build_selector(self, pipelines: list[Pipeline]) -> SourceSelector | None:
+        """The pose-source selection over ``pipelines.sources`` (None without a pipeline)."""
+        if not pipelines:
+            return None
+        p = self.cfg.pipelines
+        return SourceSelector(self.cfg.source_priority(), p.source_timeout_s, p.source_return_s,
+                              on_switch=self._source_switched)
 
-    def _scan_sink(self, name: str, pipeline: LidarPipeline | None) -> Callable[[Scan], None]:
-        lidar_cfg = self.cfg.pipelines.lidar
-        if pipeline is not None and lidar_cfg is not None and name == lidar_cfg.horizontal_sensor:
-            return pipeline.on_horizontal_scan
-        if pipeline is not None and lidar_cfg is not None and name == lidar_cfg.vertical_sensor:
-            return pipeline.on_vertical_scan
-        log.warning("sensor %s feeds no pipeline; its scans are counted and dropped", name)
-        return lambda scan: None
+    def _source_switched(self, old: str | None, new: str | None, reason: str) -> None:
+        """Announce a change of the pose source (STATUSTEXT + telemetry ``sources``)."""
+        if old is None and new is not None and self.selector is not None and self.selector.switches == 0:
+            log.info("pose source: %s", new)
+        else:
+            log.warning("pose source %s -> %s (%s)", old, new, reason)
+            self.statustext(f"companion: pose source {old or 'none'} -> {new or 'none'}")
+        self.health.report("nav:source", State.OK if new is not None else State.LOST,
+                           f"pose from {new}" if new is not None else f"no pose source ({reason})")
+        self.telemetry.publish("sources", {**self.selector.snapshot(clock.now()), "reason": reason})
 
     def statustext(self, text: str, severity: int = mavlink.MAV_SEVERITY_WARNING) -> None:
         """Send a STATUSTEXT (<= 50 characters) to the autopilot, which forwards it to the GCS."""
@@ -240,7 +233,7 @@ class Daemon:
                 self.session = open_session(t.mode, t.listen, t.connect, t.multicast_scouting, t.gossip_scouting)
             except Exception as exc:  # zenoh.ZError: bad endpoint, port in use
                 self.health.report("telemetry", State.DEGRADED, f"zenoh session failed: {exc}")
-        rates = {"pose": t.pose_hz, "velocity": t.pose_hz, "map": 1.0 / MAP_PERIOD_S}
+        rates = {"pose": t.pose_hz, "velocity": t.pose_hz, "attitude_check": t.pose_hz}
         # loop.time (not clock.now): the publisher's worker thread reads the clock too.
         publisher = TelemetryPublisher(self.session, self.cfg.vehicle.sysid, t.queue_size, rates,
                                        clock=asyncio.get_running_loop().time)
@@ -249,15 +242,15 @@ class Daemon:
         return publisher
 
     def _start_stream_tasks(self) -> None:
-        """Supervised tasks for the streams faster than status: the setpoint, and the lidar streams.
+        """Supervised tasks for the streams faster than status: the setpoint, and the pipelines' streams.
 
         Tasks start when run() first awaits, after it has built the nav loop and the setpoint
         stream they read.
         """
         t = self.cfg.telemetry
         self.supervisor.spawn("telemetry:setpoint", lambda: every(1.0 / t.setpoint_hz, self._publish_setpoint))
-        if self.cfg.pipelines.lidar is not None:
-            self.supervisor.spawn("telemetry:lidar", lambda: every(1.0 / t.scan_hz, self._lidar_telemetry().publish))
+        if self.cfg.pipelines.enabled:
+            self.supervisor.spawn("telemetry:pipelines", lambda: every(1.0 / t.scan_hz, self._publish_pipeline_streams))
 
     def _on_autopilot_found(self) -> None:
         if self._first_contact:
@@ -292,7 +285,10 @@ class Daemon:
                                 "streams": dict(self.streams.chosen),
                                 "imu_rejected": state.imu_rejected})
         t.publish("estimate_stats", {**asdict(self.estimate.stats), "reset_counter": self.estimate.reset_counter,
-                                     "nonfinite_dropped_link": link.stats.nonfinite_dropped})
+                                     "nonfinite_dropped_link": link.stats.nonfinite_dropped,
+                                     "distance_sent": self.distance.sent, "distance_dropped": self.distance.dropped})
+        if self.selector is not None:
+            t.publish("sources", self.selector.snapshot(clock.now()))
         t.publish("system", {**process_usage(self.started_wall),
                              "loop_jitter_ms": self.nav.jitter_ms.summary(),
                              "stage_ms": self.nav.stage_summaries(),
@@ -311,9 +307,15 @@ class Daemon:
                 "type_mask": sp.type_mask, "position_ned_m": sp.position_ned, "velocity_ned_mps": sp.velocity_ned,
                 "acceleration_ned_mps2": sp.acceleration_ned})
 
-    def _lidar_telemetry(self) -> LidarTelemetry:
-        """The lidar streams of the nav loop's lidar pipeline."""
-        return LidarTelemetry(self.telemetry, next(p for p in self.nav.pipelines if isinstance(p, LidarPipeline)))
+    def _publish_pipeline_streams(self) -> None:
+        """Each pipeline's own streams (what it computed since the last call; static ones when due)."""
+        now = clock.now()
+        static_due = now >= self._static_due
+        if static_due:
+            self._static_due = now + STATIC_STREAM_PERIOD_S
+        for pipeline in self.nav.pipelines:
+            for stream, payload in pipeline.telemetry(static_due).items():
+                self.telemetry.publish(stream, payload)
 
     async def _shutdown(self) -> None:
         log.info("shutting down")

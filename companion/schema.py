@@ -54,9 +54,13 @@ class SchemaError(Exception):
         super().__init__(f"{where}: {key_path}: {message}" if key_path else f"{where}: {message}")
 
 
-def meta(doc: str, range: tuple[float, float] | None = None) -> dict[str, Any]:
-    """Field metadata: a one-line description and an optional inclusive numeric range."""
-    return {"doc": doc, "range": range}
+def meta(doc: str, range: tuple[float, float] | None = None, rest: bool = False) -> dict[str, Any]:
+    """Field metadata: a one-line description and an optional inclusive numeric range.
+
+    ``rest=True`` (one ``dict[str, Any]`` field per dataclass) collects every key the dataclass
+    does not name, as plain values, for the dataclass's ``validate`` to check (e.g. the
+    pipeline sections, typed by the pipeline registry)."""
+    return {"doc": doc, "range": range, "rest": rest}
 
 
 def read_regular_file(path: str | Path, max_bytes: int) -> bytes:
@@ -226,13 +230,19 @@ class _Builder:
         items = self._mapping(node, path, str)
         hints = _type_hints(cls)
         fields = {f.name: f for f in dataclasses.fields(cls) if f.init}
+        rest = next((f.name for f in fields.values() if (f.metadata or {}).get("rest")), None)
+        kwargs: dict[str, Any] = {}
         for key, value_node in items.items():
-            if key not in fields:
+            if key in fields and key != rest:
+                continue
+            if rest is None:
                 known = ", ".join(sorted(fields))
                 raise self.error(_key_node(node, key), _join(path, key),
                                  f"unknown key (known keys: {known})")
-        kwargs: dict[str, Any] = {}
+            kwargs.setdefault(rest, {})[key] = self.build(Any, value_node, _join(path, key))
         for name, f in fields.items():
+            if name == rest:
+                continue
             sub = _join(path, name)
             if name in items:
                 value = self.build(hints[name], items[name], sub)
@@ -396,7 +406,7 @@ def reference_rows(cls: Any, prefix: str = "") -> list[tuple[str, str, str, str]
         if not f.init:
             continue
         tp = hints[f.name]
-        path = _join(prefix, f.name)
+        path = _join(prefix, "<name>" if (f.metadata or {}).get("rest") else f.name)
         doc = (f.metadata or {}).get("doc", "")
         bounds = (f.metadata or {}).get("range")
         if bounds is not None:

@@ -1,8 +1,10 @@
-"""Wall-clock timing helpers for `companion bench` (milliseconds, median and 99th percentile)."""
+"""Wall-clock timing helpers: the running stage records of the daemon (:class:`Timings`) and the
+bench's (milliseconds, median and 99th percentile)."""
 
 from __future__ import annotations
 
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -24,3 +26,26 @@ def time_stage(fn: Callable[[], object], repeat: int) -> tuple[float, float]:
         fn()
         samples[i] = time.perf_counter() - start
     return percentiles_ms(samples)
+
+
+class Timings:
+    """Bounded record of durations in milliseconds with median / p99."""
+
+    def __init__(self, size: int = 6000) -> None:
+        self._values: deque[float] = deque(maxlen=size)
+
+    def add(self, ms: float) -> None:
+        self._values.append(ms)
+
+    def percentile(self, q: float) -> float | None:
+        if not self._values:
+            return None
+        return float(np.percentile(np.fromiter(self._values, float), q))
+
+    def summary(self) -> dict[str, float | None]:
+        """{p50, p99, count}: both percentiles from one copy of the values (the status task calls
+        this for every stage at telemetry.status_hz, on the event loop)."""
+        if not self._values:
+            return {"p50": None, "p99": None, "count": 0}
+        p50, p99 = np.percentile(np.fromiter(self._values, float, len(self._values)), (50, 99))
+        return {"p50": float(p50), "p99": float(p99), "count": len(self._values)}

@@ -1,37 +1,37 @@
-"""Sensor driver abstraction: one frontend, one backend per device kind (like ArduPilot's
-AP_RangeFinder: the frontend owns health, counters and recovery; a backend only talks to
-its device, its simulation or its recording).
+"""Sensor driver abstraction: one frontend for every sensor, one backend per device, simulation
+or recording (like ArduPilot's AP_RangeFinder: the frontend owns health, counters and recovery;
+a backend only talks to its device, its simulation or its recording).
 
-A backend implements :class:`ScanBackend`: ``open()``, ``read()`` returning the next
-:class:`~drivers.scan.Scan`, ``close()``. It signals trouble with exceptions:
+A backend implements :class:`Backend`: ``open()``, ``read()`` returning the next message of its
+kind (:class:`~companion.messages.Scan`, ``Frame``, ``ImuSample``, ``GnssFix``), ``close()``.
+It registers itself with :func:`companion.plugins.register_backend`. It signals trouble with
+exceptions:
 
 - :class:`CorruptFrame`: one frame was bad (checksum, truncated block, error status). The
   frontend counts it and reads on; nothing else is lost.
 - ``OSError`` (including pyserial's SerialException, ConnectionError, EOF as
   :class:`DeviceLost`): the device is gone. The frontend closes it, reports the sensor lost
-  and reopens with backoff (0.25 s doubling to 1 s; reset once scans flow again) until it
+  and reopens with backoff (0.25 s doubling to 1 s; reset once data flows again) until it
   comes back.
-- :class:`EndOfData`: a replay has no more scans (the frontend stops, health says why).
+- :class:`EndOfData`: a replay has no more data (the frontend stops, health says why).
 
-:class:`LidarDriver` is the frontend; it hands every good scan to ``on_scan`` (the pipeline)
-and is run by the daemon's supervisor as one task per sensor. A decoded scan with a non-finite
-time, range or angle, or a capture time not after the previous one, is dropped and counted
-per reason (``DriverStats.rejected_scans``, :func:`scan_problem`): no pipeline sees it.
+:class:`SensorDriver` is the frontend; it hands every good message to each subscriber (the
+pipelines that consume the sensor, in subscription order) and is run by the daemon's supervisor
+as one task per sensor. A decoded message that its kind's check (drivers/checks.py) refuses, a
+non-finite value or a capture time not after the previous one, is dropped and counted per
+reason (``DriverStats.rejected``): no pipeline sees it.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
-import math
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass, field
-
-import numpy as np
+from typing import Generic, TypeVar
 
 from companion.health import Health, State, often
-from drivers.scan import Scan
 
 log = logging.getLogger("companion.drivers")
 
@@ -49,21 +49,24 @@ class DeviceLost(OSError):
 
 
 class EndOfData(Exception):
-    """A replay has delivered its last scan."""
+    """A replay has delivered its last message."""
 
 
-class ScanBackend(ABC):
-    """A source of scans: a device, a simulation or a recording."""
+M = TypeVar("M")
 
-    description: str = "scanner"
+
+class Backend(ABC, Generic[M]):
+    """A source of one sensor's messages: a device, a simulation or a recording."""
+
+    description: str = "sensor"
 
     @abstractmethod
     async def open(self) -> None:
         """Connect and start streaming; raise OSError if the device is not there."""
 
     @abstractmethod
-    async def read(self) -> Scan:
-        """The next scan; raise CorruptFrame, OSError/DeviceLost or EndOfData."""
+    async def read(self) -> M:
+        """The next message; raise CorruptFrame, OSError/DeviceLost or EndOfData."""
 
     @abstractmethod
     async def close(self) -> None:
@@ -72,38 +75,40 @@ class ScanBackend(ABC):
 
 @dataclass
 class DriverStats:
-    scans: int = 0
+    messages: int = 0  # handed to the subscribers
     corrupt_frames: int = 0
-    rejected_scans: dict[str, int] = field(default_factory=dict)  # decoded but unusable, per reason (scan_problem)
+    rejected: dict[str, int] = field(default_factory=dict)  # decoded but unusable, per reason
     reconnects: int = 0
     last_error: str | None = None
 
 
-def scan_problem(scan: Scan, previous_t: float | None) -> str | None:
-    """Why a decoded scan must not reach a pipeline, or None: a non-finite capture time, range or
-    angle (a backend bug, a corrupt replay), or a capture time not after the previous scan's."""
-    if not math.isfinite(scan.t_capture):
-        return "non-finite capture time"
-    if previous_t is not None and scan.t_capture <= previous_t:
-        return "capture time not after the previous scan's"
-    if not (np.all(np.isfinite(scan.angles_rad)) and np.all(np.isfinite(scan.ranges_m[scan.valid]))):
-        return "non-finite range or angle"
-    return None
+Check = Callable[[M, "float | None"], "str | None"]  # (message, previous capture time) -> problem or None
 
 
-class LidarDriver:
-    """Frontend for one scanner: recovery, counters and health around a backend."""
+class SensorDriver(Generic[M]):
+    """Frontend for one sensor: recovery, counters and health around a backend.
 
-    def __init__(self, name: str, backend: ScanBackend, health: Health, on_scan: Callable[[Scan], None]) -> None:
+    ``check(message, previous_t)`` says why a decoded message must not reach a pipeline (None:
+    it may); ``stamp(message)`` is its capture time on the daemon clock, s.
+    """
+
+    def __init__(self, name: str, backend: Backend[M], health: Health, check: Check,
+                 stamp: Callable[[M], float]) -> None:
         self.name = name
         self.backend = backend
         self.health = health
-        self.on_scan = on_scan
+        self.check = check
+        self.stamp = stamp
+        self.subscribers: list[Callable[[M], None]] = []
         self.stats = DriverStats()
         self._component = f"sensor:{name}"
         self._backoff = MIN_BACKOFF_S  # wait before the next open after a loss, s
-        self._attempts = 0  # losses and failed reopens since scans last flowed (for the log's rate)
-        self._last_t: float | None = None  # capture time of the last scan handed on, daemon clock s
+        self._attempts = 0  # losses and failed reopens since data last flowed (for the log's rate)
+        self._last_t: float | None = None  # capture time of the last message handed on, daemon clock s
+
+    def subscribe(self, handler: Callable[[M], None]) -> None:
+        """Hand every good message to ``handler`` (called on the event loop; it must not block)."""
+        self.subscribers.append(handler)
 
     async def run(self) -> None:
         """Read forever (until cancelled or a replay ends), reopening the device when it drops."""
@@ -129,7 +134,7 @@ class LidarDriver:
         """Read until the device is lost; returns why."""
         while True:
             try:
-                scan = await self.backend.read()
+                message = await self.backend.read()
             except CorruptFrame as exc:
                 self.stats.corrupt_frames += 1
                 self.stats.last_error = str(exc)
@@ -137,22 +142,23 @@ class LidarDriver:
                 continue
             except OSError as exc:
                 return f"{self.backend.description} lost: {exc}"
-            self._backoff, self._attempts = MIN_BACKOFF_S, 0  # scans flow: the next loss starts afresh
-            problem = scan_problem(scan, self._last_t)
+            self._backoff, self._attempts = MIN_BACKOFF_S, 0  # data flows: the next loss starts afresh
+            problem = self.check(message, self._last_t)
             if problem is not None:
                 self._reject(problem)
                 continue
-            self._last_t = scan.t_capture
-            self.stats.scans += 1
+            self._last_t = self.stamp(message)
+            self.stats.messages += 1
             self.health.report(self._component, State.OK, f"{self.backend.description} streaming")
-            self.on_scan(scan)
+            for handler in self.subscribers:
+                handler(message)
 
     def _reject(self, problem: str) -> None:
-        rejected = self.stats.rejected_scans
+        rejected = self.stats.rejected
         rejected[problem] = rejected.get(problem, 0) + 1
-        self.health.report(self._component, State.DEGRADED, f"scans dropped: {problem}")
+        self.health.report(self._component, State.DEGRADED, f"dropped: {problem}")
         if often(rejected[problem]):
-            log.error("%s: scan dropped: %s (%d so far)", self.name, problem, rejected[problem])
+            log.error("%s: message dropped: %s (%d so far)", self.name, problem, rejected[problem])
 
     async def _lost(self, reason: str) -> None:
         """Report the loss, then wait the backoff before the next open (doubling each time)."""

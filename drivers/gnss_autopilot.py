@@ -10,7 +10,7 @@ a :class:`~companion.messages.GnssFix`:
   altitude from mm above mean sea level;
 - velocity from the ground speed ``vel`` (cm/s) and course over ground ``cog`` (centidegrees from
   true north, clockwise): north = v cos(cog), east = v sin(cog). The message has no vertical
-  velocity, so down is 0.0 and means "not measured": use the velocity horizontally only. Given
+  velocity, so down is NaN: "not measured": use the velocity horizontally only. Given
   only with a 3-D fix or better, and when both vel and cog are known (not UINT16_MAX);
 - accuracies from the MAVLink 2 extensions ``h_acc``, ``v_acc`` (mm) and ``vel_acc`` (mm/s);
   0 (what ArduPilot sends when its receiver does not say, and what a MAVLink 1 message leaves)
@@ -69,7 +69,7 @@ def gnss_fix(msg: Any, receiver_id: str, t_capture: float) -> GnssFix:
     velocity = None
     if msg.fix_type >= GNSS_3D and msg.vel != UNKNOWN_U16 and msg.cog != UNKNOWN_U16:
         speed, course = msg.vel / 100.0, math.radians(msg.cog / 100.0)
-        velocity = np.array([speed * math.cos(course), speed * math.sin(course), 0.0])
+        velocity = np.array([speed * math.cos(course), speed * math.sin(course), math.nan])
     return GnssFix(
         receiver_id=receiver_id, t_capture=t_capture, fix_type=msg.fix_type,
         lat_deg=msg.lat * 1e-7, lon_deg=msg.lon * 1e-7, alt_m=msg.alt / 1000.0, velocity_ned_mps=velocity,

@@ -17,7 +17,7 @@ The sentences of one epoch are combined into one :class:`~companion.messages.Gns
 - GSA: its fix mode 1 (no fix) or 2 (2-D) lowers the fix type to that;
 - RMC (else VTG): ground speed and course over ground (degrees from true north, clockwise)
   give north = v cos(course), east = v sin(course), m/s. NMEA carries no vertical velocity, so
-  down is 0.0 and means "not measured": use the velocity horizontally only. Given only with a
+  down is NaN: "not measured": use the velocity horizontally only. Given only with a
   3-D fix or better and a valid RMC (status A) / VTG (mode not N);
 - GST: 1-sigma errors; horizontal accuracy = sqrt(sigma_lat^2 + sigma_lon^2) (as ArduPilot's
   NMEA driver), vertical = sigma_alt, m. No velocity accuracy in NMEA: None. ``jamming`` False.
@@ -240,7 +240,7 @@ class EpochAssembler:
         if fix_type != GNSS_NO_FIX and parts.get("GSA") in (GNSS_NO_FIX, GNSS_2D):
             fix_type = parts["GSA"]
         horizontal = parts.get("RMC") or parts.get("VTG")
-        velocity = None if horizontal is None or fix_type < GNSS_3D else np.array([*horizontal, 0.0])
+        velocity = None if horizontal is None or fix_type < GNSS_3D else np.array([*horizontal, math.nan])
         h_acc, v_acc = parts.get("GST", (None, None))
         return GnssFix(self.receiver_id, t_first - self.latency_s, fix_type, position.lat_deg, position.lon_deg,
                        position.alt_m, velocity, h_acc, v_acc, None, position.satellites)

@@ -10,8 +10,8 @@ urg_library does before measuring, then synchronises the clocks and starts strea
    millisecond clock to the host clock, ``loop.time()``), TM2; see :class:`SensorClock`.
 4. BM (laser on) and MD start..end, cluster, every scan, until QT (scans "00").
 
-``read()`` returns the next :class:`~drivers.scan.Scan`: ranges in metres, angles in the
-sensor frame of drivers/scan.py (``angle = -(step - AFRT) * 2 pi / ARES``), values below
+``read()`` returns the next :class:`~companion.messages.Scan`: ranges in metres, angles in the
+sensor frame of companion/messages.py (``angle = -(step - AFRT) * 2 pi / ARES``), values below
 DMIN (error codes; UTM-30LX uses 1..5) or above DMAX invalid, ``t_capture`` the host time of
 the first beam. Every line's sum byte is checked; a bad or truncated scan raises
 CorruptFrame and reading resumes at the next reply (replies are framed by their empty
@@ -36,10 +36,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import serial
 
+from companion.plugins import register_backend
 from companion.schema import meta
 from drivers import scip
-from drivers.base import CorruptFrame, DeviceLost, ScanBackend
-from drivers.scan import Scan
+from drivers.base import Backend, CorruptFrame, DeviceLost
+from companion.messages import Scan
 from drivers.scip import Reply, ScipError, ScipProtocolError, SensorParams
 
 log = logging.getLogger("companion.drivers.hokuyo")
@@ -263,8 +264,8 @@ class _SerialLink(_Link):
 
 # --- the backend --------------------------------------------------------------------------
 
-class HokuyoScip(ScanBackend):
-    """A Hokuyo scanner speaking SCIP 2.0; scans go out as :class:`~drivers.scan.Scan`."""
+class HokuyoScip(Backend[Scan]):
+    """A Hokuyo scanner speaking SCIP 2.0; scans go out as :class:`~companion.messages.Scan`."""
 
     def __init__(self, settings: HokuyoSettings, sensor_id: str = "lidar") -> None:
         self.settings = settings
@@ -282,7 +283,7 @@ class HokuyoScip(ScanBackend):
         self._min_mm = 0
         self._last: tuple[int, float] | None = None  # (sequence, t_capture) of the last scan
 
-    # --- ScanBackend ----------------------------------------------------------------
+    # --- Backend ----------------------------------------------------------------
 
     async def open(self) -> None:
         await self.close()
@@ -458,3 +459,9 @@ class HokuyoScip(ScanBackend):
             sequence = self._last[0] + max(1, round(elapsed / self.params.scan_period_s))
         self._last = (sequence, t_capture)
         return sequence
+
+
+@register_backend("lidar", "real", HokuyoSettings)
+def _hokuyo(name: str, settings: HokuyoSettings, ctx: object) -> HokuyoScip:
+    """A Hokuyo on a serial port or TCP (SCIP 2.0)."""
+    return HokuyoScip(settings, sensor_id=name)

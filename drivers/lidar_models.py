@@ -3,7 +3,7 @@
 Numbers from the SCIP 2.0 ``PP`` replies and the datasheets (/work/shared/REFERENCE.md,
 "Hokuyo SCIP 2.0"). The PP reply (``pp``) is the one source of the step geometry, the scan
 rate and DMIN; the SCIP emulator answers PP with the same values. A model measures steps ``amin .. amax`` of ``ares`` steps per turn; step
-``afrt`` is the scanner's front. Angles are in the sensor frame of :mod:`drivers.scan`
+``afrt`` is the scanner's front. Angles are in the sensor frame of :mod:`companion.messages`
 (positive from the front towards the right, i.e. clockwise seen from above), and Hokuyo steps
 count counter-clockwise, so ``angle = -(step - afrt) * 2 pi / ares``: the first step is on
 the scanner's right, the last on its left.
@@ -17,7 +17,6 @@ range never leaves the datasheet accuracy: sigma = 10 mm (UTM-30LX up to 10 m), 
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,7 +74,7 @@ class LidarModel:
     @property
     def step_rad(self) -> float:
         """Angle between neighbouring beams, radians."""
-        return 2 * math.pi / self.ares
+        return self.pp.step_rad
 
     @property
     def sweep_s(self) -> float:
@@ -84,8 +83,7 @@ class LidarModel:
 
     def angles_rad(self) -> np.ndarray:
         """(beams,) beam angles in the sensor frame, radians, in step order (right to left)."""
-        steps = np.arange(self.amin, self.amax + 1, dtype=float)
-        return -(steps - self.afrt) * self.step_rad
+        return self.pp.angle_rad(np.arange(self.amin, self.amax + 1, dtype=float))
 
     def accuracy_bound_m(self, ranges_m: np.ndarray) -> np.ndarray:
         """Datasheet accuracy bound (m) at each range (m): the clip limit of the simulated noise."""

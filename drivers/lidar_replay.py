@@ -44,14 +44,15 @@ import math
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
+from companion.plugins import register_backend
 from companion.schema import meta, read_regular_file
-from drivers.base import CorruptFrame, EndOfData, ScanBackend
+from drivers.base import Backend, CorruptFrame, EndOfData
 from drivers.lidar_models import URG_04LX
-from drivers.scan import Scan
+from companion.messages import Scan
 
 BREEZYSLAM_BEAMS = 682
 _BREEZYSLAM_FIRST_RANGE = 24
@@ -141,7 +142,7 @@ class _Record:
     error: str | None = None
 
 
-class ReplayLidar(ScanBackend):
+class ReplayLidar(Backend[Scan]):
     """Plays a recording back as scans on the daemon clock (see the module docstring);
     ``settings.file`` is resolved against ``base_dir`` (the config file's directory)."""
 
@@ -236,3 +237,14 @@ class ReplayLidar(ScanBackend):
     async def close(self) -> None:
         """Forget the loaded recording."""
         self._records = []
+
+
+def _check_recording(cfg: Any, name: str) -> None:
+    """check-config: the recording named by ``sensors.<name>.settings.file`` can be read."""
+    cfg.load_referenced(f"sensors.{name}.settings.file", cfg.sensors[name].settings["file"], read_recording)
+
+
+@register_backend("lidar", "replay", ReplayLidarSettings, check_files=_check_recording)
+def _replay(name: str, settings: ReplayLidarSettings, ctx: Any) -> ReplayLidar:
+    """A recording played back on the daemon clock."""
+    return ReplayLidar(name, settings, base_dir=ctx.base_dir)

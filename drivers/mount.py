@@ -1,7 +1,7 @@
 """Where a sensor sits on the vehicle: the sensor frame placed in the body frame.
 
 Frames (companion/frames.py): body FRD; world LOCAL_NED; the lidar sensor frame of
-:mod:`drivers.scan` (x front, y right, z down through the base when upright). The mount
+:mod:`companion.messages` (x front, y right, z down through the base when upright). The mount
 config gives the sensor origin in body FRD (``position_m``, metres) and the sensor frame's
 orientation relative to body FRD as ZYX roll, pitch, yaw (``rpy_deg``, degrees), the same
 convention as the vehicle attitude, so ``v_body = R_mount @ v_sensor + position``.
@@ -9,6 +9,12 @@ convention as the vehicle attitude, so ``v_body = R_mount @ v_sensor + position`
 Examples: ``rpy_deg [0, 0, 90]`` turns the scanner's front to the body's right;
 ``rpy_deg [90, 0, 0]`` (roll 90 deg) stands the scan plane up so that it holds the body x
 and z axes: the sensor's right (+90 deg beam) points down along body z, its left up.
+
+A camera's sensor frame is FRD like a scanner's: x along the optical axis, y to the image's
+right, z to the image's bottom, so a camera with ``rpy_deg [0, 0, 0]`` looks forward with the
+image upright, and ``rpy_deg [0, -90, 0]`` looks down with the image's top towards the front.
+OpenCV's optical frame (x right, y down, z along the axis: companion/calibration.py) is
+``v_sensor = OPTICAL_TO_SENSOR @ v_optical``.
 """
 
 from __future__ import annotations
@@ -20,6 +26,10 @@ import numpy as np
 
 from companion.config import MountConfig
 from companion.frames import rotation_from_euler, rotation_from_quat
+
+
+OPTICAL_TO_SENSOR = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+"""Rotation from OpenCV's optical frame to a camera's sensor frame (see the module docstring)."""
 
 
 def beam_directions(angles_rad: np.ndarray) -> np.ndarray:

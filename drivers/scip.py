@@ -16,7 +16,7 @@ Wire format (SCIP 2.0 specification; urg_library ``src/urg_sensor.c``):
 
 Units here are the sensor's: ranges in millimetres, timestamps in milliseconds, angles in
 Hokuyo steps (``ARES`` per turn, counted counter-clockwise seen from above). Conversion to
-the sensor frame of :mod:`drivers.scan` is :meth:`SensorParams.angle_rad`.
+the sensor frame of :mod:`companion.messages` is :meth:`SensorParams.angle_rad`.
 """
 
 from __future__ import annotations
@@ -436,7 +436,7 @@ class SensorParams:
     def angle_rad(self, steps: np.ndarray | float) -> np.ndarray | float:
         """Sensor-frame angle of (possibly fractional) steps: -(step - AFRT) * 2 pi / ARES.
 
-        Positive angles turn from the front to the right (:mod:`drivers.scan`); Hokuyo steps
+        Positive angles turn from the front to the right (:mod:`companion.messages`); Hokuyo steps
         count counter-clockwise seen from above, so the first step is on the right.
         """
         return -(np.asarray(steps, dtype=float) - self.afrt) * self.step_rad

@@ -9,7 +9,7 @@ truth, and the flight log they fill (the same document as the built-in vehicle's
   reconnecting -> a new connection to SITL. Only the harness sees it: the daemon talks to
   ArduPilot exactly as it would on TCP.
 - **Ground link** (SITL's SERIAL1, as a listening ground station: sysid 254, see GROUND_SYSID): SIMSTATE and SCALED_PRESSURE
-  give the truth (``drivers.sim_truth``: true attitude and position, the altitude from SITL's
+  give the truth (``sitl.truth``: true attitude and position, the altitude from SITL's
   noiseless barometer), HEARTBEAT the mode and arming, STATUSTEXT the EKF's "using external nav",
   GPS_GLOBAL_ORIGIN the origin, LOCAL_POSITION_NED the autopilot's own estimate. It reconnects by
   itself after SITL restarts.
@@ -40,7 +40,7 @@ from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.commands import Commander
 from companion.mavlink.link import MavlinkLink, mavlink, nonfinite_fields
 from companion.mavlink.streams import StreamNegotiator
-from drivers.sim_truth import TruthSample, TruthSource
+from sitl.truth import TruthSample, TruthSource
 from sitl.flight_log import FlightLog
 
 log = logging.getLogger("companion.sitl.ardupilot")

@@ -19,7 +19,7 @@ from sitl.ardupilot import ArduPilotSitl, SitlOptions, default_defaults, free_in
 from sitl.ardupilot_observer import ArduPilotObserver
 from sitl.frame_shift import takeoff_pose
 
-# The SITL barometer is the truth altimeter of drivers/sim_truth.py: none of its error sources.
+# The SITL barometer is the truth altimeter of sitl/truth.py: none of its error sources.
 TRUTH_PARAMETERS = {"SIM_BARO_RND": 0.0, "SIM_BARO_DRIFT": 0.0, "SIM_BARO_GLITCH": 0.0, "SIM_BARO_DELAY": 0.0,
                     "SIM_TEMP_BFACTOR": 0.0}
 BOOT_S = 20.0  # SITL listening after a start or a reboot

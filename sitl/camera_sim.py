@@ -45,13 +45,11 @@ from companion.messages import Frame
 from companion.schema import meta
 from companion.world import World
 from drivers.base import Backend
-from drivers.mount import Mount
+from drivers.mount import OPTICAL_TO_SENSOR, Mount
 from sitl.camera_lens import PixelRays
 from sitl.camera_scene import Scene
 from sitl.lidar_sim import TruthLike, TruthPose
 
-# v_sensor = OPTICAL_TO_SENSOR @ v_optical: optical z -> sensor x, optical x -> sensor y, optical y -> sensor z
-OPTICAL_TO_SENSOR = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 MAX_BLUR_SAMPLES = 16
 NEAREST_SURFACE_MIN_M = 0.05  # for the blur's sample count
 NEAR_M = 1e-3  # what is nearer to the camera's image plane is not drawn, m

@@ -23,7 +23,7 @@ import yaml
 
 from companion.config import Config
 from companion.frames import geodetic_from_ned
-from sitl.world import load_world
+from companion.world import load_world
 
 Offset = tuple[float, float]  # metres added to every (north, east)
 
@@ -37,7 +37,7 @@ def shifted(point: Any, offset: Offset) -> list[float]:
 
 
 def shift_world(raw: dict, offset: Offset) -> dict:
-    """A world YAML document (sitl/world.py) with every horizontal position moved by ``offset``."""
+    """A world YAML document (companion/world.py) with every horizontal position moved by ``offset``."""
     out = dict(raw)
     out["bounds"] = {key: shifted(raw["bounds"][key], offset) for key in ("min", "max")}
     out["start"] = shifted(raw["start"], offset)

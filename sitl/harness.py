@@ -42,11 +42,12 @@ import yaml
 from companion.config import Config, ConfigError, load_config
 from companion.dashboard.app import spawn_dashboard
 from companion.telemetry.keys import KEY_PREFIX
+from drivers.lidar_models import MODELS
 from sitl.ardupilot_observer import THREAD_NAME as OBSERVER_THREAD
 from sitl.ardupilot_run import ArduPilotRun, ArduPilotStartFailure
 from sitl.frame_shift import moved_origin, shift_mission, shift_world, shifted, takeoff_pose, write_shifted
 from sitl.report import build_report
-from sitl.world import load_world
+from companion.world import load_world
 
 log = logging.getLogger("companion.sitl")
 
@@ -116,11 +117,10 @@ def write_run_config(cfg: Config, mission: str | None, out_dir: Path, autopilot_
     # The copy lives elsewhere: every path the config holds becomes absolute.
     if cfg.mavlink.signing_key_file:
         raw["mavlink"]["signing_key_file"] = str(cfg.resolve(cfg.mavlink.signing_key_file))
-    if cfg.pipelines.lidar is not None:
-        raw["pipelines"]["lidar"]["map"] = str(cfg.resolve(cfg.pipelines.lidar.map))
-    for name, sensor in cfg.sensors.items():
-        if "file" in sensor.settings:
-            raw["sensors"][name]["settings"]["file"] = str(cfg.resolve(sensor.settings["file"]))
+    for name in cfg.pipelines.enabled:
+        _absolute_files(cfg, raw["pipelines"][name])
+    for name in cfg.sensors:
+        _absolute_files(cfg, raw["sensors"][name].get("settings") or {})
     for key in ("binary", "defaults"):
         value = getattr(cfg.sitl.ardupilot, key)
         if value:
@@ -131,6 +131,14 @@ def write_run_config(cfg: Config, mission: str | None, out_dir: Path, autopilot_
     path = out_dir / "companion.yaml"
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
     return path
+
+
+def _absolute_files(cfg: Config, section: dict) -> None:
+    """Make every value of ``section`` (a sensor's settings, a pipeline's section) that names an
+    existing file relative to the config's directory absolute, in place."""
+    for key, value in section.items():
+        if isinstance(value, str) and not Path(value).is_absolute() and cfg.resolve(value).is_file():
+            section[key] = str(cfg.resolve(value))
 
 
 def _move_origin_to_takeoff(cfg: Config, raw: dict, out_dir: Path) -> None:
@@ -144,13 +152,15 @@ def _move_origin_to_takeoff(cfg: Config, raw: dict, out_dir: Path) -> None:
     raw["sitl"]["world"] = str(write_shifted(world_path, out_dir / "world.yaml", offset, shift_world))
     if cfg.sitl.start is not None:
         raw["sitl"]["start"] = shifted(cfg.sitl.start, offset)
-    lidar = cfg.pipelines.lidar
-    if lidar is not None:
-        map_path = cfg.resolve(lidar.map)
-        raw["pipelines"]["lidar"]["map"] = (raw["sitl"]["world"] if map_path.resolve() == world_path.resolve() else
-                                            str(write_shifted(map_path, out_dir / "map.yaml", offset, shift_world)))
-        if lidar.initial_pose is not None:
-            raw["pipelines"]["lidar"]["initial_pose"] = shifted(lidar.initial_pose, offset)
+
+    def move_map(path: str) -> str:
+        """A map (world YAML) in the moved frame: the shifted world itself, or a shifted copy."""
+        p = cfg.resolve(path)
+        return raw["sitl"]["world"] if p.resolve() == world_path.resolve() else \
+            str(write_shifted(p, out_dir / f"map-{p.stem}.yaml", offset, shift_world))
+
+    for name, section in cfg.pipelines.enabled.items():
+        raw["pipelines"][name] = section.moved(raw["pipelines"][name], offset, move_map)
     if raw["mission"]["file"]:
         raw["mission"]["file"] = str(write_shifted(Path(raw["mission"]["file"]), out_dir / "mission.yaml", offset,
                                                    shift_mission))
@@ -431,6 +441,17 @@ def refusal(cfg: Config, args: argparse.Namespace, ardupilot: Path | None) -> st
     return None
 
 
+def check_sitl_section(cfg: Config) -> None:
+    """What only the simulator can check of the ``sitl`` section (ConfigError at the key): the world
+    loads, and every ``scip_sensors`` scanner is of a model the SCIP bridge emulates. Config checks
+    the rest (real loopback lidars on distinct ports); ``companion check-config`` runs this too."""
+    cfg.load_referenced("sitl.world", cfg.sitl.world, load_world)
+    for i, name in enumerate(cfg.sitl.scip_sensors):
+        if cfg.sensors[name].settings.get("model") not in MODELS:
+            raise ConfigError(cfg.source, f"sitl.scip_sensors[{i}]", cfg.line_of(f"sitl.scip_sensors[{i}]"),
+                              f"sensor {name!r}: settings.model must name the emulated model ({', '.join(sorted(MODELS))})")
+
+
 class _QuietObserver(logging.Filter):
     """The ArduPilot observer reuses the daemon's MAVLink classes in this process: below ERROR their
     lines would repeat what the daemon itself logs about the same autopilot."""
@@ -447,7 +468,7 @@ def run_harness(args: argparse.Namespace) -> int:
         cfg = load_config(args.config)
         if args.mission and not cfg.resolve(f"missions/{args.mission}.yaml").exists():
             raise ConfigError(cfg.source, "mission", None, f"no mission {args.mission!r} in {cfg.resolve('missions')}")
-        cfg.load_referenced("sitl.world", cfg.sitl.world, load_world)
+        check_sitl_section(cfg)
     except ConfigError as exc:
         print(f"companion: {exc}", file=sys.stderr)
         return 2

@@ -1,7 +1,7 @@
-"""Vectorised 3-D ray casting against a :class:`~sitl.world.World`, for simulated range sensors.
+"""Vectorised 3-D ray casting against a :class:`~companion.world.World`, for simulated range sensors.
 
 Frame: world LOCAL_NED (x north, y east, z down, metres); the floor is z = 0 and a surface
-``h`` metres high is at z = -h (sitl/world.py).
+``h`` metres high is at z = -h (companion/world.py).
 
 The world becomes, once (:meth:`WorldGeometry.from_world`):
 
@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sitl.world import TOLERANCE_M, Wall, World
+from companion.world import TOLERANCE_M, Wall, World
 
 # Surfaces are enlarged by 0.1 mm so that seams and corners stay watertight in float32 (whose
 # rounding is ~6e-5 m at 1 km); far below any range sensor's resolution.

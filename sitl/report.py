@@ -114,7 +114,8 @@ def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, con
     system = telemetry.get("system", {})
     stats = telemetry.get("estimate_stats", {})
     if estimate["position_rms_m"] is not None:
-        estimate["fix_rate_hz"] = (system.get("pipelines") or {}).get("lidar", {}).get("fix_rate_hz")
+        active = telemetry.get("sources", {}).get("active")  # the pose source the autopilot was fed by
+        estimate["fix_rate_hz"] = (system.get("pipelines") or {}).get(active, {}).get("fix_rate_hz")
     tracking_rms, tracking_max = score_tracking(log)
     mission_state = telemetry.get("mission", {}).get("state")
     failsafes = telemetry.get("mission", {}).get("failsafe_counts") or {}

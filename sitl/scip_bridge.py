@@ -11,12 +11,12 @@ matching ``--gcs``, here ``udpout:127.0.0.1:14560``; ``companion sitl`` does it 
 ``sitl.scip_sensors`` names sensors). It asks the vehicle for ``SIM_STATE`` at 100 Hz
 (SET_MESSAGE_INTERVAL, asked again whenever the stream stops for a second), converts every
 sample to LOCAL_NED at ``--home`` (:func:`companion.frames.ned_from_geodetic`, as
-drivers/sim_truth.py does) stamped with this process's monotonic clock on arrival, and keeps
+sitl/truth.py does) stamped with this process's monotonic clock on arrival, and keeps
 two seconds of it. For every ``--sensor`` it serves a :class:`sitl.scip_emulator.ScipEmulator`
 on TCP 127.0.0.1:PORT, so the daemon's *real* driver (drivers/hokuyo.py, ``backend: real``,
 ``host: 127.0.0.1``) talks SCIP 2.0 to it exactly as to an Ethernet scanner.
 
-Scans are rendered like the ``sim`` backend's (drivers/lidar_sim.py: same world, model,
+Scans are rendered like the ``sim`` backend's (sitl/lidar_sim.py: same world, model,
 mount, range noise and dropout; sensor ``i`` draws its noise from seed ``--seed + i``), with one difference that the
 real driver's timestamps make observable: a device measures its beams one after another while
 the mirror turns, and the driver stamps beam ``k`` at step 0 + ``step_k`` step times. So every
@@ -77,12 +77,12 @@ from companion.config import MountConfig  # noqa: E402
 from companion.frames import ned_from_geodetic  # noqa: E402
 from companion.schema import SchemaError  # noqa: E402
 from drivers.lidar_models import MODELS as LIDAR_MODELS  # noqa: E402
-from drivers.lidar_sim import SimLidarSettings, SimulatedLidar  # noqa: E402
+from sitl.lidar_sim import SimLidarSettings, SimulatedLidar  # noqa: E402
 from drivers.mount import Mount  # noqa: E402
-from drivers.scan import Scan  # noqa: E402
+from companion.messages import Scan  # noqa: E402
 from sitl.raycast import cast  # noqa: E402
 from sitl.scip_emulator import ScipEmulator  # noqa: E402
-from sitl.world import World, load_world  # noqa: E402
+from companion.world import World, load_world  # noqa: E402
 
 SIM_STATE_HZ = 100.0
 HISTORY_S = 2.0  # truth kept for interpolation
@@ -101,7 +101,7 @@ NO_RETURN_MM = 1  # the value of a step without a return: an error code below ev
 
 @dataclass(frozen=True)
 class Pose:
-    """A vehicle pose (what :class:`drivers.lidar_sim.SimulatedLidar` renders from)."""
+    """A vehicle pose (what :class:`sitl.lidar_sim.SimulatedLidar` renders from)."""
 
     position_ned: np.ndarray  # (3,) m
     quat: np.ndarray  # (4,) [w, x, y, z], body FRD -> NED
@@ -164,7 +164,7 @@ class TruthHistory:
         return position, quat
 
     def at(self, t: float) -> Pose | None:
-        """The pose at ``t`` (the TruthLike protocol of drivers/lidar_sim.py)."""
+        """The pose at ``t`` (the TruthLike protocol of sitl/lidar_sim.py)."""
         found = self.poses(np.array([t]))
         return None if found is None else Pose(found[0][0], found[1][0])
 
@@ -250,7 +250,7 @@ class VehicleTruth:
 # --- scanners ---------------------------------------------------------------------------------
 
 class SweptLidar(SimulatedLidar):
-    """:class:`drivers.lidar_sim.SimulatedLidar` (same world geometry, beams, mount, range noise
+    """:class:`sitl.lidar_sim.SimulatedLidar` (same world geometry, beams, mount, range noise
     and dropouts) rendering each beam from the vehicle pose at that beam's own time."""
 
     def render_sweep(self, beam_times: np.ndarray, positions: np.ndarray, quats: np.ndarray,

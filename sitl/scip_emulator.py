@@ -454,7 +454,7 @@ def _truncate(data: bytes) -> bytes:
 def synthetic_room(params: SensorParams, front_m: float = 4.0, back_m: float = 2.0,
                    left_m: float = 1.5, right_m: float = 2.5) -> np.ndarray:
     """Ranges (mm, steps AMIN..AMAX) in a rectangular room around the sensor: walls at the
-    given distances ahead, behind, left and right of it (sensor frame of drivers.scan)."""
+    given distances ahead, behind, left and right of it (sensor frame of companion.messages)."""
     a = np.asarray(params.angle_rad(np.arange(params.amin, params.amax + 1)))
     c, s = np.cos(a), np.sin(a)
     with np.errstate(divide="ignore"):

@@ -11,7 +11,7 @@ from collections.abc import Iterable
 
 import numpy as np
 
-from sitl.world import Bounds, Wall, World
+from companion.world import Bounds, Wall, World
 
 
 def walls_world(segments: Iterable[tuple[float, float, float, float]], wall_angle_deg: int = 45,

@@ -33,8 +33,9 @@ from companion.clock import LockstepEventLoop  # noqa: E402
 from companion.config import Config  # noqa: E402
 from companion.daemon import Daemon  # noqa: E402
 from companion.frames import euler_from_quat  # noqa: E402
-from companion.mavlink.estimate import PoseEstimate  # noqa: E402
-from drivers.sim_truth import TruthSource  # noqa: E402
+from companion.messages import PoseEstimate  # noqa: E402
+from companion.selection import SourceSelector  # noqa: E402
+from sitl.truth import TruthSource  # noqa: E402
 from sitl.harness import TelemetryListener  # noqa: E402
 from tests.conftest import REPO, free_port  # noqa: E402
 
@@ -250,6 +251,7 @@ class TruthPipeline:
     """
 
     name = "test_truth"
+    telemetry_streams: tuple[str, ...] = ()
 
     def __init__(self, truth: TruthSource, seed: int, *, frame: str = "ned", nan_every: int | None = None,
                  crash_on_call: int | None = None, position_sigma_m: float = 0.01,
@@ -275,7 +277,20 @@ class TruthPipeline:
         """Telemetry counters (the daemon's system stream)."""
         return {"emitted": self.emitted, "nan_emitted": self.nan_emitted}
 
-    def step(self, now: float) -> PoseEstimate | None:
+    def subscriptions(self) -> dict:
+        return {}  # reads the truth source directly
+
+    def telemetry(self, static_due: bool) -> dict:
+        return {}
+
+    def operating_area(self) -> None:
+        return None
+
+    def step(self, now: float) -> list[PoseEstimate]:
+        estimate = self._estimate(now)
+        return [] if estimate is None else [estimate]
+
+    def _estimate(self, now: float) -> PoseEstimate | None:
         self.calls += 1
         if self.calls == self.crash_on_call:
             self.crash_time = now
@@ -314,6 +329,11 @@ class PipelineDaemon(Daemon):
     def build_pipelines(self) -> list:
         self.pipeline = self._make_pipeline(TruthSource(self.link, self.cfg.origin))
         return [self.pipeline]
+
+    def _build_selector(self, pipelines: list) -> SourceSelector:
+        """The test pipeline is the one pose source (it is not in the config)."""
+        p = self.cfg.pipelines
+        return SourceSelector([self.pipeline.name], p.source_timeout_s, p.source_return_s)
 
 
 def run_daemon_with_vehicle(daemon: Daemon, vehicle: subprocess.Popen, timeout_s: float = 50.0) -> int:
@@ -372,7 +392,8 @@ def real_driver_config(directory: Path, **sitl: object) -> tuple[Path, dict]:
                        world=str(REPO / "config" / "worlds" / "arena.yaml"), **sitl)
     raw["pipelines"]["lidar"]["map"] = str(REPO / "config" / "worlds" / "arena.yaml")
     for sensor in raw["sensors"].values():
-        sensor["settings"]["tcp_port"] = free_port(socket.SOCK_STREAM)
+        if sensor["kind"] == "lidar":
+            sensor["settings"]["tcp_port"] = free_port(socket.SOCK_STREAM)
     shutil.copytree(REPO / "config" / "missions", directory / "missions", dirs_exist_ok=True)
     path = directory / "companion.yaml"
     path.write_text(yaml.safe_dump(raw, sort_keys=False))

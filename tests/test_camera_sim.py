@@ -21,14 +21,13 @@ from companion.health import Health
 from companion.schema import SchemaError, load_text
 from companion.sensors import SensorContext, build_driver, check_sensor_files
 from companion.world import Bounds, FloorMarker, Opening, Wall, World
-from drivers.mount import Mount
+from drivers.mount import OPTICAL_TO_SENSOR, Mount
 from sitl.camera_scene import MARKER_BLACK, PAPER_WHITE, SKY_GREY
 from sitl.camera_sim import SimCameraSettings, SimulatedCamera
 
 DISTORTION = (-0.25, 0.07, 0.001, -0.0015, -0.01)  # plumb_bob k1 k2 p1 p2 k3: a cheap wide-angle lens
 DOWN = (0.0, -90.0, 0.0)  # mount rpy_deg of a camera looking down, image top towards the body's front
 # v_sensor = M v_optical, written out here rather than taken from the module under test
-OPTICAL_TO_SENSOR = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
 
 
 @dataclass(frozen=True)

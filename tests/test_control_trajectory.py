@@ -12,7 +12,7 @@ import pytest
 
 from companion.control.trajectory import Trajectory, from_segment_times, plan
 from companion.mission.steps import load_mission
-from sitl.world import load_world
+from companion.world import load_world
 from tests.conftest import REPO
 
 KINDS = ("minimum_jerk", "minimum_snap")

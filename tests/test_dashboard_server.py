@@ -22,7 +22,7 @@ from companion.config import TelemetryConfig
 from companion.dashboard.app import dashboard_endpoints, page_url, spawn_dashboard
 from companion.dashboard.bench import arena_scan
 from companion.dashboard.hub import Browser, decode_payload
-from companion.telemetry.lidar_streams import map_payload, scan_payloads
+from companion.nav.lidar_streams import map_payload, scan_payloads
 from companion.telemetry.publisher import TelemetryPublisher
 from companion.telemetry.scan_codec import SCAN_ENCODING, encode_scan
 from companion.telemetry.session import open_session

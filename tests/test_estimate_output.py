@@ -13,7 +13,8 @@ from pymavlink import mavutil  # noqa: E402
 
 from companion.config import MavlinkConfig, VehicleConfig  # noqa: E402
 from companion.health import Health  # noqa: E402
-from companion.mavlink.estimate import EstimateSender, PoseEstimate  # noqa: E402
+from companion.mavlink.estimate import EstimateSender  # noqa: E402
+from companion.messages import PoseEstimate  # noqa: E402
 from companion.mavlink.link import MavlinkLink  # noqa: E402
 from tests.conftest import free_port  # noqa: E402
 

@@ -13,7 +13,7 @@ from companion.frames import geodetic_from_ned, ned_from_geodetic
 from companion.mission.steps import load_mission
 from sitl.frame_shift import shift_mission, shift_world
 from sitl.harness import write_run_config
-from sitl.world import load_world
+from companion.world import load_world
 from tests.conftest import REPO
 
 ARENA = REPO / "config" / "worlds" / "arena.yaml"
@@ -61,7 +61,7 @@ def test_the_run_config_puts_the_origin_under_the_take_off_point_and_the_walls_s
     np.testing.assert_allclose(ned_from_geodetic(*new_origin, old_origin), [1.0, 1.0, 0.0], atol=1e-6)
     world = load_world(run.resolve(run.sitl.world))
     assert world.start[:2] == (0.0, 0.0)
-    assert run.resolve(run.pipelines.lidar.map) == run.resolve(run.sitl.world)
+    assert run.resolve(run.pipelines.enabled["lidar"].map) == run.resolve(run.sitl.world)
     # the corner at (5, 5) of the arena is at the same place on Earth in both frames
     corner = geodetic_from_ned(np.array([5.0, 5.0, 0.0]), old_origin)
     np.testing.assert_allclose(ned_from_geodetic(*corner, new_origin), [4.0, 4.0, 0.0], atol=1e-6)

@@ -149,7 +149,7 @@ def test_each_nmea_epoch_becomes_one_fix_with_position_velocity_accuracy_and_cap
     assert fix.receiver_id == "gps" and fix.fix_type == GNSS_3D and fix.satellites == 8
     assert fix.lon_deg == pytest.approx(11.0 + 31.0 / 60.0) and fix.alt_m == pytest.approx(545.4)
     speed, course = 22.4 * KNOT_MPS, math.radians(84.4)
-    np.testing.assert_allclose(fix.velocity_ned_mps, [speed * math.cos(course), speed * math.sin(course), 0.0])
+    np.testing.assert_allclose(fix.velocity_ned_mps, [speed * math.cos(course), speed * math.sin(course), math.nan])
     assert fix.h_acc_m == pytest.approx(0.5) and fix.v_acc_m == pytest.approx(0.5)  # hypot(0.3, 0.4); 0.5
     assert fix.speed_acc_mps is None and not fix.jamming
     for f, t_written in zip(fixes, written):  # first byte's arrival, less the receiver's latency
@@ -314,7 +314,7 @@ def test_gps_raw_int_becomes_a_fix_in_degrees_metres_and_ned_velocity() -> None:
     assert fix.fix_type == GNSS_3D and fix.satellites == 14 and not fix.jamming
     assert fix.lat_deg == pytest.approx(1.2966) and fix.lon_deg == pytest.approx(103.7764)
     assert fix.alt_m == pytest.approx(10.5)
-    np.testing.assert_allclose(fix.velocity_ned_mps, [0.0, 5.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(fix.velocity_ned_mps, [0.0, 5.0, math.nan], atol=1e-12)
     assert (fix.h_acc_m, fix.v_acc_m, fix.speed_acc_mps) == pytest.approx((1.2, 2.5, 0.3))
     assert sent_at - LATENCY_S <= fix.t_capture < sent_at - LATENCY_S + 0.1  # arrival less the latency
 
@@ -357,7 +357,7 @@ def test_the_second_receiver_is_read_from_gps2_raw_only() -> None:
     [fix] = asyncio.run(main())
     assert fix.fix_type == 6 and fix.lat_deg == pytest.approx(-33.7) and fix.lon_deg == pytest.approx(151.2)
     assert fix.alt_m == pytest.approx(25.0) and fix.satellites == 20
-    np.testing.assert_allclose(fix.velocity_ned_mps, [-0.3, 0.0, 0.0], atol=1e-12)  # 0.3 m/s due south
+    np.testing.assert_allclose(fix.velocity_ned_mps, [-0.3, 0.0, math.nan], atol=1e-12)  # 0.3 m/s due south
     assert (fix.h_acc_m, fix.v_acc_m, fix.speed_acc_mps) == pytest.approx((0.02, 0.04, 0.05))
 
 

@@ -19,9 +19,10 @@ import pytest
 from companion.health import Health, State
 from companion.schema import SchemaError, load_text
 from drivers import scip
-from drivers.base import DeviceLost, LidarDriver
+from drivers.base import DeviceLost
+from drivers.checks import sensor_driver
 from drivers.hokuyo import HokuyoScip, HokuyoSettings, SensorClock, StartupError
-from drivers.scan import Scan
+from companion.messages import Scan
 from sitl.scip_emulator import MODELS, ScipEmulator, cluster_ranges, synthetic_room
 from tests.conftest import REPO, free_port
 
@@ -249,7 +250,7 @@ def test_emulator_cli_serves_a_room() -> None:
 # --- faults through the frontend -------------------------------------------------------------
 
 class Frontend:
-    """drivers.base.LidarDriver around the real backend, recording scans and health changes."""
+    """drivers.base.SensorDriver around the real backend, recording scans and health changes."""
 
     def __init__(self, settings: HokuyoSettings) -> None:
         loop = asyncio.get_running_loop()
@@ -257,7 +258,8 @@ class Frontend:
         self.states: list[State] = []
         self.health.on_change(lambda name, new, old: self.states.append(new.state))
         self.scans: list[Scan] = []
-        self.driver = LidarDriver("h", HokuyoScip(settings), self.health, self.scans.append)
+        self.driver = sensor_driver("lidar", "h", HokuyoScip(settings), self.health)
+        self.driver.subscribe(self.scans.append)
         self.task = asyncio.create_task(self.driver.run())
 
     async def more_scans(self, n: int) -> None:

@@ -19,14 +19,15 @@ from companion.config import MountConfig
 from companion.frames import quat_from_euler
 from companion.health import Health, State
 from companion.schema import SchemaError, load_text
-from drivers.base import EndOfData, LidarDriver, ScanBackend
+from drivers.base import Backend, EndOfData, SensorDriver
+from drivers.checks import sensor_driver
 from drivers.lidar_models import MODELS, URG_04LX, UTM_30LX
 from drivers.lidar_replay import (ReplayLidar, ReplayLidarSettings, breezyslam_angles, read_breezyslam,
                                   record_npz)
-from drivers.lidar_sim import SimLidarSettings, SimulatedLidar
+from sitl.lidar_sim import SimLidarSettings, SimulatedLidar
 from drivers.mount import Mount
-from drivers.scan import Scan
-from sitl.world import World, load_world
+from companion.messages import Scan
+from companion.world import World, load_world
 from tests.conftest import REPO
 
 REAL_FILE = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "urg04lx-corridor-exp2.dat"
@@ -155,7 +156,7 @@ def test_beyond_max_range_and_dropouts_are_invalid(arena: World) -> None:
 
 
 def test_settings_are_schema_dataclasses() -> None:
-    """The config loads the settings dicts through companion.schema (drivers/registry.py)."""
+    """The config loads the settings dicts through companion.schema (the backend registry, companion/plugins.py)."""
     sim = load_text(yaml.safe_dump({"model": "URG-04LX", "rate_hz": 20, "seed": 4}), SimLidarSettings)
     assert sim == SimLidarSettings(model="URG-04LX", rate_hz=20.0, seed=4)
     for bad in ({"port": "/dev/ttyACM0"}, {"model": "LMS-111"}, {"dropout_prob": 1.5}, {"seed": 1.5},
@@ -247,13 +248,14 @@ def test_replay_through_the_driver_frontend(tmp_path: Path) -> None:
     path = breezyslam_excerpt(tmp_path, 10, corrupt_at=4)
     stamps, ranges, _ = read_breezyslam(REAL_FILE)
 
-    async def run() -> tuple[LidarDriver, list[Scan], list[float], float, Health]:
+    async def run() -> tuple[SensorDriver, list[Scan], list[float], float, Health]:
         loop = asyncio.get_running_loop()
         health = Health(loop.time)
         scans: list[Scan] = []
         delivered: list[float] = []
         backend = ReplayLidar("vertical", ReplayLidarSettings(file=str(path), format="breezyslam", rate_scale=20.0))
-        driver = LidarDriver("vertical", backend, health, lambda s: (scans.append(s), delivered.append(loop.time())))
+        driver = sensor_driver("lidar", "vertical", backend, health)
+        driver.subscribe(lambda s: (scans.append(s), delivered.append(loop.time())))
         started = loop.time()
         task = asyncio.create_task(driver.run())
         while (h := health.get("sensor:vertical")) is None or h.state != State.LOST:
@@ -263,7 +265,7 @@ def test_replay_through_the_driver_frontend(tmp_path: Path) -> None:
         return driver, scans, delivered, started, health
 
     driver, scans, delivered, started, health = asyncio.run(run())
-    assert driver.stats.corrupt_frames == 1 and driver.stats.scans == 10 and len(scans) == 10
+    assert driver.stats.corrupt_frames == 1 and driver.stats.messages == 10 and len(scans) == 10
     assert "line 5" in (driver.stats.last_error or "")
     assert health.get("sensor:vertical").reason == "replay finished"
     offsets = np.array([s.t_capture for s in scans]) - scans[0].t_capture
@@ -329,7 +331,7 @@ def test_npz_record_and_replay(tmp_path: Path, arena: World) -> None:
         asyncio.run(ReplayLidar("x", ReplayLidarSettings(file=str(tmp_path / "bad.npz"))).open())
 
 
-class _Scripted(ScanBackend):
+class _Scripted(Backend[Scan]):
     """A backend that plays the given scans, then ends."""
 
     description = "scripted"
@@ -358,7 +360,8 @@ def test_nonfinite_and_backwards_scans_are_dropped_and_counted_before_any_pipeli
     scans = [_scan(1.0, [1.0, 2.0]), _scan(1.1, [1.0, math.nan]), _scan(math.inf, [1.0, 2.0]),
              _scan(1.1, [1.0, 2.0]), _scan(1.05, [1.0, 2.0]), _scan(1.2, [1.0, math.inf])]
     got: list[Scan] = []
-    driver = LidarDriver("s", _Scripted(scans), Health(lambda: 0.0), got.append)
+    driver = sensor_driver("lidar", "s", _Scripted(scans), Health(lambda: 0.0))
+    driver.subscribe(got.append)
 
     async def run() -> None:
         task = asyncio.ensure_future(driver.run())
@@ -368,5 +371,5 @@ def test_nonfinite_and_backwards_scans_are_dropped_and_counted_before_any_pipeli
 
     asyncio.run(run())
     assert [s.t_capture for s in got] == [1.0, 1.1]
-    assert driver.stats.rejected_scans == {"non-finite range or angle": 2, "non-finite capture time": 1,
-                                           "capture time not after the previous scan's": 1}
+    assert driver.stats.rejected == {"non-finite range or angle": 2, "non-finite capture time": 1,
+                                           "capture time not after the previous one's": 1}

@@ -16,7 +16,7 @@ from companion.config import MavlinkConfig, OriginConfig, VehicleConfig  # noqa:
 from companion.frames import geodetic_from_ned  # noqa: E402
 from companion.health import Health  # noqa: E402
 from companion.mavlink.link import MavlinkLink, load_signing_key, mavlink  # noqa: E402
-from drivers.sim_truth import TruthSource  # noqa: E402
+from sitl.truth import TruthSource  # noqa: E402
 from tests.conftest import free_port  # noqa: E402
 
 KEY = bytes(range(32))

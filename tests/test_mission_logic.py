@@ -12,7 +12,7 @@ import pytest
 from companion.config import GeofenceConfig
 from companion.control.trajectory import plan
 from companion.health import State
-from companion.mavlink.estimate import PoseEstimate
+from companion.messages import PoseEstimate
 from companion.mission.failsafe import Geofence, classify_estimate, stopping_point
 from companion.mission.flight import TrajectoryFlight, plan_flight
 from companion.mission.steps import FlyStep, Waypoint, load_mission

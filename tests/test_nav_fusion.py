@@ -11,7 +11,6 @@ import pytest
 
 from companion.frames import GRAVITY_MPS2, wrap_pi
 from companion.health import State
-from companion.mavlink.estimate import is_finite
 from companion.nav.fusion import (
     ROLL_PITCH_VARIANCE_RAD2,
     FusedState,
@@ -272,6 +271,9 @@ def test_health_ok_degraded_lost_and_back() -> None:
     assert lost.status == State.LOST and not lost.healthy
     assert at(4.9).status == State.LOST
     assert at(5.3).status == State.OK and at(5.3).healthy  # fixes are back
+    for state in (at(3.1), degraded, lost):  # the daemon's STATUSTEXT says "<component> <state>: <reason>"
+        text = f"companion: nav:fusion {state.status.label}: {state.reason}"
+        assert text.count(state.status.label) == 1, text
     assert np.all(run.rms("position_error", after=5.5) < 0.02)
     with pytest.raises(ValueError):
         to_pose_estimate(lost, 0.0, 0.0)
@@ -322,7 +324,7 @@ def test_nan_inputs_are_rejected_counted_and_never_reach_the_output() -> None:
         numbers = [state.position_ned, state.velocity_ned, state.position_covariance, state.velocity_covariance,
                    [state.yaw, state.yaw_variance, state.t], state.accel_bias_body]
         assert all(np.all(np.isfinite(n)) for n in numbers)
-        assert is_finite(to_pose_estimate(state, 0.01, -0.02))
+        assert to_pose_estimate(state, 0.01, -0.02).is_finite()
 
 
 def test_pose_estimate_covariances() -> None:

@@ -10,9 +10,9 @@ import pytest
 from companion.nav.bench_stages import DEFAULT_WORLD, make_mount, synthetic_scan
 from companion.nav.height import HeightEstimator, HeightFix
 from drivers.lidar_models import URG_04LX
-from drivers.scan import Scan
+from companion.messages import Scan
 from sitl.raycast import WorldGeometry
-from sitl.world import load_world
+from companion.world import load_world
 
 MOUNT_POSITION = (0.05, 0.0, 0.05)  # body FRD, metres: 5 cm forward, 5 cm below the body origin
 MOUNT_RPY = (math.pi / 2, 0.0, 0.0)  # scan plane = body x-z, sensor y = body down

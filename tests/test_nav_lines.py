@@ -12,7 +12,7 @@ from companion.nav.corners import find_corners
 from companion.nav.lines import LineParams, extract_lines
 from drivers.lidar_models import UTM_30LX
 from sitl.raycast import WorldGeometry
-from sitl.world import World, load_world
+from companion.world import World, load_world
 from tests.scan_synthesis import square_room
 
 NOISE_M = 0.01  # UTM-30LX

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from companion.config import LidarPipelineConfig
+from companion.nav.lidar_pipeline import LidarPipelineConfig
 from companion.nav.bench_stages import DEFAULT_WORLD, make_mount, run_stage_bench, synthetic_scan
 from companion.nav.corners import find_corners
 from companion.nav.heading import HeadingResult, track_heading, wall_mod
@@ -15,9 +15,9 @@ from companion.nav.lidar_pipeline import planar_params
 from companion.nav.lines import LineSet, extract_lines
 from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer
 from drivers.lidar_models import UTM_30LX
-from drivers.scan import Scan
+from companion.messages import Scan
 from sitl.raycast import WorldGeometry
-from sitl.world import World, load_world
+from companion.world import World, load_world
 from tests.scan_synthesis import square_room, walls_world
 
 NOISE_M = 0.01

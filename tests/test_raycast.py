@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from sitl.raycast import WorldGeometry, cast
-from sitl.world import Bounds, Wall, World, load_world
+from companion.world import Bounds, Wall, World, load_world
 from tests.conftest import REPO
 
 NORTH = (1.0, 0.0, 0.0)

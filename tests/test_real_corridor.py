@@ -13,7 +13,7 @@ so walls come in pieces: only 6 % of the scans hold two lines of 1 m or more, 42
 this file gives, with margin; each states the measured value.
 
 Conventions. Yaw is FRD: it grows clockwise seen from above (from x forward towards y right),
-like the sensor-frame angles of drivers/scan.py and the line normals of companion/nav/lines.py,
+like the sensor-frame angles of companion/messages.py and the line normals of companion/nav/lines.py,
 so a wall's normal angle in the map frame is ``yaw + alpha``. A turn to the left (the right
 wheel rolls further) therefore *decreases* yaw:
 
@@ -56,7 +56,7 @@ from companion.nav.heading import HeadingResult, track_heading, wall_mod
 from companion.nav.lines import LineParams, LineSet, extract_lines
 from drivers.hokuyo import HokuyoScip, HokuyoSettings
 from drivers.lidar_replay import breezyslam_angles, read_breezyslam
-from drivers.scan import Scan
+from companion.messages import Scan
 from sitl.scip_emulator import MODELS, ScipEmulator
 
 CORRIDOR = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "urg04lx-corridor-exp2.dat"

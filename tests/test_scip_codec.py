@@ -236,7 +236,7 @@ def test_pp_reply_gives_sensor_params() -> None:
     assert params.scan_period_s == pytest.approx(0.1)
     assert params.step_time_s == pytest.approx(0.1 / 1024)
     assert params.step_rad == pytest.approx(2 * math.pi / 1024)
-    # Sign convention of drivers/scan.py: the first step is on the right (positive angle).
+    # Sign convention of companion/messages.py: the first step is on the right (positive angle).
     assert params.angle_rad(384) == 0.0
     assert math.degrees(params.angle_rad(44)) == pytest.approx(119.53125)
     assert math.degrees(params.angle_rad(725)) == pytest.approx(-119.8828125)

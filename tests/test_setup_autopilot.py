@@ -53,7 +53,7 @@ def test_the_companion_port_gets_mavlink_2_at_921600_when_the_config_names_it(tm
 
 def test_a_config_without_a_position_pipeline_needs_nothing(tmp_path: Path) -> None:
     cfg = lidar_config(tmp_path)
-    cfg.pipelines.lidar = None
+    cfg.pipelines.enabled.clear()
     assert requirements(COPTER_40, cfg, {"GPS_TYPE": 1, "VISO_TYPE": 0}) == []
 
 

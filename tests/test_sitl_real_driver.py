@@ -25,11 +25,11 @@ import yaml
 from companion.config import MountConfig
 from companion.frames import quat_from_euler
 from drivers.hokuyo import HokuyoScip, HokuyoSettings
-from drivers.lidar_sim import SimLidarSettings
+from sitl.lidar_sim import SimLidarSettings
 from drivers.mount import Mount
 from sitl.harness import TelemetryListener
 from sitl.scip_bridge import BridgedScanner, SensorSpec, SweptLidar, TruthHistory
-from sitl.world import load_world
+from companion.world import load_world
 from tests.conftest import REPO
 from tests.sitl_helpers import real_driver_config
 
@@ -173,8 +173,8 @@ def test_hover_mission_flies_on_the_real_driver_through_the_scip_bridge(tmp_path
         health = telemetry["health"]["components"][f"sensor:{name}"]
         assert health["state"] == "ok" and f"Hokuyo scanner on 127.0.0.1:{port}" in health["reason"], health
     drivers = telemetry["system"]["drivers"]
-    assert drivers["lidar_h"]["scans"] > 0.8 * 40 * (SITL_SECONDS - 5)  # 40 Hz
-    assert drivers["lidar_v"]["scans"] > 0.8 * 10 * (SITL_SECONDS - 5)  # 10 Hz
+    assert drivers["lidar_h"]["messages"] > 0.8 * 40 * (SITL_SECONDS - 5)  # 40 Hz
+    assert drivers["lidar_v"]["messages"] > 0.8 * 10 * (SITL_SECONDS - 5)  # 10 Hz
     for name, stats in drivers.items():
         assert stats["reconnects"] == 0 and stats["corrupt_frames"] == 0, (name, stats)
     assert "sitl.scip_bridge: stopped" in output

@@ -138,12 +138,24 @@ def test_key_space() -> None:
     assert key(1, "pose") == "uav/1/pose"
     assert key(255, "estimate_stats") == "uav/255/estimate_stats"
     assert SCHEMA_VERSION == 1
-    assert {"trajectory", "scan", "lines", "corners", "map"} <= set(STREAMS) and len(STREAMS) == 16
+    assert {"trajectory", "scan", "lines", "corners", "map", "sources", "attitude_check"} <= set(STREAMS)
+    assert len(STREAMS) == 18
     for bad_sysid in (0, 256, True, 1.0):
         with pytest.raises(ValueError):
             key(bad_sysid, "pose")  # type: ignore[arg-type]
     with pytest.raises(ValueError):
         key(1, "pointcloud")
+
+
+def test_a_pipeline_declares_its_own_streams_and_nothing_else_is_accepted() -> None:
+    publisher = TelemetryPublisher(None, sysid=1)
+    with pytest.raises(ValueError):
+        publisher.publish("flow", {"u": 1})
+    publisher.add_streams(("flow", "foe"))
+    publisher.publish("flow", {"u": 1})
+    assert publisher.stats()["flow"]["offered"] == 1
+    with pytest.raises(ValueError):
+        publisher.add_streams(("Bad Name",))
 
 
 def test_zenoh_config_is_explicit(endpoint: str) -> None:

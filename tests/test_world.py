@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from companion.schema import SchemaError
-from sitl.world import World, load_world
+from companion.world import World, load_world
 
 REPO = Path(__file__).resolve().parent.parent
 ARENA = REPO / "config" / "worlds" / "arena.yaml"

@@ -26,13 +26,13 @@ from companion.dashboard.headless import HeadlessChromium, find_chromium
 from companion.nav.bench_stages import DEFAULT_WORLD, make_mount, synthetic_scan
 from companion.nav.lidar_pipeline import ProcessedScan
 from companion.nav.planar import Mount2D, PlanarLocalizer
-from companion.telemetry.lidar_streams import map_payload, scan_payloads
+from companion.nav.lidar_streams import map_payload, scan_payloads
 from companion.telemetry.publisher import TelemetryPublisher
 from companion.telemetry.session import open_session
 from drivers.lidar_models import UTM_30LX
 from sitl.harness import process_cpu_rss
 from sitl.raycast import WorldGeometry
-from sitl.world import load_world
+from companion.world import load_world
 
 POSE_HZ = 10.0
 SCAN_HZ = 5.0

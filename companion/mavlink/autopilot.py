@@ -22,11 +22,11 @@ land before the last kept one, or stale, and are dropped here (``imu_rejected``)
 
 The IMU comes from one message, the one the stream negotiation chose (``imu_source``:
 HIGHRES_IMU, or SCALED_IMU / RAW_IMU / SCALED_IMU2 where the firmware does not stream it);
-the scaled ones carry mG and mrad/s, converted here to m/s^2 and rad/s. Every sample is kept
-(the last :data:`IMU_QUEUE` of them, for :meth:`AutopilotState.imu_after`), stamped with the
-autopilot's own sample time mapped onto the daemon clock (``companion.jitter``): a stream that
-arrives in bursts (ArduPilot SITL over TCP) keeps its real spacing, and no sample between two
-nav cycles is lost.
+the scaled ones carry mG and mrad/s, converted here to m/s^2 and rad/s. Every sample goes to the
+IMU listeners in order (:meth:`AutopilotState.on_imu`: the ``imu`` sensor's ``autopilot`` backend,
+drivers/imu_autopilot.py), with the newest ATTITUDE, stamped with the autopilot's own sample time
+mapped onto the daemon clock (``companion.jitter``): a stream that arrives in bursts (ArduPilot
+SITL over TCP) keeps its real spacing. The last :data:`IMU_QUEUE` samples are kept for diagnostics.
 """
 
 from __future__ import annotations
@@ -42,6 +42,7 @@ from companion import clock
 from companion.frames import GRAVITY_MPS2, ned_from_geodetic
 from companion.jitter import JitterCorrection
 from companion.mavlink.firmware import Firmware, firmware_from_heartbeat, with_version
+from companion.messages import ImuSample
 from companion.mavlink.link import MavlinkLink, mavlink, mavutil
 
 log = logging.getLogger("companion.autopilot")
@@ -59,16 +60,6 @@ MILLI_G = GRAVITY_MPS2 / 1000.0  # SCALED_IMU* (and ArduPilot's RAW_IMU) acceler
 def new_imu_clock() -> JitterCorrection:
     """The mapping of the autopilot's IMU sample times onto the daemon clock."""
     return JitterCorrection(window=IMU_CLOCK_WINDOW)
-
-
-@dataclass(frozen=True)
-class ImuSample:
-    """One IMU reading: specific force (m/s^2) and angular rate (rad/s) in body FRD, at ``t``
-    (daemon clock, s: the autopilot's sample time mapped onto it)."""
-
-    t: float
-    accel_body: np.ndarray
-    gyro_body: np.ndarray
 
 
 def imu_remote_time_s(msg: mavlink.MAVLink_message) -> float:
@@ -118,6 +109,7 @@ class AutopilotState:
     imu_rejected: int = 0  # IMU samples whose time stamp could not be placed (stale, or a clock jump)
     statustext: list[tuple[float, int, str]] = field(default_factory=list)  # (time, severity, text), the last 50
     _mode_listeners: list[Callable[[str | None, str], None]] = field(default_factory=list)
+    _imu_listeners: list[Callable[[ImuSample], None]] = field(default_factory=list)
     _imu_clock: JitterCorrection = field(default_factory=new_imu_clock)
 
     def __post_init__(self) -> None:
@@ -164,9 +156,11 @@ class AutopilotState:
 
     # -- handlers ---------------------------------------------------------------------------
 
-    def imu_after(self, t: float | None) -> list[ImuSample]:
-        """The kept IMU samples taken after daemon time ``t`` (all of them for None), oldest first."""
-        return [sample for sample in self.imu if t is None or sample.t > t]
+    def on_imu(self, listener: Callable[[ImuSample], None]) -> Callable[[], None]:
+        """Call ``listener(sample)`` with every IMU sample from now on, in order; returns the
+        function that stops it."""
+        self._imu_listeners.append(listener)
+        return lambda: self._imu_listeners.remove(listener)
 
     def failsafe_text(self, since: float) -> str | None:
         """The newest failsafe announcement the autopilot made after daemon time ``since`` (ArduPilot:
@@ -251,7 +245,10 @@ class AutopilotState:
         if t is None or (self.imu and t <= self.imu[-1].t):
             self.imu_rejected += 1
             return
-        self.imu.append(ImuSample(t, accel, gyro))
+        sample = ImuSample(t, accel, gyro, self.attitude_euler)
+        self.imu.append(sample)
+        for listener in self._imu_listeners:
+            listener(sample)
 
     def _on_statustext(self, msg: mavlink.MAVLink_message) -> None:
         text = msg.text

@@ -25,6 +25,7 @@ import numpy as np
 
 from companion.health import Health, State
 from companion.mavlink.link import MavlinkLink, mavlink
+from companion.messages import PoseEstimate
 
 log = logging.getLogger("companion.estimate")
 
@@ -33,41 +34,10 @@ log = logging.getLogger("companion.estimate")
 NONFINITE_HOLD_S = 5.0
 
 
-@dataclass(frozen=True)
-class PoseEstimate:
-    """One navigation estimate in the project frame (LOCAL_NED at the EKF origin, body FRD)."""
-
-    t_capture: float  # daemon monotonic clock, seconds: when the sensor data was captured
-    position_ned: np.ndarray  # (3,) metres
-    euler_rad: tuple[float, float, float]  # roll, pitch, yaw of body FRD in NED, radians
-    pose_covariance: np.ndarray  # (6, 6) over x, y, z (m^2) and roll, pitch, yaw (rad^2)
-    velocity_ned: np.ndarray | None = None  # (3,) m/s
-    velocity_covariance: np.ndarray | None = None  # (3, 3) (m/s)^2
-    reset: bool = False  # True when the estimate jumped (e.g. relocalization)
-    source: str = ""
-
-    def __post_init__(self) -> None:
-        if np.shape(self.position_ned) != (3,) or np.shape(self.pose_covariance) != (6, 6):
-            raise ValueError("position_ned must be (3,) and pose_covariance (6, 6)")
-        if (self.velocity_ned is None) != (self.velocity_covariance is None):
-            raise ValueError("velocity_ned and velocity_covariance go together")
-        if self.velocity_ned is not None and (np.shape(self.velocity_ned) != (3,)
-                                              or np.shape(self.velocity_covariance) != (3, 3)):
-            raise ValueError("velocity_ned must be (3,) and velocity_covariance (3, 3)")
-
-
 def upper_triangle(matrix: np.ndarray) -> list[float]:
     """Row-major upper triangle of a square matrix, as MAVLink covariance fields expect."""
     n = matrix.shape[0]
     return [float(matrix[i, j]) for i in range(n) for j in range(i, n)]
-
-
-def is_finite(estimate: PoseEstimate) -> bool:
-    """True if every number the autopilot would receive is finite."""
-    parts = [estimate.position_ned, np.asarray(estimate.euler_rad), estimate.pose_covariance, [estimate.t_capture]]
-    if estimate.velocity_ned is not None:
-        parts += [estimate.velocity_ned, estimate.velocity_covariance]
-    return all(np.all(np.isfinite(p)) for p in parts)
 
 
 @dataclass
@@ -102,7 +72,7 @@ class EstimateSender:
         """Offer an estimate; returns True if it went to the autopilot now."""
         self.stats.submitted += 1
         self._reset_pending |= estimate.reset
-        if not is_finite(estimate):
+        if not estimate.is_finite():
             self.stats.nonfinite_dropped += 1
             self._last_nonfinite = self.clock()
             self.health.report("estimate_output", State.DEGRADED,

@@ -58,7 +58,7 @@ def without_gps_arming_check(current: float) -> float:
 
 def uses_external_navigation(cfg: Config) -> bool:
     """The configured pipelines give the autopilot its position (indoors, no GPS)."""
-    return cfg.pipelines.lidar is not None
+    return bool(cfg.source_priority())
 
 
 def requirements(firmware: Firmware, cfg: Config, params: Mapping[str, float]) -> list[Requirement]:

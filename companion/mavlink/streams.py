@@ -6,7 +6,7 @@ order of preference; an option is the message, or the messages together, that sa
 - IMU: HIGHRES_IMU; else SCALED_IMU, RAW_IMU (ArduPilot only: its RAW_IMU carries scaled mG and
   mrad/s, PX4's raw sensor counts), SCALED_IMU2 (ArduPilot 4.0 streams no HIGHRES_IMU);
 - simulator truth: SIM_STATE; else SIMSTATE with SCALED_PRESSURE (ArduPilot SITL before SIM_STATE:
-  SIMSTATE has no altitude, the SITL barometer gives it, see ``drivers.sim_truth``).
+  SIMSTATE has no altitude, the SITL barometer gives it, see ``sitl.truth``).
 
 Every (re)connection, after the autopilot's first HEARTBEAT: ask for the first option of every
 need with SET_MESSAGE_INTERVAL. A refusal (MAV_RESULT_FAILED / DENIED) moves that need to its next
@@ -53,7 +53,7 @@ ACCEPTED, REFUSED, UNSUPPORTED = "accepted", "refused", "unsupported"
 # that have SIM_STATE stream it in EXTRA1 beside SIMSTATE).
 LEGACY_GROUPS: dict[str, int] = {
     **dict.fromkeys(("RAW_IMU", "SCALED_IMU2", "SCALED_IMU3", "SCALED_PRESSURE"), mavlink.MAV_DATA_STREAM_RAW_SENSORS),
-    **dict.fromkeys(("GPS_RAW_INT", "SYS_STATUS"), mavlink.MAV_DATA_STREAM_EXTENDED_STATUS),
+    **dict.fromkeys(("GPS_RAW_INT", "GPS2_RAW", "SYS_STATUS"), mavlink.MAV_DATA_STREAM_EXTENDED_STATUS),
     **dict.fromkeys(("LOCAL_POSITION_NED", "GLOBAL_POSITION_INT"), mavlink.MAV_DATA_STREAM_POSITION),
     **dict.fromkeys(("ATTITUDE", "SIMSTATE", "SIM_STATE"), mavlink.MAV_DATA_STREAM_EXTRA1),
     **dict.fromkeys(("EKF_STATUS_REPORT", "SYSTEM_TIME"), mavlink.MAV_DATA_STREAM_EXTRA3),
@@ -79,6 +79,7 @@ def stream_needs(rates: StreamRatesConfig, autopilot: str | None) -> list[Stream
         StreamNeed("imu", rates.imu, imu),
         StreamNeed("local_position", rates.local_position, (("LOCAL_POSITION_NED",),)),
         StreamNeed("gps_raw", rates.gps_raw, (("GPS_RAW_INT",),)),
+        StreamNeed("gps2_raw", rates.gps2_raw, (("GPS2_RAW",),)),
         StreamNeed("home_position", rates.home_position, (("HOME_POSITION",),)),
         StreamNeed("estimator_status", rates.estimator_status,
                    (("ESTIMATOR_STATUS",),) if px4 else (("EKF_STATUS_REPORT",),)),

@@ -20,7 +20,7 @@ from companion.control.outer_loop import MeasuredState
 from companion.health import State
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.commands import Commander
-from companion.mavlink.estimate import PoseEstimate
+from companion.messages import PoseEstimate
 from companion.mavlink.origin import OriginSetter
 from companion.mavlink.setpoints import Setpoint, SetpointStream
 from companion.mission.failsafe import EstimateStatus, Geofence, classify_estimate, stopping_point

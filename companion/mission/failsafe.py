@@ -13,7 +13,7 @@ import numpy as np
 
 from companion.config import GeofenceConfig
 from companion.health import State
-from companion.mavlink.estimate import PoseEstimate
+from companion.messages import PoseEstimate
 
 
 class EstimateStatus(NamedTuple):

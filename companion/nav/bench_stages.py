@@ -4,7 +4,7 @@
 the beams of a :mod:`drivers.lidar_models` model, placed on the body by a
 :class:`drivers.mount.Mount`, with Gaussian range noise of a given sigma (the nav tests use it
 too). Frames as everywhere: world LOCAL_NED (x north, y east, z down, metres; heights above
-the floor are -z), body FRD, sensor frames as in drivers/scan.py.
+the floor are -z), body FRD, sensor frames as in companion/messages.py.
 
 :func:`run_stage_bench` renders a representative 1081-beam UTM-30LX scan of the default arena
 (1 cm noise) and times every stage of the planar pipeline on it, plus the height fix on a
@@ -28,9 +28,9 @@ from companion.nav.planar import Mount2D, PlanarLocalizer
 from companion.timing import time_stage
 from drivers.lidar_models import URG_04LX, UTM_30LX, LidarModel
 from drivers.mount import Mount, beam_directions
-from drivers.scan import Scan
+from companion.messages import Scan
 from sitl.raycast import WorldGeometry, cast
-from sitl.world import World, load_world
+from companion.world import World, load_world
 
 DEFAULT_WORLD = Path(__file__).resolve().parents[2] / "config" / "worlds" / "arena.yaml"
 

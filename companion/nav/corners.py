@@ -15,7 +15,7 @@ the normal offset of line k at the corner has the variance ``offset_var_k + alph
 direction error), and the intersection maps the two offsets to x, y through the inverse of the
 matrix of the normals. Far lines have fewer points and larger residuals, so far corners get
 larger covariances. A floor ``floor_m + floor_per_m * range`` (1-sigma) is added for what the
-fits do not see: the map itself (sitl/world.py accepts a listed corner within 1 cm of the
+fits do not see: the map itself (companion/world.py accepts a listed corner within 1 cm of the
 walls' corner, about 5 mm 1-sigma), rounded corners, wall roughness, beam width.
 """
 

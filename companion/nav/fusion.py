@@ -59,7 +59,7 @@ import numpy as np
 
 from companion.frames import GRAVITY_MPS2, wrap_pi
 from companion.health import State
-from companion.mavlink.estimate import PoseEstimate
+from companion.messages import PoseEstimate
 
 # Roll and pitch come from the autopilot's own attitude estimate; the pose covariance gives them
 # this small constant variance, (0.01 rad)^2 ~ (0.6 deg)^2. ArduPilot folds roll/pitch/yaw into
@@ -359,7 +359,7 @@ class FusionFilter:
         c = self.config
         imu_age = t - self._t_imu
         if imu_age > c.imu_timeout_s:
-            return State.LOST, f"lost: no IMU sample for {imu_age:.2f} s"
+            return State.LOST, f"no IMU sample for {imu_age:.2f} s"
         worst, reason = State.OK, ""
         for kind, degraded, lost in ((_POSITION, c.degraded_after_s, c.lost_after_s),
                                      (_HEIGHT, c.degraded_after_s, c.lost_after_s),
@@ -367,9 +367,9 @@ class FusionFilter:
             age = t - self._last_accepted[kind]
             state = State.LOST if age > lost else State.DEGRADED if age > degraded else State.OK
             if state > worst:
-                worst, reason = state, f"{state.label}: no {_KIND_NAMES[kind]} fix for {age:.2f} s"
+                worst, reason = state, f"no {_KIND_NAMES[kind]} fix for {age:.2f} s"
         if worst == State.OK:
-            reason = f"ok: position fix {t - self._last_accepted[_POSITION]:.2f} s old"
+            reason = f"position fix {t - self._last_accepted[_POSITION]:.2f} s old"
         return worst, reason
 
     def _submit(self, fix: _Fix) -> bool:

@@ -30,7 +30,7 @@ import numpy as np
 
 from companion.frames import rotation_from_euler
 from companion.nav.lines import LineParams, extract_lines
-from drivers.scan import Scan
+from companion.messages import Scan
 
 HeightState = Literal["ok", "degraded", "lost"]
 

@@ -7,38 +7,42 @@ Data flow (all in the daemon's event loop, no I/O here):
   scan's capture time;
 - the vertical scanner's scans -> :class:`~companion.nav.height.HeightEstimator` (height above
   the floor) -> fusion height correction;
-- the autopilot's IMU samples (specific force and rates, every one since the previous cycle,
-  ``AutopilotState.imu_after``) and ATTITUDE (roll, pitch; yaw only as a rate) -> fusion
-  prediction;
+- the IMU sensor's samples (specific force and rates, every one, in order, with the autopilot's
+  attitude: roll, pitch; yaw only as a rate) -> fusion prediction;
 - every nav cycle: the fused state -> a :class:`PoseEstimate` (VISION_POSITION_ESTIMATE +
   VISION_SPEED_ESTIMATE), only while the filter is healthy. A relocalization jump or a fusion
   reset sets ``reset`` so the autopilot's ``reset_counter`` increments.
 
 Scans are processed when the nav loop turns (the newest one of each scanner; a scan that was
 overtaken before processing is counted as skipped).
+
+Config: ``pipelines.lidar`` (:class:`LidarPipelineConfig`). Telemetry: the scan, lines, corners
+and map streams (companion/nav/lidar_streams.py).
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-from companion.config import LidarPipelineConfig, MountConfig
+from companion.config import MountConfig
 from companion.frames import wrap_pi
 from companion.health import Health, State
-from companion.mavlink.autopilot import AutopilotState
-from companion.mavlink.estimate import PoseEstimate
+from companion.messages import Estimate, ImuSample, PoseEstimate, Scan
 from companion.nav.fusion import FusionFilter, to_pose_estimate
 from companion.nav.height import HeightEstimator
-from companion.nav.loop import Timings
-from companion.nav.corners import Corners
-from companion.nav.lines import LineSet
-from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer, PlanarParams
-from drivers.scan import Scan
-from sitl.world import World
+from companion.nav.lidar_streams import STREAMS, ProcessedScan, map_payload, scan_payloads
+from companion.nav.planar import Mount2D, PlanarLocalizer, PlanarParams
+from companion.pipeline import PipelineContext
+from companion.plugins import register_pipeline
+from companion.schema import meta
+from companion.timing import Timings
+from companion.world import World, load_world
 
 LEVEL_TOLERANCE_DEG = 1.0
 # Walls are cut at this scanner height above the floor for relocalization's wall check (an
@@ -65,16 +69,33 @@ class LidarPipelineStats:
         return (self.planar_fixes - 1) / (self.last_fix_t - self.first_fix_t)
 
 
-@dataclass(frozen=True)
-class ProcessedScan:
-    """The newest horizontal scan the localizer processed, as telemetry reads it (never mutated)."""
+@dataclass
+class LidarPipelineConfig:
+    """``pipelines.lidar``: the two-lidar localization of Wang et al. (horizontal: x, y, yaw;
+    vertical: height), fused with the IMU."""
 
-    scan: Scan
-    roll: float  # body attitude the scan was levelled with, rad
-    pitch: float
-    fix: PlanarFix | None  # what the localizer made of it; None: no pose known (relocalizing)
-    lines: LineSet  # the lines and corners the localizer found in it (sensor frame, levelled)
-    corners: Corners
+    horizontal_sensor: str = field(metadata=meta("Name (in `sensors`) of the horizontal scanner."))
+    vertical_sensor: str = field(metadata=meta("Name (in `sensors`) of the vertical scanner: height above the floor."))
+    imu_sensor: str = field(default="imu", metadata=meta(
+        "Name (in `sensors`) of the IMU the fusion predicts with (e.g. kind imu, backend autopilot)."))
+    map: str = field(default="worlds/arena.yaml", metadata=meta(
+        "Map (world YAML: walls, known corners, wall_angle_deg), relative to this file."))
+    initial_pose: tuple[float, float, float] | None = field(default=None, metadata=meta(
+        "Start pose [north m, east m, yaw deg] in the map; null = relocalize globally from the first scans."))
+    correspondence_gate_m: float = field(default=0.5, metadata=meta(
+        "Nearest-neighbour gate between an observed and a map corner.", (0.05, 5)))
+
+    def sensor_inputs(self) -> dict[str, str]:
+        return {"horizontal_sensor": "lidar", "vertical_sensor": "lidar", "imu_sensor": "imu"}
+
+    def moved(self, raw: dict[str, Any], offset: tuple[float, float], move_map: Callable[[str], str]) -> dict[str, Any]:
+        """This section (``raw``, as written) for a local frame whose origin moved: positions shift by
+        ``offset`` (north, east m); ``move_map(path)`` gives the path of the map in that frame."""
+        out = {**raw, "map": move_map(self.map)}
+        if self.initial_pose is not None:
+            x, y, yaw = self.initial_pose
+            out["initial_pose"] = [x + offset[0], y + offset[1], yaw]
+        return out
 
 
 def planar_params(cfg: LidarPipelineConfig) -> PlanarParams:
@@ -95,10 +116,12 @@ class LidarPipeline:
     """Two-lidar localization + fusion; see the module docstring."""
 
     name = "lidar"
+    telemetry_streams = STREAMS
 
     def __init__(self, cfg: LidarPipelineConfig, world_map: World, horizontal: MountConfig,
-                 vertical: MountConfig, autopilot: AutopilotState, health: Health) -> None:
-        self.autopilot = autopilot
+                 vertical: MountConfig, health: Health) -> None:
+        self.cfg = cfg
+        self.world_map = world_map
         self.health = health
         initial = None
         if cfg.initial_pose is not None:
@@ -114,13 +137,24 @@ class LidarPipeline:
         self.timings = {"lidar": Timings(), "fusion": Timings()}
         self._horizontal: Scan | None = None
         self._vertical: Scan | None = None
-        self._imu_t: float | None = None
+        self._imu: list[ImuSample] = []  # received since the previous cycle, oldest first
+        self._euler: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the autopilot's, newest, rad
+        self._published: ProcessedScan | None = None  # the last scan telemetry() returned
         self._scan_yaw: float | None = None  # autopilot yaw at the previous horizontal scan
         self._reset_counter = 0
         self.last_horizontal: ProcessedScan | None = None  # read-only, for telemetry
         health.report("nav:lidar", State.LOST, "waiting for scans")
 
     # -- inputs (driver callbacks) ------------------------------------------------------
+
+    def subscriptions(self) -> dict[str, Callable[[Any], None]]:
+        return {self.cfg.horizontal_sensor: self.on_horizontal_scan, self.cfg.vertical_sensor: self.on_vertical_scan,
+                self.cfg.imu_sensor: self.on_imu}
+
+    def on_imu(self, sample: ImuSample) -> None:
+        self._imu.append(sample)
+        if sample.euler_rad is not None:
+            self._euler = sample.euler_rad
 
     def on_horizontal_scan(self, scan: Scan) -> None:
         self.stats.horizontal_scans += 1
@@ -134,8 +168,8 @@ class LidarPipeline:
 
     # -- the nav cycle --------------------------------------------------------------------
 
-    def step(self, now: float) -> PoseEstimate | None:
-        """Advance to daemon time ``now`` (s); the fused estimate, or None while not healthy."""
+    def step(self, now: float) -> list[Estimate]:
+        """Advance to daemon time ``now`` (s); the fused estimate, or none while not healthy."""
         started = time.perf_counter()
         self._predict()
         predicted = time.perf_counter()
@@ -151,17 +185,16 @@ class LidarPipeline:
         resumed = time.perf_counter()
         estimate = self._output(now)
         self.timings["fusion"].add((predicted - started + time.perf_counter() - resumed) * 1e3)
-        return estimate
+        return [] if estimate is None else [estimate]
 
     def _attitude(self) -> tuple[float, float, float]:
-        return self.autopilot.attitude_euler or (0.0, 0.0, 0.0)
+        return self._euler
 
     def _predict(self) -> None:
         """Propagate the fusion with every IMU sample since the previous cycle, in order."""
-        attitude = self._attitude()
-        for sample in self.autopilot.imu_after(self._imu_t):
-            self._imu_t = sample.t
-            self.fusion.predict(sample.t, sample.accel_body, attitude, sample.gyro_body)
+        for sample in self._imu:
+            self.fusion.predict(sample.t, sample.accel_body, sample.euler_rad or self._euler, sample.gyro_body)
+        self._imu.clear()
 
     def _process_horizontal(self, scan: Scan) -> float:
         roll, pitch, yaw = self._attitude()
@@ -218,3 +251,31 @@ class LidarPipeline:
         """Telemetry: counters and the fix rate."""
         return {**{k: v for k, v in vars(self.stats).items()}, "fix_rate_hz": self.stats.fix_rate_hz(),
                 "fusion": {"gated": dict(self.fusion.stats.fixes_gated), "stale": self.fusion.stats.fixes_stale}}
+
+    def telemetry(self, static_due: bool) -> dict[str, dict[str, Any]]:
+        """The newest processed scan's scan, lines and corners (once per scan); the map when due."""
+        out: dict[str, dict[str, Any]] = {}
+        record = self.last_horizontal
+        if record is not None and record is not self._published:
+            self._published = record
+            out.update(scan_payloads(record, self.localizer))
+        if static_due:
+            out["map"] = map_payload(self.localizer)
+        return out
+
+    def operating_area(self) -> tuple[tuple[float, float], tuple[float, float]]:
+        """The map's bounds, m (north, east)."""
+        b = self.world_map.bounds
+        return (float(b.min[0]), float(b.min[1])), (float(b.max[0]), float(b.max[1]))
+
+
+def _check_map(cfg: Any, section: LidarPipelineConfig) -> None:
+    cfg.load_referenced("pipelines.lidar.map", section.map, load_world)
+
+
+@register_pipeline("lidar", LidarPipelineConfig, check_files=_check_map)
+def _build(section: LidarPipelineConfig, ctx: PipelineContext) -> LidarPipeline:
+    sensors = ctx.config.sensors
+    world_map = ctx.load("pipelines.lidar.map", section.map, load_world)
+    return LidarPipeline(section, world_map, sensors[section.horizontal_sensor].mount,
+                         sensors[section.vertical_sensor].mount, ctx.health)

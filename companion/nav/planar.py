@@ -1,7 +1,7 @@
 """Planar localization from the horizontal scanner (Wang et al. section III-A), plus global
 relocalization.
 
-Frames. The scan is in the SENSOR frame (drivers/scan.py). The scanner sits at ``Mount2D``
+Frames. The scan is in the SENSOR frame (companion/messages.py). The scanner sits at ``Mount2D``
 in the body frame (FRD: x forward, y right, z down, metres; yaw from body x towards body y).
 Every scan is first mapped into the LEVELLED BODY frame: origin at the body origin, x/y axes
 horizontal, rotated from the world by the body yaw only. With roll and pitch the scan plane is
@@ -73,7 +73,7 @@ from companion.nav.corners import CornerParams, Corners, find_corners
 from companion.nav.heading import (UNMEASURED_VARIANCE_RAD2, HeadingParams, HeadingResult,
                                    heading_hypotheses, track_heading)
 from companion.nav.lines import LineParams, LineSet, extract_lines
-from drivers.scan import Scan
+from companion.messages import Scan
 
 PlanarState = Literal["tracking", "degraded", "lost"]
 

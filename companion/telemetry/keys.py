@@ -10,6 +10,8 @@ stream with another encoding, does not change it.
 
 from __future__ import annotations
 
+import re
+
 SCHEMA_VERSION = 1
 KEY_PREFIX = "uav"
 
@@ -26,6 +28,8 @@ STREAMS: tuple[str, ...] = (
     "estimate_stats",
     "alerts",
     "trajectory",
+    "sources",
+    "attitude_check",
     "scan",
     "lines",
     "corners",
@@ -33,16 +37,19 @@ STREAMS: tuple[str, ...] = (
 )
 
 _STREAM_SET = frozenset(STREAMS)
+_EXTRA_NAME = re.compile(r"[a-z][a-z0-9_]{0,40}")
 
 
-def key(sysid: int, stream: str) -> str:
+def key(sysid: int, stream: str, extra: tuple[str, ...] = ()) -> str:
     """Key expression of one stream of one vehicle, e.g. ``key(1, "pose") == "uav/1/pose"``.
+    ``extra``: streams allowed besides :data:`STREAMS` (those the pipelines declare), each a
+    lower-case word (letters, digits, ``_``).
 
     Raises:
-        ValueError: ``sysid`` outside 1..255 or ``stream`` not in :data:`STREAMS`.
+        ValueError: ``sysid`` outside 1..255 or ``stream`` neither in :data:`STREAMS` nor a valid name in ``extra``.
     """
     if isinstance(sysid, bool) or not isinstance(sysid, int) or not 1 <= sysid <= 255:
         raise ValueError(f"sysid must be an int in 1..255, got {sysid!r}")
-    if stream not in _STREAM_SET:
+    if stream not in _STREAM_SET and not (stream in extra and _EXTRA_NAME.fullmatch(stream)):
         raise ValueError(f"unknown telemetry stream {stream!r}; known: {', '.join(STREAMS)}")
     return f"{KEY_PREFIX}/{sysid}/{stream}"

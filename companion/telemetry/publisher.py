@@ -121,6 +121,7 @@ class TelemetryPublisher:
             )
             for stream in STREAMS
         }
+        self._sysid = sysid
         self._queue_size = queue_size
         self._clock = clock
         self._queue: deque[tuple[_StreamState, float, dict[str, Any]]] = deque()
@@ -136,6 +137,19 @@ class TelemetryPublisher:
                 daemon=True,
             )
             self._worker.start()
+
+    def add_streams(self, streams: tuple[str, ...]) -> None:
+        """Allow ``streams`` besides :data:`~companion.telemetry.keys.STREAMS` (those a pipeline
+        declares in ``telemetry_streams``; JSON-encoded, no rate limit). Call before publishing them.
+
+        Raises:
+            ValueError: a name that is not a lower-case word.
+        """
+        for stream in streams:
+            if stream not in self._streams:
+                state = _StreamState(stream=stream, key=key(self._sysid, stream, streams), min_interval_s=0.0)
+                with self._cv:
+                    self._streams[stream] = state
 
     def publish(self, stream: str, payload: dict[str, Any]) -> None:
         """Queue one message of ``stream``; returns at once, O(1), never does I/O.

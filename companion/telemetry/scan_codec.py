@@ -11,7 +11,7 @@ offset type   field
 11     f64    ``t_capture``: first beam's capture time, daemon clock (s)
 19     u32    ``sequence``: scan counter of the sensor (gaps are lost scans)
 23     f32    ``sweep_s``: time from the first to the last beam (s)
-27     f32    ``angle_min_rad``: first beam's angle in the sensor frame (drivers/scan.py)
+27     f32    ``angle_min_rad``: first beam's angle in the sensor frame (companion/messages.py)
 31     f32    ``angle_increment_rad``: beam i is at ``angle_min_rad + i * angle_increment_rad``
 35     3xf32  ``mount``: the sensor in the body frame: x forward m, y right m, yaw rad
 47     3xf32  ``pose``: the body in the world (LOCAL_NED) at capture: x north m, y east m, yaw

@@ -1,7 +1,7 @@
 """Simulated Hokuyo scanner: scans rendered from simulator ground truth by ray casting.
 
 For capture time ``t`` (daemon clock, s) the backend takes the vehicle pose from the truth
-source (:class:`drivers.sim_truth.TruthSource`, or anything with the same ``at(t)``), places
+source (:class:`sitl.truth.TruthSource`, or anything with the same ``at(t)``), places
 the sensor through its :class:`~drivers.mount.Mount`, casts the model's beams
 (:mod:`drivers.lidar_models`) into the world (:mod:`sitl.raycast`) and adds the model's range
 noise and random dropouts. Invalid beams (no hit, shorter than the model's minimum or longer
@@ -29,16 +29,16 @@ from typing import Literal, Protocol
 import numpy as np
 
 from companion.schema import meta
-from drivers.base import ScanBackend
+from drivers.base import Backend
 from drivers.lidar_models import MODELS, LidarModel
 from drivers.mount import Mount, beam_directions
-from drivers.scan import Scan
+from companion.messages import Scan
 from sitl.raycast import WorldGeometry, cast
-from sitl.world import World
+from companion.world import World
 
 
 class TruthPose(Protocol):
-    """A ground-truth pose (like :class:`drivers.sim_truth.TruthSample`)."""
+    """A ground-truth pose (like :class:`sitl.truth.TruthSample`)."""
 
     @property
     def position_ned(self) -> np.ndarray:
@@ -50,7 +50,7 @@ class TruthPose(Protocol):
 
 
 class TruthLike(Protocol):
-    """The part of :class:`drivers.sim_truth.TruthSource` a simulated sensor uses."""
+    """The part of :class:`sitl.truth.TruthSource` a simulated sensor uses."""
 
     def at(self, t: float) -> TruthPose | None:
         """The pose at daemon time ``t`` (s), or None if unknown."""
@@ -74,7 +74,7 @@ class SimLidarSettings:
         return MODELS[self.model]
 
 
-class SimulatedLidar(ScanBackend):
+class SimulatedLidar(Backend[Scan]):
     """A scanner of ``settings.model`` on ``mount``, seeing ``world`` from ``truth``'s poses."""
 
     def __init__(self, sensor_id: str, settings: SimLidarSettings, mount: Mount, world: World,

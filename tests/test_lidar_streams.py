@@ -1,4 +1,4 @@
-"""The lidar telemetry streams: the binary scan encoding, lines, corners and the map.
+"""The lidar pipeline's telemetry streams: the binary scan encoding, lines, corners and the map.
 
 The scan is a real 1081-beam UTM-30LX scan of the default arena, ray cast and processed by the
 planar localizer as the lidar pipeline does it; zenoh is a pair of real peers on loopback.
@@ -15,13 +15,14 @@ import pytest
 import zenoh
 
 from companion.dashboard.bench import arena_scan
-from companion.nav.lidar_pipeline import ProcessedScan
-from companion.telemetry.lidar_streams import (MAP_PERIOD_S, LidarTelemetry, map_payload, matched_corners,
-                                               scan_payloads)
+from companion.config import MountConfig
+from companion.health import Health
+from companion.nav.lidar_pipeline import LidarPipeline, LidarPipelineConfig
+from companion.nav.lidar_streams import ProcessedScan, map_payload, matched_corners, scan_payloads
 from companion.telemetry.publisher import TelemetryPublisher
 from companion.telemetry.scan_codec import SCAN_ENCODING, decode_scan, encode_scan
 from companion.telemetry.session import open_session
-from sitl.world import load_world
+from companion.world import load_world
 from tests.conftest import REPO, free_port
 
 POSE = (2.0, 2.0, math.radians(30.0))  # where arena_scan() scans from
@@ -89,21 +90,19 @@ def test_lidar_streams_of_a_real_scan_agree_with_the_map() -> None:
     assert world_map["wall_angle_deg"] == 45.0
 
 
-def test_map_is_republished_every_period_and_scans_once_each() -> None:
-    record, localizer = arena_scan(POSE)
-    clock_t = [0.0]
-    publisher = TelemetryPublisher(None, sysid=1, max_rate_hz={"map": 1.0 / MAP_PERIOD_S}, clock=lambda: clock_t[0])
-    pipeline = type("LidarPipelineState", (), {"last_horizontal": record, "localizer": localizer})()
-    views = LidarTelemetry(publisher, pipeline)  # type: ignore[arg-type]
-    for step in range(101):  # 20 s at 5 Hz; a new scan every other call
-        clock_t[0] = step * 0.2
+def test_pipeline_streams_each_scan_once_and_the_map_only_when_due() -> None:
+    record, _ = arena_scan(POSE)
+    cfg = LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v")
+    pipeline = LidarPipeline(cfg, ARENA, MountConfig(), MountConfig(rpy_deg=(90.0, 0.0, 0.0)), Health(lambda: 0.0))
+    assert pipeline.telemetry(static_due=False) == {}  # nothing processed yet
+    offered: dict[str, int] = {}
+    for step in range(100):  # a new scan every other call; the static streams every tenth
         if step % 2 == 0:
             pipeline.last_horizontal = ProcessedScan(record.scan, 0.0, 0.0, record.fix, record.lines, record.corners)
-        views.publish()
-    stats = publisher.stats()
-    assert stats["scan"]["offered"] == stats["lines"]["offered"] == stats["corners"]["offered"] == 51
-    assert stats["map"]["offered"] == round(20 / MAP_PERIOD_S) + 1  # at t = 0 s and every period to 20 s
-    assert stats["map"]["rate_limited"] == 0  # due() was asked first
+        for stream in pipeline.telemetry(static_due=step % 10 == 0):
+            offered[stream] = offered.get(stream, 0) + 1
+    assert offered == {"scan": 50, "lines": 50, "corners": 50, "map": 10}
+    assert set(offered) == set(pipeline.telemetry_streams)
 
 
 def test_matched_corners_need_a_map_corner_within_the_gate() -> None:

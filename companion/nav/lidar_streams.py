@@ -1,11 +1,11 @@
-"""The lidar streams: the horizontal scan, the lines and corners extracted from it, the map.
+"""The lidar pipeline's telemetry payloads: the horizontal scan, the lines and corners extracted
+from it, the map.
 
 What an operator needs to see whether the localization is right: the scan placed on the map
 with the pose the localizer fixed for it, the walls it found, which corners it saw and which
-known corners they matched. Built from the lidar pipeline's newest processed scan
-(:attr:`~companion.nav.lidar_pipeline.LidarPipeline.last_horizontal`, which keeps the lines
-and corners the localizer found in it) outside the nav cycle, at ``telemetry.scan_hz``: nothing
-is computed again here, so publishing never delays the nav loop. Payloads: docs/telemetry.md.
+known corners they matched. Built from the pipeline's newest processed scan (which keeps the
+lines and corners the localizer found in it) outside the nav cycle, at ``telemetry.scan_hz``:
+nothing is extracted again here. Payloads: docs/telemetry.md.
 
 Frames: ``*_m`` vectors of ``lines`` and ``corners`` are in the levelled body frame (x forward,
 y right, metres, rotated from the world by the yaw only); ``pose`` [x north m, y east m, yaw
@@ -15,37 +15,29 @@ rad] places that frame in the world (LOCAL_NED); ``*_ned_m`` vectors are world c
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from companion.nav.lidar_pipeline import LidarPipeline, ProcessedScan
-from companion.nav.planar import PlanarLocalizer, associate, rotation
-from companion.telemetry.publisher import TelemetryPublisher
+from companion.nav.corners import Corners
+from companion.nav.lines import LineSet
+from companion.nav.planar import PlanarFix, PlanarLocalizer, associate, rotation
+from companion.messages import Scan
 
-MAP_PERIOD_S = 2.0
-"""The map is static: it is re-published this often so that a listener joining late gets it."""
+STREAMS = ("scan", "lines", "corners", "map")
 
 
-class LidarTelemetry:
-    """Publishes the lidar streams of one pipeline; call :meth:`publish` periodically."""
+@dataclass(frozen=True)
+class ProcessedScan:
+    """The newest horizontal scan the localizer processed, as telemetry reads it (never mutated)."""
 
-    def __init__(self, publisher: TelemetryPublisher, pipeline: LidarPipeline) -> None:
-        self.publisher = publisher
-        self.pipeline = pipeline
-        self._published: ProcessedScan | None = None
-
-    def publish(self) -> None:
-        """The newest processed scan with its lines and corners (once per scan), and the map
-        when it is due (every MAP_PERIOD_S)."""
-        record = self.pipeline.last_horizontal
-        localizer = self.pipeline.localizer
-        if record is not None and record is not self._published:
-            self._published = record
-            for stream, payload in scan_payloads(record, localizer).items():
-                self.publisher.publish(stream, payload)
-        if self.publisher.due("map"):
-            self.publisher.publish("map", map_payload(localizer))
+    scan: Scan
+    roll: float  # body attitude the scan was levelled with, rad
+    pitch: float
+    fix: PlanarFix | None  # what the localizer made of it; None: no pose known (relocalizing)
+    lines: LineSet  # the lines and corners the localizer found in it (sensor frame, levelled)
+    corners: Corners
 
 
 def scan_payloads(record: ProcessedScan, localizer: PlanarLocalizer) -> dict[str, dict[str, Any]]:

@@ -1,0 +1,48 @@
+"""Attitude cross-check: a pipeline's attitude-only estimate against the autopilot's ATTITUDE.
+
+An attitude estimate is never sent to the autopilot as a pose; it checks the autopilot's own
+attitude. When they differ by more than ``threshold_deg`` (largest of roll, pitch, yaw
+differences, wrapped) for ``hold_s`` without a break, the check reports
+``crosscheck:<source>`` degraded (health announces it by STATUSTEXT and telemetry), and OK again
+once they agree.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+from companion.frames import wrap_pi
+from companion.health import Health, State
+from companion.messages import AttitudeEstimate
+
+
+class AttitudeCrossCheck:
+    """Compares attitude estimates with ``autopilot_euler()`` (roll, pitch, yaw rad, or None)."""
+
+    def __init__(self, autopilot_euler: Callable[[], tuple[float, float, float] | None], health: Health,
+                 publish: Callable[[str, dict], None], threshold_deg: float, hold_s: float) -> None:
+        self.autopilot_euler = autopilot_euler
+        self.health = health
+        self.publish = publish
+        self.threshold_rad = math.radians(threshold_deg)
+        self.hold_s = hold_s
+        self._since: dict[str, float | None] = {}  # per source: capture time the divergence began
+
+    def submit(self, estimate: AttitudeEstimate) -> None:
+        reference = self.autopilot_euler()
+        if reference is None or not all(math.isfinite(a) for a in estimate.euler_rad):
+            return
+        diff = max(abs(wrap_pi(a - b)) for a, b in zip(estimate.euler_rad, reference))
+        component = f"crosscheck:{estimate.source}"
+        since = self._since.get(estimate.source)
+        if diff <= self.threshold_rad:
+            self._since[estimate.source] = None
+            self.health.report(component, State.OK, "attitude agrees with the autopilot's")
+        elif since is None:
+            self._since[estimate.source] = estimate.t_capture
+        elif estimate.t_capture - since >= self.hold_s:
+            self.health.report(component, State.DEGRADED,
+                               f"attitude differs from the autopilot's by {math.degrees(diff):.1f} deg")
+        self.publish("attitude_check", {"source": estimate.source, "euler_rad": estimate.euler_rad,
+                                        "autopilot_euler_rad": reference, "difference_deg": math.degrees(diff)})
