@@ -1,0 +1,113 @@
+"""Estimate-source selection: priority, failover on loss, hysteresis on return, commanded pin, one
+reset per switch (companion/selection.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from companion.messages import PoseEstimate
+from companion.selection import SourceSelector
+
+PERIOD = 0.02  # a 50 Hz nav loop
+
+
+def pose(source: str, t: float, north: float = 0.0, reset: bool = False) -> PoseEstimate:
+    return PoseEstimate(t, np.array([north, 0.0, -1.0]), (0.0, 0.0, 0.0), np.eye(6) * 1e-4, reset=reset, source=source)
+
+
+class Run:
+    """A selector driven cycle by cycle; records what it forwards and its switches."""
+
+    def __init__(self, priority: list[str], timeout_s: float = 0.3, return_s: float = 2.0) -> None:
+        self.switches: list[tuple[str | None, str | None, str]] = []
+        self.selector = SourceSelector(priority, timeout_s, return_s,
+                                       on_switch=lambda old, new, why: self.switches.append((old, new, why)))
+        self.t = 0.0
+        self.forwarded: list[PoseEstimate] = []
+
+    def cycles(self, seconds: float, live: set[str]) -> None:
+        """Run ``seconds`` of nav cycles in which the sources in ``live`` each make a pose."""
+        for _ in range(round(seconds / PERIOD)):
+            self.t += PERIOD
+            new = {name: pose(name, self.t, north=10.0 if name == "b" else 0.0) for name in live}
+            for estimate in new.values():
+                self.selector.offer(estimate, self.t)
+            chosen = self.selector.select(self.t, new)
+            if chosen is not None:
+                self.forwarded.append(chosen)
+
+    def resets(self) -> int:
+        return sum(e.reset for e in self.forwarded)
+
+
+def test_the_first_source_in_priority_feeds_the_autopilot_alone() -> None:
+    run = Run(["a", "b"])
+    run.cycles(1.0, {"a", "b"})
+    assert {e.source for e in run.forwarded} == {"a"} and len(run.forwarded) == 50
+    assert run.resets() == 0 and run.switches == [(None, "a", "first estimate")]
+
+
+def test_losing_the_primary_switches_to_the_secondary_with_exactly_one_reset() -> None:
+    run = Run(["a", "b"])
+    run.cycles(1.0, {"a", "b"})
+    run.cycles(2.0, {"b"})  # a stops
+    assert run.selector.active == "b" and run.switches[-1] == ("a", "b", "a lost")
+    assert run.resets() == 1
+    first_b = next(e for e in run.forwarded if e.source == "b")
+    assert first_b.reset and first_b.t_capture == pytest.approx(1.0 + 0.3 + PERIOD, abs=PERIOD)  # after the timeout
+    assert run.selector.current is not None and run.selector.current.source == "b"
+
+
+def test_the_primary_takes_back_over_only_after_delivering_for_the_return_time() -> None:
+    run = Run(["a", "b"], return_s=2.0)
+    run.cycles(1.0, {"a", "b"})
+    run.cycles(1.0, {"b"})
+    run.cycles(1.0, {"a", "b"})  # a back, but not long enough
+    assert run.selector.active == "b"
+    run.cycles(1.1, {"a", "b"})
+    assert run.selector.active == "a" and run.resets() == 2  # a -> b and b -> a, once each
+
+
+def test_a_flapping_primary_does_not_make_the_estimate_jump_back_and_forth() -> None:
+    run = Run(["a", "b"], return_s=2.0)
+    run.cycles(1.0, {"b"})
+    for _ in range(10):  # a delivers 1 s, drops 0.5 s, ...
+        run.cycles(1.0, {"a", "b"})
+        run.cycles(0.5, {"b"})
+    assert {e.source for e in run.forwarded} == {"b"} and run.resets() == 0
+
+
+def test_no_source_forwards_nothing_and_the_same_source_coming_back_is_not_a_jump() -> None:
+    run = Run(["a"])
+    run.cycles(0.5, {"a"})
+    run.cycles(1.0, set())
+    assert run.selector.active is None and run.switches[-1][1] is None
+    count = len(run.forwarded)
+    run.cycles(0.5, {"a"})
+    assert len(run.forwarded) > count and run.resets() == 0
+
+
+def test_a_commanded_source_is_used_while_fresh_then_priority_resumes() -> None:
+    run = Run(["a", "b"])
+    run.cycles(0.5, {"a", "b"})
+    run.selector.command("b")
+    run.cycles(0.5, {"a", "b"})
+    assert run.selector.active == "b" and run.switches[-1][2] == "commanded"
+    run.cycles(0.5, {"a"})  # the pinned source is lost: back to priority order
+    assert run.selector.active == "a" and run.resets() == 2
+    with pytest.raises(ValueError):
+        run.selector.command("c")
+
+
+def test_a_non_finite_pose_does_not_keep_a_source_alive() -> None:
+    run = Run(["a", "b"])
+    run.cycles(0.5, {"a", "b"})
+    for _ in range(30):
+        run.t += PERIOD
+        bad = PoseEstimate(run.t, np.array([np.nan, 0.0, 0.0]), (0.0, 0.0, 0.0), np.eye(6), source="a")
+        good = pose("b", run.t)
+        run.selector.offer(bad, run.t)
+        run.selector.offer(good, run.t)
+        run.selector.select(run.t, {"a": bad, "b": good})
+    assert run.selector.active == "b"
