@@ -27,6 +27,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from abc import ABC, abstractmethod
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Generic, TypeVar
@@ -71,6 +72,35 @@ class Backend(ABC, Generic[M]):
     @abstractmethod
     async def close(self) -> None:
         """Stop streaming and release the device; never raises."""
+
+
+class PushedMessages(Generic[M]):
+    """A bounded queue between a callback that pushes messages (the MAVLink link's dispatch, for the
+    sensors the autopilot carries) and a backend's ``read()``; the oldest are dropped when a slow
+    reader lets it fill (counted in ``overflowed``)."""
+
+    def __init__(self, size: int) -> None:
+        self._queue: deque[M] = deque(maxlen=size)
+        self._arrived = asyncio.Event()
+        self.overflowed = 0
+
+    def push(self, message: M) -> None:
+        self.overflowed += len(self._queue) == self._queue.maxlen
+        self._queue.append(message)
+        self._arrived.set()
+
+    def clear(self) -> None:
+        self._queue.clear()
+
+    async def get(self, timeout_s: float, what: str) -> M:
+        """The oldest message; DeviceLost("no WHAT for ... s") when none arrives for ``timeout_s``."""
+        while not self._queue:
+            self._arrived.clear()
+            try:
+                await asyncio.wait_for(self._arrived.wait(), timeout_s)
+            except TimeoutError:
+                raise DeviceLost(f"no {what} for {timeout_s:g} s") from None
+        return self._queue.popleft()
 
 
 @dataclass

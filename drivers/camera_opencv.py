@@ -142,7 +142,21 @@ class FrameSource(ABC):
         """Close the device or file; never raises."""
 
 
-class LiveCapture(FrameSource):
+class _CaptureOwner:
+    """Size and release of the cv2.VideoCapture a source holds in ``_cap`` (None when closed)."""
+
+    _cap: cv2.VideoCapture | None = None
+
+    def size(self) -> tuple[int, int] | None:
+        return _capture_size(self._cap)
+
+    def release(self) -> None:
+        if self._cap is not None:
+            self._cap.release()
+            self._cap = None
+
+
+class LiveCapture(_CaptureOwner, FrameSource):
     """A V4L2 camera or a GStreamer pipeline, through cv2.VideoCapture."""
 
     def __init__(self, settings: OpenCvCameraSettings) -> None:
@@ -203,13 +217,6 @@ class LiveCapture(FrameSource):
         self._sequence += 1
         return arrival, self._sequence - 1, image
 
-    def size(self) -> tuple[int, int] | None:
-        return _capture_size(self._cap)
-
-    def release(self) -> None:
-        if self._cap is not None:
-            self._cap.release()
-            self._cap = None
 
 
 def camera_description(settings: OpenCvCameraSettings) -> str:
@@ -278,7 +285,7 @@ class Recording(FrameSource):
             self._rewind()
 
 
-class VideoFile(Recording):
+class VideoFile(_CaptureOwner, Recording):
     """A video file OpenCV decodes (FFmpeg), at ``fps`` or its own frame rate unless timed by ``timestamps``."""
 
     def __init__(self, path: Path, timestamps: np.ndarray | None = None, fps: float | None = None,
@@ -309,13 +316,6 @@ class VideoFile(Recording):
         self.release()
         self.open()
 
-    def size(self) -> tuple[int, int] | None:
-        return _capture_size(self._cap)
-
-    def release(self) -> None:
-        if self._cap is not None:
-            self._cap.release()
-            self._cap = None
 
 
 # -- the reader thread and the backend around it ----------------------------------------------------

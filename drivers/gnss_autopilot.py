@@ -25,15 +25,13 @@ the same solution sent again (ArduPilot sends the boot time of its last fix ther
 faster than its receiver may solve) and is skipped; a report without a fix is always handed on
 (ArduPilot keeps the time of the last fix in it). Messages are queued between the
 link's dispatch and the frontend (bounded: a stalled consumer loses the oldest, counted in
-``overflowed``); with no message for ``timeout_s`` the sensor is reported lost and waited for
+``fixes.overflowed``); with no message for ``timeout_s`` the sensor is reported lost and waited for
 again, like a device.
 """
 
 from __future__ import annotations
 
-import asyncio
 import math
-from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -43,7 +41,7 @@ from companion import clock
 from companion.messages import GNSS_2D, GNSS_3D, GnssFix
 from companion.plugins import register_backend
 from companion.schema import meta
-from drivers.base import Backend, DeviceLost
+from drivers.base import Backend, PushedMessages
 
 MESSAGES = {1: "GPS_RAW_INT", 2: "GPS2_RAW"}  # receiver instance -> its MAVLink message
 QUEUE_FIXES = 50  # 5 s at 10 Hz
@@ -87,9 +85,7 @@ class AutopilotGnss(Backend[GnssFix]):
         self.receiver_id = receiver_id
         self.message = MESSAGES[settings.instance]
         self.description = f"autopilot GNSS {settings.instance} ({self.message})"
-        self.overflowed = 0
-        self._queue: deque[GnssFix] = deque(maxlen=QUEUE_FIXES)
-        self._arrived = asyncio.Event()
+        self.fixes: PushedMessages[GnssFix] = PushedMessages(QUEUE_FIXES)
         self._open = False
         self._last_time_usec = 0
         link.subscribe(self.message, self._on_message)  # the link has no unsubscribe: ignored while closed
@@ -98,23 +94,15 @@ class AutopilotGnss(Backend[GnssFix]):
         if not self._open or (msg.fix_type >= GNSS_2D and msg.time_usec and msg.time_usec == self._last_time_usec):
             return
         self._last_time_usec = msg.time_usec
-        self.overflowed += len(self._queue) == self._queue.maxlen
-        self._queue.append(gnss_fix(msg, self.receiver_id, clock.now() - self.settings.latency_s))
-        self._arrived.set()
+        self.fixes.push(gnss_fix(msg, self.receiver_id, clock.now() - self.settings.latency_s))
 
     async def open(self) -> None:
-        self._queue.clear()
+        self.fixes.clear()
         self._last_time_usec = 0
         self._open = True
 
     async def read(self) -> GnssFix:
-        while not self._queue:
-            self._arrived.clear()
-            try:
-                await asyncio.wait_for(self._arrived.wait(), self.settings.timeout_s)
-            except TimeoutError:
-                raise DeviceLost(f"no {self.message} for {self.settings.timeout_s:g} s") from None
-        return self._queue.popleft()
+        return await self.fixes.get(self.settings.timeout_s, self.message)
 
     async def close(self) -> None:
         self._open = False

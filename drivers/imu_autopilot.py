@@ -4,14 +4,12 @@ Every sample the autopilot streams (HIGHRES_IMU, or the SCALED_IMU / RAW_IMU the
 negotiation chose: companion/mavlink/streams.py), converted to body FRD m/s^2 and rad/s and
 stamped on the daemon clock by :class:`companion.mavlink.autopilot.AutopilotState`, with the
 autopilot's newest attitude attached. Samples are queued between the link's dispatch and the
-frontend (bounded: a stalled consumer loses the oldest, counted in ``overflowed``); with no
+frontend (bounded: a stalled consumer loses the oldest, counted in ``samples.overflowed``); with no
 sample for ``timeout_s`` the sensor is reported lost and reopened, like a device.
 """
 
 from __future__ import annotations
 
-import asyncio
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -19,7 +17,7 @@ from typing import Any
 from companion.messages import ImuSample
 from companion.plugins import register_backend
 from companion.schema import meta
-from drivers.base import Backend, DeviceLost
+from drivers.base import Backend, PushedMessages
 
 QUEUE_SAMPLES = 1000  # 2.5 s at 400 Hz: far more than one nav cycle
 
@@ -40,28 +38,15 @@ class AutopilotImu(Backend[ImuSample]):
     def __init__(self, state: Any, settings: AutopilotImuSettings) -> None:
         self.state = state
         self.settings = settings
-        self.overflowed = 0
-        self._queue: deque[ImuSample] = deque(maxlen=QUEUE_SAMPLES)
-        self._arrived = asyncio.Event()
+        self.samples: PushedMessages[ImuSample] = PushedMessages(QUEUE_SAMPLES)
         self._stop: Callable[[], None] | None = None
 
     async def open(self) -> None:
-        self._queue.clear()
-        self._stop = self.state.on_imu(self._put)
-
-    def _put(self, sample: ImuSample) -> None:
-        self.overflowed += len(self._queue) == self._queue.maxlen
-        self._queue.append(sample)
-        self._arrived.set()
+        self.samples.clear()
+        self._stop = self.state.on_imu(self.samples.push)
 
     async def read(self) -> ImuSample:
-        while not self._queue:
-            self._arrived.clear()
-            try:
-                await asyncio.wait_for(self._arrived.wait(), self.settings.timeout_s)
-            except TimeoutError:
-                raise DeviceLost(f"no IMU sample for {self.settings.timeout_s:g} s") from None
-        return self._queue.popleft()
+        return await self.samples.get(self.settings.timeout_s, "IMU sample")
 
     async def close(self) -> None:
         if self._stop is not None:

@@ -31,7 +31,6 @@ per pixel, ``noise_sigma`` grey levels, added after the blur, from a generator s
 
 from __future__ import annotations
 
-import asyncio
 import functools
 import math
 from dataclasses import dataclass, field
@@ -48,7 +47,8 @@ from drivers.base import Backend
 from drivers.mount import OPTICAL_TO_SENSOR, Mount
 from sitl.camera_lens import PixelRays
 from sitl.camera_scene import Scene
-from sitl.lidar_sim import TruthLike, TruthPose
+from sitl.capture_grid import CaptureGrid
+from sitl.truth import TruthLike, TruthPose
 
 MAX_BLUR_SAMPLES = 16
 NEAREST_SURFACE_MIN_M = 0.05  # for the blur's sample count
@@ -128,28 +128,18 @@ class SimulatedCamera(Backend[Frame]):
         self.truth = truth
         self.scene = Scene(world, settings.floor_seed)
         self.rays = PixelRays.make(calibration)
-        self.period_s = 1.0 / settings.fps
+        self.grid = CaptureGrid(1.0 / settings.fps)
         self.description = f"simulated camera {calibration.width}x{calibration.height}"
-        self._t0 = 0.0  # daemon time of frame slot 0 (mid-exposure), s
-        self._slot = 0  # next frame slot
 
     async def open(self) -> None:
         """Start the frame grid at the current daemon time."""
-        self._t0 = asyncio.get_running_loop().time()
-        self._slot = 0
+        self.grid.start()
 
     async def read(self) -> Frame:
         """The next frame, once exposed and transferred (see the module docstring for the timing)."""
-        loop = asyncio.get_running_loop()
         half = self.settings.exposure_s / 2
-        delay = half + self.settings.latency_s
         while True:
-            due = math.floor((loop.time() - delay - self._t0) / self.period_s)
-            self._slot = max(self._slot, due)  # more than a period late: skip to the latest due frame
-            slot = self._slot
-            self._slot += 1
-            t = self._t0 + slot * self.period_s
-            await asyncio.sleep(max(0.0, t + delay - loop.time()))
+            slot, t = await self.grid.next(half + self.settings.latency_s)  # t: mid-exposure
             blur = self.settings.motion_blur
             start = self.truth.at(t - half if blur else t)
             end = self.truth.at(t + half) if blur else None

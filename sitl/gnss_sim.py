@@ -23,10 +23,8 @@ does) and no velocity or accuracies. The bias keeps drifting meanwhile.
 
 from __future__ import annotations
 
-import asyncio
 import math
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 
@@ -34,25 +32,8 @@ from companion.frames import geodetic_from_ned
 from companion.messages import GNSS_NO_FIX, GnssFix
 from companion.schema import meta
 from drivers.base import Backend
-
-
-class TruthMotion(Protocol):
-    """A ground-truth sample (like :class:`sitl.truth.TruthSample`)."""
-
-    @property
-    def position_ned(self) -> np.ndarray:
-        """(3,) body origin in NED, m."""
-
-    @property
-    def velocity_ned(self) -> np.ndarray:
-        """(3,) velocity in NED, m/s."""
-
-
-class TruthMotionSource(Protocol):
-    """The part of :class:`sitl.truth.TruthSource` the receiver uses."""
-
-    def at(self, t: float) -> TruthMotion | None:
-        """The sample at daemon time ``t`` (s), or None if unknown."""
+from sitl.capture_grid import CaptureGrid
+from sitl.truth import TruthLike, TruthPose
 
 
 @dataclass(frozen=True)
@@ -90,12 +71,12 @@ class SimulatedGnss(Backend[GnssFix]):
     lon deg, alt m AMSL) of the EKF origin."""
 
     def __init__(self, receiver_id: str, settings: SimGnssSettings, origin: tuple[float, float, float],
-                 truth: TruthMotionSource) -> None:
+                 truth: TruthLike) -> None:
         self.receiver_id = receiver_id
         self.settings = settings
         self.origin = origin
         self.truth = truth
-        self.period_s = 1.0 / settings.rate_hz
+        self.grid = CaptureGrid(1.0 / settings.rate_hz)
         self.description = f"simulated GNSS at {settings.rate_hz:g} Hz"
         sigma = np.array([settings.horizontal_sigma_m, settings.horizontal_sigma_m, settings.vertical_sigma_m])
         self._bias_sigma = sigma * math.sqrt(settings.bias_share)  # per axis, m
@@ -104,8 +85,6 @@ class SimulatedGnss(Backend[GnssFix]):
         self._bias = np.zeros(3)  # NED, m
         self._bias_slot = 0  # epoch the bias is at
         self._denied = False  # commanded by deny()
-        self._t0 = 0.0  # daemon time of epoch 0, s
-        self._slot = 0  # next epoch
 
     def deny(self, on: bool) -> None:
         """Deny (True) or restore (False) the fixes delivered from now on (commanded jamming)."""
@@ -113,22 +92,14 @@ class SimulatedGnss(Backend[GnssFix]):
 
     async def open(self) -> None:
         """Start the epochs at the current daemon time, with a fresh bias."""
-        self._t0 = asyncio.get_running_loop().time()
-        self._slot = 0
+        self.grid.start()
         self._bias = self._rng.standard_normal(3) * self._bias_sigma
         self._bias_slot = 0
 
     async def read(self) -> GnssFix:
         """The next fix, ``latency_s`` after its epoch (see the module docstring)."""
-        loop = asyncio.get_running_loop()
-        latency = self.settings.latency_s
         while True:
-            due = math.floor((loop.time() - latency - self._t0) / self.period_s)
-            self._slot = max(self._slot, due)  # more than a period late: skip to the latest due epoch
-            slot = self._slot
-            self._slot += 1
-            epoch = self._t0 + slot * self.period_s
-            await asyncio.sleep(max(0.0, epoch + latency - loop.time()))
+            slot, epoch = await self.grid.next(self.settings.latency_s)
             sample = self.truth.at(epoch)
             if sample is not None:
                 return self.fix(epoch, sample, slot)
@@ -136,10 +107,10 @@ class SimulatedGnss(Backend[GnssFix]):
     async def close(self) -> None:
         """Nothing to release."""
 
-    def fix(self, epoch: float, sample: TruthMotion, slot: int) -> GnssFix:
+    def fix(self, epoch: float, sample: TruthPose, slot: int) -> GnssFix:
         """The fix of epoch number ``slot`` at daemon time ``epoch`` (s) for the truth ``sample``."""
         self._drift_bias(slot)
-        since_open = slot * self.period_s
+        since_open = slot * self.grid.period_s
         if self._denied or any(start <= since_open < end for start, end in self.settings.denied):
             return GnssFix(self.receiver_id, epoch, GNSS_NO_FIX, 0.0, 0.0, 0.0, satellites=0, jamming=True)
         s = self.settings
@@ -154,6 +125,6 @@ class SimulatedGnss(Backend[GnssFix]):
         """Move the bias on from its epoch to epoch ``slot`` (Gauss-Markov, exact for any step)."""
         if slot <= self._bias_slot:
             return
-        decay = math.exp(-(slot - self._bias_slot) * self.period_s / self.settings.bias_tau_s)
+        decay = math.exp(-(slot - self._bias_slot) * self.grid.period_s / self.settings.bias_tau_s)
         self._bias = decay * self._bias + math.sqrt(1.0 - decay * decay) * self._bias_sigma * self._rng.standard_normal(3)
         self._bias_slot = slot

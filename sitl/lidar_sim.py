@@ -21,10 +21,8 @@ which describes the data truthfully; only the delivery latency of the sweep is s
 
 from __future__ import annotations
 
-import asyncio
-import math
 from dataclasses import dataclass, field
-from typing import Literal, Protocol
+from typing import Literal
 
 import numpy as np
 
@@ -35,25 +33,8 @@ from drivers.mount import Mount, beam_directions
 from companion.messages import Scan
 from sitl.raycast import WorldGeometry, cast
 from companion.world import World
-
-
-class TruthPose(Protocol):
-    """A ground-truth pose (like :class:`sitl.truth.TruthSample`)."""
-
-    @property
-    def position_ned(self) -> np.ndarray:
-        """(3,) body origin in NED, m."""
-
-    @property
-    def quat(self) -> np.ndarray:
-        """(4,) attitude [w, x, y, z], body FRD -> NED."""
-
-
-class TruthLike(Protocol):
-    """The part of :class:`sitl.truth.TruthSource` a simulated sensor uses."""
-
-    def at(self, t: float) -> TruthPose | None:
-        """The pose at daemon time ``t`` (s), or None if unknown."""
+from sitl.capture_grid import CaptureGrid
+from sitl.truth import TruthLike
 
 
 @dataclass(frozen=True)
@@ -85,31 +66,21 @@ class SimulatedLidar(Backend[Scan]):
         self.mount = mount
         self.truth = truth
         self.geometry = WorldGeometry.from_world(world)
-        self.period_s = 1.0 / settings.rate_hz if settings.rate_hz else self.model.scan_period_s
+        self.grid = CaptureGrid(1.0 / settings.rate_hz if settings.rate_hz else self.model.scan_period_s)
         self.description = f"simulated {self.model.name}"
         self._angles = self.model.angles_rad()
         self._angles.flags.writeable = False  # shared by every scan
         self._directions = beam_directions(self._angles)  # (N, 3) in the sensor frame
         self._rng = np.random.default_rng(settings.seed)
-        self._t0 = 0.0  # daemon time of capture slot 0, s
-        self._slot = 0  # next capture slot
 
     async def open(self) -> None:
         """Start the capture grid at the current daemon time."""
-        self._t0 = asyncio.get_running_loop().time()
-        self._slot = 0
+        self.grid.start()
 
     async def read(self) -> Scan:
         """The next scan, once its sweep is over (see the module docstring for the timing)."""
-        loop = asyncio.get_running_loop()
-        sweep = self.model.sweep_s
         while True:
-            due = math.floor((loop.time() - sweep - self._t0) / self.period_s)
-            self._slot = max(self._slot, due)  # more than a period late: skip to the latest due capture
-            slot = self._slot
-            self._slot += 1
-            t_capture = self._t0 + slot * self.period_s
-            await asyncio.sleep(max(0.0, t_capture + sweep - loop.time()))
+            slot, t_capture = await self.grid.next(self.model.sweep_s)
             pose = self.truth.at(t_capture)
             if pose is not None:
                 return self.render(t_capture, pose.position_ned, pose.quat, slot)

@@ -164,7 +164,7 @@ class TruthHistory:
         return position, quat
 
     def at(self, t: float) -> Pose | None:
-        """The pose at ``t`` (the TruthLike protocol of sitl/lidar_sim.py)."""
+        """The pose at ``t`` (the TruthLike protocol of sitl/truth.py)."""
         found = self.poses(np.array([t]))
         return None if found is None else Pose(found[0][0], found[1][0])
 

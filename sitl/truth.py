@@ -26,6 +26,7 @@ import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -52,6 +53,29 @@ def sitl_baro_altitude_m(pressure_hpa: float) -> float:
     theta = delta ** (LAPSE_RATE_K_PER_KM / GAS_CONSTANT_GMR)
     h_km = (1.0 - theta) * SSL_AIR_TEMPERATURE_K / LAPSE_RATE_K_PER_KM
     return 1000.0 * h_km * EARTH_RADIUS_KM / (EARTH_RADIUS_KM - h_km)
+
+
+class TruthPose(Protocol):
+    """A ground-truth sample as a simulated sensor reads it (:class:`TruthSample` is one)."""
+
+    @property
+    def position_ned(self) -> np.ndarray:
+        """(3,) body origin in NED, m."""
+
+    @property
+    def velocity_ned(self) -> np.ndarray:
+        """(3,) velocity in NED, m/s."""
+
+    @property
+    def quat(self) -> np.ndarray:
+        """(4,) attitude [w, x, y, z], body FRD -> NED."""
+
+
+class TruthLike(Protocol):
+    """The part of :class:`TruthSource` a simulated sensor uses (tests give their own)."""
+
+    def at(self, t: float) -> TruthPose | None:
+        """The pose at daemon time ``t`` (s), or None if unknown."""
 
 
 @dataclass(frozen=True)

@@ -53,7 +53,7 @@ def errors(gnss: SimulatedGnss, epochs: int) -> tuple[np.ndarray, np.ndarray, li
     """(position errors (N, 3) NED m, velocity errors (N, 3) m/s, fixes) over ``epochs`` epochs."""
     fixes, position, velocity = [], [], []
     for k in range(epochs):
-        epoch = k * gnss.period_s
+        epoch = k * gnss.grid.period_s
         truth = gnss.truth.at(epoch)
         fix = gnss.fix(epoch, truth, k)
         fixes.append(fix)
@@ -154,4 +154,4 @@ def test_the_plugin_builds_a_receiver_around_the_configured_origin(tmp_path: Pat
     cfg = load_config(tmp_path / "c.yaml")
     gnss = build_driver("gps", cfg.sensors["gps"], SensorContext(cfg, Health(lambda: 0.0), _Link())).backend
     assert isinstance(gnss, SimulatedGnss) and gnss.origin == (47.0, 8.0, 400.0)
-    assert gnss.settings.denied == ((5.0, 6.0),) and gnss.period_s == pytest.approx(0.1)
+    assert gnss.settings.denied == ((5.0, 6.0),) and gnss.grid.period_s == pytest.approx(0.1)
