@@ -1,4 +1,4 @@
-"""The simulated world: the floor plan of an indoor arena, loaded from YAML.
+"""A world: the floor plan of an indoor arena (the map a pipeline localizes in, and what the simulator renders), from YAML.
 
 Frame (companion/frames.py): world = MAVLink LOCAL_NED at the EKF origin, x north, y east,
 z down, metres. A world is a floor plan: every position in the file is ``[x, y]`` (north,

@@ -15,14 +15,13 @@ the limits and how the output is sent to the autopilot are described in companio
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING, NamedTuple, Sequence
+from dataclasses import dataclass
+from typing import NamedTuple, Protocol, Sequence
 
 import numpy as np
 
 from companion.control.reference import Reference, Vec3
 
-if TYPE_CHECKING:
-    from companion.control.rpt import RptAxis, RptLimits
 
 CLIP = 1.0e6  # |error|, |velocity error|, |feed-forward|, |speed| beyond this are clipped (numerical safety)
 INF = math.inf
@@ -123,6 +122,68 @@ def _vec(v: Vec3) -> Sequence[float]:
 
 
 
+@dataclass(frozen=True)
+class RptLimits:
+    """Kinematic limits of the controller's output (``math.inf`` disables one).
+
+    Horizontal limits act on the (x, y) vector norm; the speed guard caps the acceleration
+    along the direction of motion at ``speed_gain * (speed_xy_mps - |v_xy|)`` (it brakes when
+    above the limit) and at the jerk-limited braking curve ``sqrt(2 jerk (speed - |v|))``.
+    The z velocity reference is bounded by ``climb_mps`` (up, negative z in NED) and
+    ``descent_mps`` (down) and its rate by ``accel_z_mps2``. ``integral_*`` bound the integral
+    term ``|c0 eta|`` (anti-windup clamp). ``max_dt_s``: a longer step (a stall) is integrated
+    as this long. ``speed_gain`` and ``max_dt_s`` must be finite.
+    """
+
+    speed_xy_mps: float = 2.0
+    accel_xy_mps2: float = 2.5
+    jerk_xy_mps3: float = 5.0
+    climb_mps: float = 1.0
+    descent_mps: float = 0.8
+    accel_z_mps2: float = 2.0
+    speed_gain: float = 1.5  # 1/s
+    integral_xy_mps2: float = 1.0
+    integral_z_mps: float = 0.5
+    max_dt_s: float = 0.5
+
+    def __post_init__(self) -> None:
+        for name in self.__dataclass_fields__:
+            value = getattr(self, name)
+            if math.isnan(value) or value <= 0.0:
+                raise ValueError(f"RptLimits.{name} must be > 0 (math.inf disables it), got {value!r}")
+        for name in ("max_dt_s", "speed_gain"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"RptLimits.{name} must be finite")
+
+    @classmethod
+    def unlimited(cls) -> RptLimits:
+        """No limits at all: the linear law (for pole checks and linear step responses)."""
+        inf = math.inf
+        return cls(inf, inf, inf, inf, inf, inf, 1.0, inf, inf, 0.5)
+
+
+class Axis(Protocol):
+    """One axis of a law as the outer loop drives it (:class:`companion.control.rpt.RptAxis`)."""
+
+    anti_windup: bool
+    valid: bool
+    saturated: bool
+    nonfinite_inputs: int
+    feedforward: float
+    _out: float  # the output last sent (the outer loop rescales x and y together)
+
+    def reset(self) -> None: ...
+
+    def engage(self, p_r: float, v_r: float, a_r: float, p: float, v: float,
+               continuation: float | None = None) -> None: ...
+
+    def step(self, dt: float, p_r: float, v_r: float, a_r: float, p: float, v: float) -> float: ...
+
+    def commit(self, dt: float, u_lin: float, u_out: float) -> None: ...
+
+    def hold(self, dt: float) -> float: ...
+
+
 class OuterLoopController:
     """Three axes (x, y acceleration; z velocity) of one law, with the limits of ``limits``.
 
@@ -132,7 +193,7 @@ class OuterLoopController:
     (continuation: hover, current vertical velocity) if :meth:`engage` was not called.
     """
 
-    def __init__(self, x: RptAxis, y: RptAxis, z: RptAxis, limits: RptLimits) -> None:
+    def __init__(self, x: Axis, y: Axis, z: Axis, limits: RptLimits) -> None:
         self.limits = limits
         self.x, self.y, self.z = x, y, z
         self.anti_windup = x.anti_windup

@@ -129,7 +129,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.control.outer_loop import CLIP, NonFiniteInput, OuterLoopController, nonfinite
+from companion.control.outer_loop import CLIP, NonFiniteInput, OuterLoopController, RptLimits, nonfinite
 
 ACCELERATION = "acceleration"  # an x or y axis: the output is an acceleration reference
 VELOCITY = "velocity"  # the z axis: the output is a velocity reference
@@ -247,46 +247,6 @@ def closed_loop_matrix(params: RptParams, kind: str = ACCELERATION) -> np.ndarra
 
 
 # ------------------------------------------------------------------ limits
-@dataclass(frozen=True)
-class RptLimits:
-    """Kinematic limits of the controller's output (``math.inf`` disables one).
-
-    Horizontal limits act on the (x, y) vector norm; the speed guard caps the acceleration
-    along the direction of motion at ``speed_gain * (speed_xy_mps - |v_xy|)`` (it brakes when
-    above the limit) and at the jerk-limited braking curve ``sqrt(2 jerk (speed - |v|))``.
-    The z velocity reference is bounded by ``climb_mps`` (up, negative z in NED) and
-    ``descent_mps`` (down) and its rate by ``accel_z_mps2``. ``integral_*`` bound the integral
-    term ``|c0 eta|`` (anti-windup clamp). ``max_dt_s``: a longer step (a stall) is integrated
-    as this long. ``speed_gain`` and ``max_dt_s`` must be finite.
-    """
-
-    speed_xy_mps: float = 2.0
-    accel_xy_mps2: float = 2.5
-    jerk_xy_mps3: float = 5.0
-    climb_mps: float = 1.0
-    descent_mps: float = 0.8
-    accel_z_mps2: float = 2.0
-    speed_gain: float = 1.5  # 1/s
-    integral_xy_mps2: float = 1.0
-    integral_z_mps: float = 0.5
-    max_dt_s: float = 0.5
-
-    def __post_init__(self) -> None:
-        for name in self.__dataclass_fields__:
-            value = getattr(self, name)
-            if math.isnan(value) or value <= 0.0:
-                raise ValueError(f"RptLimits.{name} must be > 0 (math.inf disables it), got {value!r}")
-        for name in ("max_dt_s", "speed_gain"):
-            if not math.isfinite(getattr(self, name)):
-                raise ValueError(f"RptLimits.{name} must be finite")
-
-    @classmethod
-    def unlimited(cls) -> RptLimits:
-        """No limits at all: the linear law (for pole checks and linear step responses)."""
-        inf = _INF
-        return cls(inf, inf, inf, inf, inf, inf, 1.0, inf, inf, 0.5)
-
-
 @dataclass(frozen=True)
 class AxisLimits:
     """Limits of one stand-alone :class:`RptAxis` (scalar versions of :class:`RptLimits`).

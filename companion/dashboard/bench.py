@@ -24,9 +24,8 @@ import yaml
 from companion.dashboard.app import spawn_dashboard
 from companion.dashboard.headless import HeadlessChromium, find_chromium
 from companion.nav.bench_stages import DEFAULT_WORLD, make_mount, synthetic_scan
-from companion.nav.lidar_pipeline import ProcessedScan
+from companion.nav.lidar_streams import ProcessedScan, map_payload, scan_payloads
 from companion.nav.planar import Mount2D, PlanarLocalizer
-from companion.nav.lidar_streams import map_payload, scan_payloads
 from companion.telemetry.publisher import TelemetryPublisher
 from companion.telemetry.session import open_session
 from drivers.lidar_models import UTM_30LX
