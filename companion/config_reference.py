@@ -33,15 +33,20 @@ def _first_line(obj: object) -> str:
     return ((obj.__doc__ or "").strip().splitlines() or [""])[0]
 
 
+def _ours(module: str) -> bool:
+    """Registered by this repository's packages (not by a user's or a test's plugin)."""
+    return module.split(".")[0] in ("companion", "drivers", "sitl")
+
+
 def render() -> str:
     """The whole reference as Markdown."""
     plugins.load([SIMULATOR_PLUGIN])
     backends = "".join(
         _table(f"`kind: {e.kind}`, `backend: {e.backend}`", f"{_first_line(e.build)} ({e.module})", e.settings,
-               "settings", "###") for e in plugins.backends())
+               "settings", "###") for e in plugins.backends() if _ours(e.module))
     pipelines = "".join(
         _table(f"`pipelines.{e.name}`", f"{_first_line(e.config)} ({e.module})", e.config, f"pipelines.{e.name}", "###")
-        for e in plugins.pipelines())
+        for e in plugins.pipelines() if _ours(e.module))
     return (HEADER
             + _table("Daemon config (`companion run -c FILE`)", "The file systemd passes (`/etc/companion/companion.yaml`).", Config)
             + "\n## Sensor backends (`sensors.<name>.settings`)\n\nOne per (kind, backend), from the registry "

@@ -201,12 +201,13 @@ class Daemon:
         return pipelines
 
     def _build_selector(self, pipelines: list[Pipeline]) -> SourceSelector | None:
-        """The pose-source selection over ``pipelines.sources`` (None without a pipeline)."""
-        if not pipelines:
+        """The pose-source selection over ``pipelines.sources`` (None without a pose pipeline: missions
+        then fly on the autopilot's own estimate)."""
+        priority = self.cfg.source_priority()
+        if not pipelines or not priority:
             return None
         p = self.cfg.pipelines
-        return SourceSelector(self.cfg.source_priority(), p.source_timeout_s, p.source_return_s,
-                              on_switch=self._source_switched)
+        return SourceSelector(priority, p.source_timeout_s, p.source_return_s, on_switch=self._source_switched)
 
     def _source_switched(self, old: str | None, new: str | None, reason: str) -> None:
         """Announce a change of the pose source (STATUSTEXT + telemetry ``sources``)."""

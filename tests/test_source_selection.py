@@ -1,12 +1,18 @@
 """Estimate-source selection: priority, failover on loss, hysteresis on return, commanded pin, one
-reset per switch (companion/selection.py)."""
+reset per switch (companion/selection.py); a pipeline that gives no pose is never a source."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
 
+from companion.config import Config
+from companion.daemon import Daemon
 from companion.messages import PoseEstimate
+from companion.plugins import register_pipeline
+from companion.schema import SchemaError, load_text
 from companion.selection import SourceSelector
 
 PERIOD = 0.02  # a 50 Hz nav loop
@@ -111,3 +117,30 @@ def test_a_non_finite_pose_does_not_keep_a_source_alive() -> None:
         run.selector.offer(good, run.t)
         run.selector.select(run.t, {"a": bad, "b": good})
     assert run.selector.active == "b"
+
+
+@dataclass
+class AttitudeOnlyConfig:
+    """``pipelines.attitude_only``: a test pipeline that gives no pose."""
+
+    def sensor_inputs(self) -> dict[str, str]:
+        return {}
+
+
+@register_pipeline("attitude_only", AttitudeOnlyConfig, poses=False)
+def _attitude_only(section: AttitudeOnlyConfig, ctx: object) -> object:
+    return object()
+
+
+CONFIG = "origin: {lat: 1, lon: 2, alt: 3}\npipelines:\n  attitude_only: {}\n"
+
+
+def test_a_pipeline_without_poses_is_no_source_and_missions_fly_on_the_autopilot() -> None:
+    cfg = load_text(CONFIG, Config)
+    assert list(cfg.pipelines.enabled) == ["attitude_only"] and cfg.source_priority() == []
+    assert Daemon(cfg)._build_selector([object()]) is None  # type: ignore[list-item]
+
+
+def test_a_pipeline_without_poses_cannot_be_listed_as_a_source() -> None:
+    with pytest.raises(SchemaError, match=r"pipelines.sources\[0\]: 'attitude_only' is not an enabled pose pipeline"):
+        load_text(CONFIG + "  sources: [attitude_only]\n", Config)
