@@ -108,7 +108,7 @@ class DriverStats:
     messages: int = 0  # handed to the subscribers
     corrupt_frames: int = 0
     rejected: dict[str, int] = field(default_factory=dict)  # decoded but unusable, per reason
-    reconnects: int = 0
+    reconnects: int = 0  # losses after data had flowed (an opened device that never sent is not one)
     last_error: str | None = None
 
 
@@ -135,6 +135,7 @@ class SensorDriver(Generic[M]):
         self._backoff = MIN_BACKOFF_S  # wait before the next open after a loss, s
         self._attempts = 0  # losses and failed reopens since data last flowed (for the log's rate)
         self._last_t: float | None = None  # capture time of the last message handed on, daemon clock s
+        self._streamed = False  # a message arrived since the backend was last opened
 
     def subscribe(self, handler: Callable[[M], None]) -> None:
         """Hand every good message to ``handler`` (called on the event loop; it must not block)."""
@@ -150,6 +151,7 @@ class SensorDriver(Generic[M]):
                 continue
             self.health.report(self._component, State.OK, f"{self.backend.description} streaming")
             self._last_t = None  # a reopened device's clock is mapped afresh
+            self._streamed = False
             try:
                 reason = await self._read_until_lost()
             except EndOfData:
@@ -157,7 +159,7 @@ class SensorDriver(Generic[M]):
                 await asyncio.Event().wait()  # done; stay quiet until cancelled
             finally:
                 await self.backend.close()
-            self.stats.reconnects += 1
+            self.stats.reconnects += self._streamed  # lost after data flowed (not: nothing ever came)
             await self._lost(reason)
 
     async def _read_until_lost(self) -> str:
@@ -173,6 +175,7 @@ class SensorDriver(Generic[M]):
             except OSError as exc:
                 return f"{self.backend.description} lost: {exc}"
             self._backoff, self._attempts = MIN_BACKOFF_S, 0  # data flows: the next loss starts afresh
+            self._streamed = True
             problem = self.check(message, self._last_t)
             if problem is not None:
                 self._reject(problem)

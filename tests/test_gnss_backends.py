@@ -378,6 +378,23 @@ def test_the_autopilot_receiver_is_lost_without_messages_and_back_when_they_retu
     assert "no GPS_RAW_INT for 0.3 s" in reason and driver.stats.reconnects == 1
 
 
+def test_a_receiver_that_never_sends_is_reported_lost_but_is_no_reconnect() -> None:
+    """Before the autopilot streams (link up, streams not yet asked) the sensor says lost, honestly,
+    but a reconnect counts only a loss after data flowed."""
+    async def main() -> tuple[SensorDriver, str, int]:
+        autopilot, tasks, driver, health, _ = await linked(timeout_s=0.2)
+        await autopilot.until(lambda: state(health) == State.LOST, "the loss")
+        reason = health.get("sensor:gps").reason
+        await asyncio.sleep(0.6)  # reopened and timed out again
+        await stop(tasks)
+        autopilot.close()
+        return driver, reason, driver._attempts
+
+    driver, reason, attempts = asyncio.run(main())
+    assert "no GPS_RAW_INT for 0.2 s" in reason and attempts >= 2
+    assert driver.stats.reconnects == 0
+
+
 def test_both_backends_are_registered_with_settings_typed_from_the_config() -> None:
     nmea_entry, autopilot_entry = plugins.backend("gnss", "nmea"), plugins.backend("gnss", "autopilot")
     assert nmea_entry is not None and autopilot_entry is not None
