@@ -64,6 +64,10 @@ def test_sitl_dashboard_shows_the_vehicle_moving_live(tmp_path: Path) -> None:
                              browser.evaluate("document.getElementById('scan-info').textContent"))
             assert browser.evaluate("document.querySelectorAll('#position-plots polyline').length") >= 3
             assert browser.evaluate("document.querySelector('#mission-table').textContent").count("survey-points") == 1
+            sources = browser.evaluate("[...document.querySelectorAll('#sources-table tbody tr')]"
+                                       ".map((r) => [...r.cells].map((c) => c.textContent))")
+            assert [row[:2] for row in sources] == [["lidar", "active"]], sources
+            assert "lidar: planar fixes" in browser.evaluate("document.querySelector('#system-table').textContent")
             print(f"screenshot: {browser.screenshot(ARTIFACTS / 'dashboard-sitl.png')}")
     finally:
         stop_sitl(run)

@@ -14,7 +14,7 @@ const ALERTS_KEPT = 100;
 const RENDER_PERIOD_MS = 100;
 const DEG = 180 / Math.PI;
 const MAP_STREAMS = ["map", "trajectory", "pose", "scan", "lines", "corners", "setpoint"];
-const PANEL_STREAMS = ["autopilot", "link", "mission", "health", "system", "rates", "alerts"];
+const PANEL_STREAMS = ["autopilot", "link", "mission", "health", "system", "rates", "alerts", "sources"];
 
 /** Append a time row and drop the rows older than the plot window. */
 function pushRow(rows, row) {
@@ -190,6 +190,7 @@ function render() {
   if (any("mission")) panels.mission($("mission-table").tBodies[0], $("mission-progress"), v.data("mission"));
   if (any("health")) panels.health($("health-table").tBodies[0], v.data("health"));
   if (any("system")) panels.system($("system-table").tBodies[0], v.data("system"));
+  if (any("sources")) panels.sources($("sources-table").tBodies[0], v.data("sources"));
   if (any("rates", "health")) panels.streams($("streams-table").tBodies[0], status?.vehicles?.[String(selected)]?.streams, v.data("rates"));
   if (any("alerts", "health")) panels.alerts($("alerts"), v.alerts, now);
 }

@@ -59,9 +59,8 @@ export function streams(tbody, received, rates) {
   }));
 }
 
-/** CPU, memory, nav loop lateness and per-stage timings of the daemon. */
+/** CPU, memory, nav loop lateness, per-stage timings and every pipeline's counters. */
 export function system(tbody, s) {
-  const lidar = s?.pipelines?.lidar;
   const rows = [
     ["CPU (% of one core)", fmt(s?.cpu_percent, 1)],
     ["memory (MB)", fmt(s?.rss_mb, 0)],
@@ -69,13 +68,23 @@ export function system(tbody, s) {
     ["nav loop lateness p50 / p99", `${fmt(s?.loop_jitter_ms?.p50, 2)} / ${fmt(s?.loop_jitter_ms?.p99, 2)}`],
   ];
   for (const [stage, t] of Object.entries(s?.stage_ms ?? {})) rows.push([`${stage} p50 / p99`, `${fmt(t.p50, 2)} / ${fmt(t.p99, 2)}`]);
-  if (lidar) {
-    rows.push(["lidar fix rate (Hz)", fmt(lidar.fix_rate_hz, 1)]);
-    rows.push(["scans h / v / skipped", `${lidar.horizontal_scans} / ${lidar.vertical_scans} / ${lidar.skipped_scans}`]);
-    rows.push(["relocalizations", lidar.relocalizations]);
+  for (const [pipeline, counters] of Object.entries(s?.pipelines ?? {})) {
+    for (const [name, value] of Object.entries(counters ?? {})) {
+      if (typeof value === "number" && !name.endsWith("_t")) rows.push([`${pipeline}: ${name.replaceAll("_", " ")}`, fmt(value, 1)]);
+    }
   }
   rows.push(["setpoints sent", s?.setpoints_sent ?? "–"]);
   setRows(tbody, rows);
+}
+
+/** The pose sources in priority order: which one feeds the autopilot, and where each one puts the vehicle. */
+export function sources(tbody, src) {
+  setRows(tbody, (src?.priority ?? []).map((name) => {
+    const s = src.sources?.[name] ?? {};
+    const role = name === src.active ? [src.pinned === name ? "active (commanded)" : "active", "state ok"]
+      : [s.fresh ? "standby" : "stale", s.fresh ? "" : "state lost"];
+    return [name, role, fmt(s.age_s, 2), vector(s.position_ned_m), fmt(typeof s.yaw_rad === "number" ? s.yaw_rad * 180 / Math.PI : null, 1)];
+  }));
 }
 
 /** Newest first, with the hub's arrival time as "s ago". */
