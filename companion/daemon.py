@@ -26,7 +26,7 @@ from companion.config import Config
 from companion.crosscheck import AttitudeCrossCheck
 from companion.health import ComponentHealth, Health, State
 from companion.mavlink.autopilot import AutopilotState
-from companion.mavlink.commands import Commander
+from companion.mavlink.commands import CommandFailed, Commander
 from companion.mavlink.distance import DistanceSender
 from companion.mavlink.estimate import EstimateSender
 from companion.mavlink.link import MavlinkLink, load_signing_key, mavlink
@@ -78,8 +78,19 @@ def load_named_files(cfg: Config) -> NamedFiles:
     check_sensor_files(cfg)
     mission, key = cfg.mission.file, cfg.mavlink.signing_key_file
     return NamedFiles(
-        mission=cfg.load_referenced("mission.file", mission, load_mission) if mission else None,
+        mission=cfg.load_referenced("mission.file", mission, lambda path: _mission_for(cfg, path)) if mission else None,
         signing_key=cfg.load_referenced("mavlink.signing_key_file", key, load_signing_key) if key else None)
+
+
+def _mission_for(cfg: Config, path: Path) -> Mission:
+    """The mission at ``path``; ValueError if a ``pose_source`` step names no pose source of ``cfg``."""
+    mission = load_mission(path)
+    sources = cfg.source_priority()
+    for i, step in enumerate(mission.steps):
+        if step.pose_source is not None and step.pose_source.source is not None and step.pose_source.source not in sources:
+            raise ValueError(f"{path}: steps[{i}].pose_source.source: {step.pose_source.source!r} is not a pose "
+                             f"source of this config ({', '.join(sources) or 'none'})")
+    return mission
 
 
 class Daemon:
@@ -165,11 +176,20 @@ class Daemon:
             state=self.state, commander=self.commander, setpoints=self.setpoints, origin=self.origin,
             estimate=self._mission_estimate, nav_health=lambda: self.health.worst("nav:"), publish=self.telemetry.publish,
             control=cfg.control, failsafe=cfg.mission.failsafe, payload=cfg.mission.payload,
-            geofence=Geofence.from_config(cfg.mission.geofence, area))
+            geofence=Geofence.from_config(cfg.mission.geofence, area), select_source=self._select_source)
         if ctx.geofence is None:
             log.warning("mission %s: no companion geofence (mission.geofence disabled, or neither its box_ned_m "
                         "nor a pipeline's operating area); the autopilot's own fence still applies", mission.name)
         return MissionRunner(mission, cfg.mission.allow_arm, ctx, cfg.mission.on_daemon_stop)
+
+    def _select_source(self, source: str | None) -> None:
+        """A commanded pose source (a mission's ``pose_source`` step)."""
+        if self.selector is None:
+            raise CommandFailed("no pose source to command: the config has no pose pipeline")
+        try:
+            self.selector.command(source)
+        except ValueError as exc:
+            raise CommandFailed(str(exc)) from exc
 
     def _mission_estimate(self) -> PoseEstimate | None:
         """What missions fly on: the active pose source's newest estimate, or the autopilot's own

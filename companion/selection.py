@@ -13,7 +13,8 @@ Rules, evaluated every nav cycle at daemon time ``now`` (s):
 - a source earlier in the list than the active one takes back over once it has delivered
   poses for ``return_s`` without a gap longer than ``timeout_s`` (hysteresis: a flapping
   primary does not make the estimate jump back and forth);
-- :meth:`SourceSelector.command` pins a source (while it is fresh) or unpins;
+- :meth:`SourceSelector.command` pins a source (while it is fresh) or unpins (a mission's
+  ``pose_source`` step);
 - every change of the active source calls ``on_switch(old, new, reason)``; when the autopilot
   was fed by another source before, the first forwarded estimate of the new one is marked
   ``reset`` (so the autopilot's ``reset_counter`` increments exactly once and its EKF jumps to

@@ -3,13 +3,19 @@ reset per switch (companion/selection.py); a pipeline that gives no pose is neve
 
 from __future__ import annotations
 
+import asyncio
 from dataclasses import dataclass
+from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from companion.config import Config
-from companion.daemon import Daemon
+from companion.config import Config, ConfigError, ControlConfig, FailsafeConfig, PayloadConfig
+from companion.daemon import Daemon, load_named_files
+from companion.mission.context import MissionContext
+from companion.mission.runner import MissionRunner
+from companion.mission.steps import Mission
 from companion.messages import PoseEstimate
 from companion.plugins import register_pipeline
 from companion.schema import SchemaError, load_text
@@ -144,3 +150,33 @@ def test_a_pipeline_without_poses_is_no_source_and_missions_fly_on_the_autopilot
 def test_a_pipeline_without_poses_cannot_be_listed_as_a_source() -> None:
     with pytest.raises(SchemaError, match=r"pipelines.sources\[0\]: 'attitude_only' is not an enabled pose pipeline"):
         load_text(CONFIG + "  sources: [attitude_only]\n", Config)
+
+
+def two_source_run() -> Run:
+    run = Run(["a", "b"])
+    run.cycles(0.5, {"a", "b"})
+    return run
+
+
+def test_a_mission_step_commands_the_pose_source_and_hands_it_back() -> None:
+    run = two_source_run()
+    ctx = MissionContext(state=None, commander=None, setpoints=SimpleNamespace(), origin=None,  # type: ignore[arg-type]
+                         estimate=lambda: None, nav_health=lambda: (None, ""), publish=lambda stream, payload: None,
+                         control=ControlConfig(), failsafe=FailsafeConfig(), payload=PayloadConfig(), geofence=None,
+                         select_source=run.selector.command)
+    steps = load_text("name: m\nsteps:\n  - pose_source: {source: b}\n  - pose_source: {source: null}\n", Mission).steps
+    runner = MissionRunner(Mission("m", steps), False, ctx, "land")
+    asyncio.run(runner._run_step(steps[0]))
+    run.cycles(0.2, {"a", "b"})
+    assert run.selector.active == "b" and run.resets() == 1
+    asyncio.run(runner._run_step(steps[1]))
+    run.cycles(1.5, {"a", "b"})  # a has been delivering for source_return_s (2 s) by then
+    assert run.selector.pinned is None and run.selector.active == "a" and run.resets() == 2
+
+
+def test_a_mission_naming_a_source_the_config_lacks_is_refused_at_its_step(tmp_path: Path) -> None:
+    mission = tmp_path / "m.yaml"
+    mission.write_text("name: m\nsteps:\n  - pose_source: {source: attitude_only}\n")
+    cfg = load_text(CONFIG + f"mission: {{file: {mission}}}\n", Config)
+    with pytest.raises(ConfigError, match=r"mission.file: .*steps\[0\].pose_source.source: 'attitude_only' is not a pose source"):
+        load_named_files(cfg)

@@ -58,6 +58,7 @@ class MissionContext:
     failsafe: FailsafeConfig
     payload: PayloadConfig
     geofence: Geofence | None
+    select_source: Callable[[str | None], None]  # pin a pose source (None: the priority order again)
     takeover: asyncio.Event = field(default_factory=asyncio.Event)
     takeover_reason: str = ""  # who changed the mode and to what (on_mode_taken)
     autopilot_failsafe: bool = False  # the autopilot's own failsafe took the mode (not a pilot)

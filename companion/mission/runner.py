@@ -25,7 +25,7 @@ from companion.mavlink.setpoints import Setpoint
 from companion.mission.context import FailsafeLanding, MissionContext, MissionFailed
 from companion.mission.flight import TrajectoryFlight
 from companion.mission.steps import (ArmStep, FlyStep, HoldStep, LandStep, Mission, MissionStep, PayloadDropStep,
-                                     TakeoffStep, WaitReadyStep)
+                                     PoseSourceStep, TakeoffStep, WaitReadyStep)
 
 log = logging.getLogger("companion.mission")
 
@@ -229,6 +229,10 @@ class MissionRunner:
         await self.ctx.commander.release_payload(self.ctx.payload)
         log.info("payload released")
         await self._hold(HoldStep(seconds=step.hold_s))
+
+    async def _pose_source(self, step: PoseSourceStep) -> None:
+        self.ctx.select_source(step.source)
+        log.info("pose source commanded: %s", step.source or "the priority order")
 
     async def _land(self, step: LandStep) -> None:
         ctx = self.ctx

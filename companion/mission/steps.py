@@ -14,7 +14,10 @@
   of ``control`` (RPT by default) at ``control.rate_hz``. A waypoint may stop, hold, or be a
   window / door pass with a tolerance (see :class:`Waypoint`);
 - ``payload_drop: {hold_s}``: hold, release the payload (``mission.payload``), keep holding;
-- ``land: {timeout_s}``: switch to LAND and wait for the autopilot to disarm.
+- ``land: {timeout_s}``: switch to LAND and wait for the autopilot to disarm;
+- ``pose_source: {source}``: command the pose source (a pipeline of ``pipelines.sources``): it
+  feeds the autopilot while it has fresh estimates; ``source: null`` returns to the priority
+  order. A switch increments ``reset_counter`` once, as any switch does.
 
 Positions are LOCAL_NED metres at the EKF origin (x north, y east, z down: z = -1 is 1 m up).
 """
@@ -111,6 +114,11 @@ class LandStep:
 
 
 @dataclass
+class PoseSourceStep:
+    source: str | None = field(metadata=meta("A pose pipeline of pipelines.sources; null = the priority order again."))
+
+
+@dataclass
 class MissionStep:
     wait_ready: WaitReadyStep | None = None
     mode: str | None = None
@@ -120,6 +128,7 @@ class MissionStep:
     fly: FlyStep | None = None
     payload_drop: PayloadDropStep | None = None
     land: LandStep | None = None
+    pose_source: PoseSourceStep | None = None
 
     def validate(self) -> tuple[str, str] | None:
         present = [name for name, value in vars(self).items() if value is not None]
