@@ -108,7 +108,11 @@ class PipelinesConfig:
     source_timeout_s: float = field(default=0.3, metadata=meta(
         "A source with no estimate for this long is lost: the next one in `sources` takes over.", (0.05, 5)))
     source_return_s: float = field(default=2.0, metadata=meta(
-        "A higher-priority source takes back over after delivering estimates this long without a gap.", (0, 60)))
+        "A higher-priority source takes back over after being good (fresh, not degraded) this long without a break.",
+        (0, 60)))
+    source_max_sigma_m: float = field(default=1.0, metadata=meta(
+        "A source whose horizontal position 1-sigma exceeds this is degraded: a good source in `sources` takes over "
+        "(with none, the degraded one is still used).", (0.01, 1000)))
     attitude_alarm_deg: float = field(default=10.0, metadata=meta(
         "An attitude-only estimate differing from the autopilot's ATTITUDE by more than this (largest axis) ...", (0.5, 90)))
     attitude_alarm_s: float = field(default=2.0, metadata=meta(

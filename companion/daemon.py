@@ -227,7 +227,8 @@ class Daemon:
         if not pipelines or not priority:
             return None
         p = self.cfg.pipelines
-        return SourceSelector(priority, p.source_timeout_s, p.source_return_s, on_switch=self._source_switched)
+        return SourceSelector(priority, p.source_timeout_s, p.source_return_s, p.source_max_sigma_m,
+                              on_switch=self._source_switched)
 
     def _source_switched(self, old: str | None, new: str | None, reason: str) -> None:
         """Announce a change of the pose source (STATUSTEXT + telemetry ``sources``)."""

@@ -8,11 +8,14 @@ Rules, evaluated every nav cycle at daemon time ``now`` (s):
 
 - a source is *fresh* while its newest finite pose is at most ``timeout_s`` old; a pipeline
   that is lost or unhealthy stops producing poses, so it goes stale;
-- when the active source goes stale (or there is none), the first fresh source in priority
-  order takes over;
-- a source earlier in the list than the active one takes back over once it has delivered
-  poses for ``return_s`` without a gap longer than ``timeout_s`` (hysteresis: a flapping
-  primary does not make the estimate jump back and forth);
+- a source is *good* while fresh and its horizontal position 1-sigma is at most
+  ``max_sigma_m`` (else *degraded*: e.g. a localizer coasting without fixes);
+- when the active source goes stale (or there is none), the first good source in priority
+  order takes over, else the first fresh one; when it is degraded and a good one exists, the
+  first good one takes over;
+- a source earlier in the list than the active one takes back over once it has been good
+  for ``return_s`` without a break (hysteresis: a flapping primary does not make the estimate
+  jump back and forth);
 - :meth:`SourceSelector.command` pins a source (while it is fresh) or unpins (a mission's
   ``pose_source`` step);
 - every change of the active source calls ``on_switch(old, new, reason)``; when the autopilot
@@ -24,6 +27,7 @@ Rules, evaluated every nav cycle at daemon time ``now`` (s):
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
@@ -36,19 +40,27 @@ class SourceStatus:
 
     last: PoseEstimate | None = None  # newest finite pose
     last_t: float | None = None  # daemon time it was offered, s
-    streak_since: float | None = None  # daemon time since which it has delivered without a gap, s
+    good_since: float | None = None  # daemon time since which it has been good without a break, s
+
+
+def horizontal_sigma_m(estimate: PoseEstimate | None) -> float:
+    """The larger of the north and east position 1-sigma of ``estimate``, m (inf for None)."""
+    if estimate is None:
+        return math.inf
+    return math.sqrt(max(float(estimate.pose_covariance[0, 0]), float(estimate.pose_covariance[1, 1]), 0.0))
 
 
 class SourceSelector:
     """Chooses the active pose source; see the module docstring."""
 
-    def __init__(self, priority: Sequence[str], timeout_s: float, return_s: float,
+    def __init__(self, priority: Sequence[str], timeout_s: float, return_s: float, max_sigma_m: float = math.inf,
                  on_switch: Callable[[str | None, str | None, str], None] = lambda old, new, why: None) -> None:
         if not priority:
             raise ValueError("no pose source to select from")
         self.priority = list(priority)
         self.timeout_s = timeout_s
         self.return_s = return_s
+        self.max_sigma_m = max_sigma_m
         self.on_switch = on_switch
         self.sources = {name: SourceStatus() for name in self.priority}
         self.active: str | None = None
@@ -62,8 +74,10 @@ class SourceSelector:
         status = self.sources.get(estimate.source)
         if status is None or not estimate.is_finite():
             return
-        if status.last_t is None or now - status.last_t > self.timeout_s:
-            status.streak_since = now
+        if horizontal_sigma_m(estimate) > self.max_sigma_m:
+            status.good_since = None
+        elif status.good_since is None or status.last_t is None or now - status.last_t > self.timeout_s:
+            status.good_since = now
         status.last, status.last_t = estimate, now
 
     def command(self, source: str | None) -> None:
@@ -71,6 +85,9 @@ class SourceSelector:
         if source is not None and source not in self.sources:
             raise ValueError(f"{source!r} is not a pose source ({', '.join(self.priority)})")
         self.pinned = source
+
+    def good(self, name: str, now: float) -> bool:
+        return self.fresh(name, now) and self.sources[name].good_since is not None
 
     def fresh(self, name: str, now: float) -> bool:
         t = self.sources[name].last_t
@@ -104,13 +121,18 @@ class SourceSelector:
         if self.pinned is not None and self.fresh(self.pinned, now):
             return self.pinned, "commanded"
         fresh = [name for name in self.priority if self.fresh(name, now)]
+        good = [name for name in fresh if self.good(name, now)]
         active = self.active
         if active is None or active not in fresh:
             if not fresh:
                 return None, f"{active} lost, no other source" if active else "no source"
-            return fresh[0], f"{active} lost" if active else "first estimate"
-        for name in fresh[:fresh.index(active)]:
-            since = self.sources[name].streak_since
+            return (good or fresh)[0], f"{active} lost" if active else "first estimate"
+        if active not in good and good:
+            return good[0], f"{active} degraded (position sigma {horizontal_sigma_m(self.sources[active].last):.2f} m)"
+        for name in good:
+            if self.priority.index(name) >= self.priority.index(active):
+                break
+            since = self.sources[name].good_since
             if since is not None and now - since >= self.return_s:
                 return name, f"{name} back for {now - since:.1f} s"
         return active, ""
@@ -123,7 +145,7 @@ class SourceSelector:
     def snapshot(self, now: float) -> dict[str, object]:
         """Telemetry: the active source, the priority, and each source's age (s) and newest pose."""
         return {"active": self.active, "pinned": self.pinned, "priority": self.priority, "switches": self.switches,
-                "sources": {name: {"fresh": self.fresh(name, now),
+                "sources": {name: {"fresh": self.fresh(name, now), "good": self.good(name, now),
                                    "age_s": None if s.last_t is None else now - s.last_t,
                                    "position_ned_m": None if s.last is None else s.last.position_ned,
                                    "yaw_rad": None if s.last is None else s.last.euler_rad[2]}

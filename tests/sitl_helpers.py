@@ -333,7 +333,7 @@ class PipelineDaemon(Daemon):
     def _build_selector(self, pipelines: list) -> SourceSelector:
         """The test pipeline is the one pose source (it is not in the config)."""
         p = self.cfg.pipelines
-        return SourceSelector([self.pipeline.name], p.source_timeout_s, p.source_return_s)
+        return SourceSelector([self.pipeline.name], p.source_timeout_s, p.source_return_s, p.source_max_sigma_m)
 
 
 def run_daemon_with_vehicle(daemon: Daemon, vehicle: subprocess.Popen, timeout_s: float = 50.0) -> int:

@@ -24,8 +24,9 @@ from companion.selection import SourceSelector
 PERIOD = 0.02  # a 50 Hz nav loop
 
 
-def pose(source: str, t: float, north: float = 0.0, reset: bool = False) -> PoseEstimate:
-    return PoseEstimate(t, np.array([north, 0.0, -1.0]), (0.0, 0.0, 0.0), np.eye(6) * 1e-4, reset=reset, source=source)
+def pose(source: str, t: float, north: float = 0.0, reset: bool = False, sigma_m: float = 0.01) -> PoseEstimate:
+    return PoseEstimate(t, np.array([north, 0.0, -1.0]), (0.0, 0.0, 0.0), np.eye(6) * sigma_m ** 2, reset=reset,
+                        source=source)
 
 
 class Run:
@@ -33,8 +34,9 @@ class Run:
 
     def __init__(self, priority: list[str], timeout_s: float = 0.3, return_s: float = 2.0) -> None:
         self.switches: list[tuple[str | None, str | None, str]] = []
-        self.selector = SourceSelector(priority, timeout_s, return_s,
+        self.selector = SourceSelector(priority, timeout_s, return_s, max_sigma_m=0.5,
                                        on_switch=lambda old, new, why: self.switches.append((old, new, why)))
+        self.sigma_m: dict[str, float] = {}  # a source's position sigma in the poses it makes (default 0.01 m)
         self.t = 0.0
         self.forwarded: list[PoseEstimate] = []
 
@@ -42,7 +44,8 @@ class Run:
         """Run ``seconds`` of nav cycles in which the sources in ``live`` each make a pose."""
         for _ in range(round(seconds / PERIOD)):
             self.t += PERIOD
-            new = {name: pose(name, self.t, north=10.0 if name == "b" else 0.0) for name in live}
+            new = {name: pose(name, self.t, north=10.0 if name == "b" else 0.0, sigma_m=self.sigma_m.get(name, 0.01))
+                   for name in live}
             for estimate in new.values():
                 self.selector.offer(estimate, self.t)
             chosen = self.selector.select(self.t, new)
@@ -88,6 +91,30 @@ def test_a_flapping_primary_does_not_make_the_estimate_jump_back_and_forth() -> 
         run.cycles(1.0, {"a", "b"})
         run.cycles(0.5, {"b"})
     assert {e.source for e in run.forwarded} == {"b"} and run.resets() == 0
+
+
+def test_a_degraded_primary_hands_over_to_a_good_secondary_and_returns_once_good_again() -> None:
+    run = Run(["a", "b"])
+    run.cycles(1.0, {"a", "b"})
+    run.sigma_m["a"] = 2.0  # coasting: still fresh, but its position sigma is beyond max_sigma_m (0.5 m)
+    run.cycles(0.1, {"a", "b"})
+    assert run.selector.active == "b" and run.switches[-1][2].startswith("a degraded")
+    for _ in range(5):  # a flaps between good and degraded every 0.5 s: no switch back
+        run.sigma_m["a"] = 0.01
+        run.cycles(0.5, {"a", "b"})
+        run.sigma_m["a"] = 2.0
+        run.cycles(0.5, {"a", "b"})
+    assert run.selector.active == "b"
+    run.sigma_m["a"] = 0.01
+    run.cycles(2.1, {"a", "b"})
+    assert run.selector.active == "a" and run.resets() == 2
+
+
+def test_a_degraded_source_is_still_used_when_no_other_is_good() -> None:
+    run = Run(["a", "b"])
+    run.sigma_m.update(a=2.0, b=3.0)
+    run.cycles(1.0, {"a", "b"})
+    assert run.selector.active == "a" and len(run.forwarded) == 50
 
 
 def test_no_source_forwards_nothing_and_the_same_source_coming_back_is_not_a_jump() -> None:
