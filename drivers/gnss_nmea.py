@@ -43,7 +43,6 @@ from __future__ import annotations
 import asyncio
 import datetime
 import math
-import os
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -56,6 +55,7 @@ from companion.messages import GNSS_2D, GNSS_3D, GNSS_DGPS, GNSS_NO_FIX, GNSS_RT
 from companion.plugins import register_backend
 from companion.schema import meta
 from drivers.base import Backend, CorruptFrame, DeviceLost
+from drivers.serial_fd import SerialFd
 
 MAX_LINE = 120  # bytes; NMEA allows 82, some receivers' proprietary sentences are longer
 QUEUE_LINES = 1000  # lines read but not yet decoded: many epochs of a 10 Hz receiver
@@ -253,35 +253,25 @@ class _SerialLines:
     which its first byte was read (at most QUEUE_LINES waiting: a stalled reader loses the oldest).
     A read error or end of file ends it with DeviceLost."""
 
-    def __init__(self, port: serial.Serial) -> None:
-        self._port = port
-        self._fd = port.fileno()
+    def __init__(self, port: serial.SerialBase) -> None:
         self._loop = asyncio.get_running_loop()
         self._lines: deque[tuple[float, bytes]] = deque(maxlen=QUEUE_LINES)
         self._partial = bytearray()
         self._partial_t = 0.0
         self._error: DeviceLost | None = None
         self._ready = asyncio.Event()
-        self._loop.add_reader(self._fd, self._on_readable)
+        self._serial = SerialFd(port, "receiver", self._on_data, self._fail, READ_BYTES)
 
     @classmethod
     async def open(cls, path: str, baud: int) -> _SerialLines:
-        port = await asyncio.to_thread(serial.Serial, path, baudrate=baud, timeout=0, exclusive=True)
+        port = await SerialFd.open_port(path, baud)
         try:
             return cls(port)
         except BaseException:
             port.close()
             raise
 
-    def _on_readable(self) -> None:
-        try:
-            data = os.read(self._fd, READ_BYTES)
-        except BlockingIOError:
-            return
-        except OSError as exc:
-            return self._fail(DeviceLost(f"serial read failed: {exc}"))
-        if not data:
-            return self._fail(DeviceLost("serial port closed (receiver unplugged?)"))
+    def _on_data(self, data: bytes) -> None:
         now = self._loop.time()
         *complete, rest = data.split(b"\n")
         for piece in complete:
@@ -300,7 +290,6 @@ class _SerialLines:
         self._partial += piece
 
     def _fail(self, error: DeviceLost) -> None:
-        self._loop.remove_reader(self._fd)
         self._error = error
         self._ready.set()
 
@@ -314,8 +303,7 @@ class _SerialLines:
         return self._lines.popleft()
 
     def close(self) -> None:
-        self._loop.remove_reader(self._fd)
-        self._port.close()
+        self._serial.close()
 
 
 class NmeaGnss(Backend[GnssFix]):

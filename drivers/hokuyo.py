@@ -29,7 +29,6 @@ import asyncio
 import contextlib
 import logging
 import math
-import os
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 
@@ -41,6 +40,7 @@ from companion.schema import meta
 from drivers import scip
 from drivers.base import Backend, CorruptFrame, DeviceLost
 from companion.messages import Scan
+from drivers.serial_fd import SerialFd
 from drivers.scip import Reply, ScipError, ScipProtocolError, SensorParams
 
 log = logging.getLogger("companion.drivers.hokuyo")
@@ -212,19 +212,15 @@ class _TcpLink(_Link):
 class _SerialLink(_Link):
     """USB CDC-ACM or RS-232 scanners: pyserial configures the port, the loop reads its fd."""
 
-    def __init__(self, port: serial.SerialBase, fd: int) -> None:
-        self._port = port
-        self._fd = fd
-        self._loop = asyncio.get_running_loop()
+    def __init__(self, port: serial.SerialBase) -> None:
         self.reader = asyncio.StreamReader(limit=REPLY_LIMIT)
-        self._loop.add_reader(fd, self._on_readable)
+        self._serial = SerialFd(port, "scanner", self.reader.feed_data, self.reader.set_exception, REPLY_LIMIT)
 
     @classmethod
     async def open(cls, url: str, baud: int) -> _SerialLink:
-        port = await asyncio.to_thread(serial.serial_for_url, url, baudrate=baud, timeout=0,
-                                       write_timeout=0, exclusive=True)
+        port = await SerialFd.open_port(url, baud)
         try:
-            return cls(port, port.fileno())
+            return cls(port)
         except (AttributeError, ValueError) as exc:  # io.UnsupportedOperation is a ValueError
             port.close()
             raise StartupError(f"{url} has no file descriptor; use a device path, or host for Ethernet") from exc
@@ -232,34 +228,11 @@ class _SerialLink(_Link):
             port.close()
             raise
 
-    def _on_readable(self) -> None:
-        try:
-            data = os.read(self._fd, REPLY_LIMIT)
-        except BlockingIOError:
-            return
-        except OSError as exc:
-            self._fail(DeviceLost(f"serial read failed: {exc}"))
-            return
-        if not data:
-            self._fail(DeviceLost("serial port closed (scanner unplugged?)"))
-            return
-        self.reader.feed_data(data)
-
-    def _fail(self, exc: DeviceLost) -> None:
-        self._loop.remove_reader(self._fd)
-        self.reader.set_exception(exc)
-
     def write(self, data: bytes) -> None:
-        try:
-            written = os.write(self._fd, data)
-        except OSError as exc:
-            raise DeviceLost(f"serial write failed: {exc}") from exc
-        if written != len(data):
-            raise DeviceLost("serial output stalled")
+        self._serial.write(data)
 
     def close(self) -> None:
-        self._loop.remove_reader(self._fd)
-        self._port.close()
+        self._serial.close()
 
 
 # --- the backend --------------------------------------------------------------------------
