@@ -231,12 +231,12 @@ class Daemon:
                               on_switch=self._source_switched)
 
     def _source_switched(self, old: str | None, new: str | None, reason: str) -> None:
-        """Announce a change of the pose source (STATUSTEXT + telemetry ``sources``)."""
-        if old is None and new is not None and self.selector is not None and self.selector.switches == 0:
-            log.info("pose source: %s", new)
-        else:
+        """Announce a change of the pose source (STATUSTEXT + telemetry ``sources``). Losing every
+        source and getting one back are announced by health ``nav:source`` (its state changes);
+        a switch between two sources keeps it ok, so it is announced here."""
+        if old is not None and new is not None:
             log.warning("pose source %s -> %s (%s)", old, new, reason)
-            self.statustext(f"companion: pose source {old or 'none'} -> {new or 'none'}")
+            self.statustext(f"companion: pose source {old} -> {new}")
         self.health.report("nav:source", State.OK if new is not None else State.LOST,
                            f"pose from {new}" if new is not None else f"no pose source ({reason})")
         self.telemetry.publish("sources", {**self.selector.snapshot(clock.now()), "reason": reason})
