@@ -11,9 +11,15 @@ from __future__ import annotations
 
 from typing import Any
 
+from companion.calibration import CameraCalibration, load_calibration
+from companion.config import typed
 from companion.plugins import register_backend
 from companion.world import World, load_world
 from drivers.mount import Mount
+from sitl.camera_lens import check_lens
+from sitl.camera_scene import check_marker_ids
+from sitl.camera_sim import SimCameraSettings, SimulatedCamera
+from sitl.gnss_sim import SimGnssSettings, SimulatedGnss
 from sitl.lidar_sim import SimLidarSettings, SimulatedLidar
 from sitl.truth import TruthSource
 
@@ -38,15 +44,6 @@ def _lidar(name: str, settings: SimLidarSettings, ctx: Any) -> SimulatedLidar:
     """A scanner ray-cast in the world from the truth pose."""
     return SimulatedLidar(name, settings, Mount.from_config(ctx.config.sensors[name].mount), sim_world(ctx), truth(ctx))
 
-
-# -- camera and GNSS (issue 11) ------------------------------------------------------------------
-
-from companion.calibration import CameraCalibration, load_calibration  # noqa: E402
-from companion.config import typed  # noqa: E402
-from sitl.camera_lens import check_lens  # noqa: E402
-from sitl.camera_scene import check_marker_ids  # noqa: E402
-from sitl.camera_sim import SimCameraSettings, SimulatedCamera  # noqa: E402
-from sitl.gnss_sim import SimGnssSettings, SimulatedGnss  # noqa: E402
 
 
 def _calibration(cfg: Any, name: str, settings: SimCameraSettings) -> CameraCalibration:
