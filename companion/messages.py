@@ -139,6 +139,7 @@ class PoseEstimate:
     velocity_covariance: np.ndarray | None = None  # (3, 3) (m/s)^2
     reset: bool = False  # True when the estimate jumped (e.g. relocalization)
     source: str = ""  # the pipeline that made it
+    degraded: bool = False  # the pipeline's health is degraded (e.g. coasting on the IMU without fixes)
 
     def __post_init__(self) -> None:
         if np.shape(self.position_ned) != (3,) or np.shape(self.pose_covariance) != (6, 6):

@@ -8,8 +8,9 @@ Rules, evaluated every nav cycle at daemon time ``now`` (s):
 
 - a source is *fresh* while its newest finite pose is at most ``timeout_s`` old; a pipeline
   that is lost or unhealthy stops producing poses, so it goes stale;
-- a source is *good* while fresh and its horizontal position 1-sigma is at most
-  ``max_sigma_m`` (else *degraded*: e.g. a localizer coasting without fixes);
+- a source is *good* while fresh, its poses are not marked ``degraded`` by its pipeline (e.g. a
+  localizer coasting without fixes) and their horizontal position 1-sigma is at most
+  ``max_sigma_m``;
 - when the active source goes stale (or there is none), the first good source in priority
   order takes over, else the first fresh one; when it is degraded and a good one exists, the
   first good one takes over;
@@ -74,7 +75,7 @@ class SourceSelector:
         status = self.sources.get(estimate.source)
         if status is None or not estimate.is_finite():
             return
-        if horizontal_sigma_m(estimate) > self.max_sigma_m:
+        if estimate.degraded or horizontal_sigma_m(estimate) > self.max_sigma_m:
             status.good_since = None
         elif status.good_since is None or status.last_t is None or now - status.last_t > self.timeout_s:
             status.good_since = now
@@ -128,7 +129,7 @@ class SourceSelector:
                 return None, f"{active} lost, no other source" if active else "no source"
             return (good or fresh)[0], f"{active} lost" if active else "first estimate"
         if active not in good and good:
-            return good[0], f"{active} degraded (position sigma {horizontal_sigma_m(self.sources[active].last):.2f} m)"
+            return good[0], f"{active} degraded"
         for name in good:
             if self.priority.index(name) >= self.priority.index(active):
                 break

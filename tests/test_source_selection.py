@@ -24,9 +24,10 @@ from companion.selection import SourceSelector
 PERIOD = 0.02  # a 50 Hz nav loop
 
 
-def pose(source: str, t: float, north: float = 0.0, reset: bool = False, sigma_m: float = 0.01) -> PoseEstimate:
+def pose(source: str, t: float, north: float = 0.0, reset: bool = False, sigma_m: float = 0.01,
+         degraded: bool = False) -> PoseEstimate:
     return PoseEstimate(t, np.array([north, 0.0, -1.0]), (0.0, 0.0, 0.0), np.eye(6) * sigma_m ** 2, reset=reset,
-                        source=source)
+                        source=source, degraded=degraded)
 
 
 class Run:
@@ -37,6 +38,7 @@ class Run:
         self.selector = SourceSelector(priority, timeout_s, return_s, max_sigma_m=0.5,
                                        on_switch=lambda old, new, why: self.switches.append((old, new, why)))
         self.sigma_m: dict[str, float] = {}  # a source's position sigma in the poses it makes (default 0.01 m)
+        self.coasting: set[str] = set()  # sources whose pipeline marks its poses degraded
         self.t = 0.0
         self.forwarded: list[PoseEstimate] = []
 
@@ -44,8 +46,8 @@ class Run:
         """Run ``seconds`` of nav cycles in which the sources in ``live`` each make a pose."""
         for _ in range(round(seconds / PERIOD)):
             self.t += PERIOD
-            new = {name: pose(name, self.t, north=10.0 if name == "b" else 0.0, sigma_m=self.sigma_m.get(name, 0.01))
-                   for name in live}
+            new = {name: pose(name, self.t, north=10.0 if name == "b" else 0.0, sigma_m=self.sigma_m.get(name, 0.01),
+                              degraded=name in self.coasting) for name in live}
             for estimate in new.values():
                 self.selector.offer(estimate, self.t)
             chosen = self.selector.select(self.t, new)
@@ -108,6 +110,24 @@ def test_a_degraded_primary_hands_over_to_a_good_secondary_and_returns_once_good
     run.sigma_m["a"] = 0.01
     run.cycles(2.1, {"a", "b"})
     assert run.selector.active == "a" and run.resets() == 2
+
+
+def test_a_coasting_primary_is_degraded_and_its_coasting_never_counts_towards_its_return() -> None:
+    """As in flight: the lidar comes back for 1 s, then coasts (degraded, small sigma) before it is lost."""
+    run = Run(["a", "b"])
+    run.cycles(1.0, {"b"})
+    run.cycles(1.0, {"a", "b"})  # good for 1 s
+    run.coasting.add("a")
+    run.cycles(0.7, {"a", "b"})  # coasting: fresh, but degraded by its pipeline
+    assert run.selector.active == "b" and run.resets() == 0
+    run.coasting.clear()
+    run.cycles(1.0, {"a", "b"})
+    run.coasting.add("a")  # the active source starts coasting: a good one takes over at once
+    run.cycles(2.1, {"a", "b"})
+    assert run.selector.active == "b"
+    run.coasting.clear()
+    run.cycles(2.1, {"a", "b"})
+    assert run.selector.active == "a" and run.resets() == 1
 
 
 def test_a_degraded_source_is_still_used_when_no_other_is_good() -> None:

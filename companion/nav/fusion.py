@@ -697,4 +697,4 @@ def to_pose_estimate(state: FusedState, roll: float, pitch: float, t_capture: fl
     cov[5, 5] = state.yaw_variance
     return PoseEstimate(state.t if t_capture is None else float(t_capture), state.position_ned.copy(),
                         (float(roll), float(pitch), state.yaw), cov, state.velocity_ned.copy(),
-                        state.velocity_covariance.copy(), reset, source)
+                        state.velocity_covariance.copy(), reset, source, degraded=state.status != State.OK)
