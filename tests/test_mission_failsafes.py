@@ -213,7 +213,9 @@ def test_the_daemon_stopping_in_flight_leaves_a_hold_target_and_lands(tmp_path: 
     telemetry = TelemetryRecorder(zenoh_port)
     try:
         wait_for(lambda: telemetry.get("mission").get("step_kind") == "fly", 40, "the fly step")
-        time.sleep(12.0)  # flying the 8 m leg (a ~35 s minimum-snap segment: near its top speed by now)
+        # The 8 m leg at 0.5 m/s is a ~35 s minimum-snap segment whose speed peaks mid-way: 16 s in it
+        # flies at ~0.45 m/s (12 s in, only ~0.3 m/s: too close to the check below).
+        time.sleep(16.0)
         daemon.send_signal(signal.SIGTERM)
         assert daemon.wait(5) == 0
         time.sleep(4.0)  # the vehicle, on its own
