@@ -166,15 +166,20 @@ def encode_array(values: np.ndarray, width: int) -> bytes:
     return chars.astype(np.uint8).tobytes()
 
 
-def decode_array(chars: bytes, width: int) -> np.ndarray:
-    """Vectorised :func:`decode` of concatenated ``width``-character numbers -> int64 array."""
-    if len(chars) % width:
-        raise TruncatedReply(f"{len(chars)} data characters is not a multiple of {width}")
-    c = np.frombuffer(chars, dtype=np.uint8).astype(np.int64) - 0x30
-    if c.size and (c.min() < 0 or c.max() > 0x3F):
+def decode_array(chars: bytes | np.ndarray, width: int) -> np.ndarray:
+    """Vectorised :func:`decode` of concatenated ``width``-character numbers -> int64 array
+    (``chars``: bytes, or a uint8 array of them)."""
+    c = np.frombuffer(chars, dtype=np.uint8) if isinstance(chars, bytes) else chars
+    if c.size % width:
+        raise TruncatedReply(f"{c.size} data characters is not a multiple of {width}")
+    digits = c - np.uint8(0x30)  # wraps below '0': one test catches both ends
+    if c.size and digits.max() > 0x3F:
         raise ScipProtocolError("invalid SCIP character in data")
-    shifts = 6 * np.arange(width - 1, -1, -1)
-    return (c.reshape(-1, width) << shifts).sum(axis=1)
+    columns = digits.reshape(-1, width).astype(np.int64)
+    value = columns[:, 0]
+    for i in range(1, width):
+        value = (value << 6) | columns[:, i]
+    return value
 
 
 def decode_data_lines(lines: Sequence[bytes], width: int) -> np.ndarray:
@@ -185,17 +190,17 @@ def decode_data_lines(lines: Sequence[bytes], width: int) -> np.ndarray:
     """
     if any(len(line) < 2 for line in lines):
         raise TruncatedReply("empty data line")
-    payload = b"".join(line[:-1] for line in lines)
-    lengths = np.fromiter((len(line) - 1 for line in lines), dtype=np.int64, count=len(lines))
-    if lines:
-        starts = np.concatenate(([0], np.cumsum(lengths)[:-1]))
-        sums = np.add.reduceat(np.frombuffer(payload, dtype=np.uint8).astype(np.int64), starts)
-        expected = (sums & 0x3F) + 0x30
-        got = np.frombuffer(bytes(line[-1] for line in lines), dtype=np.uint8)
-        bad = np.flatnonzero(expected != got)
-        if bad.size:
-            raise ChecksumError(f"bad sum byte in data line {int(bad[0]) + 1} of {len(lines)}")
-    return decode_array(payload, width)
+    if not lines:
+        return decode_array(b"", width)
+    joined = np.frombuffer(b"".join(lines), dtype=np.uint8)
+    lengths = np.array([len(line) for line in lines])
+    ends = np.cumsum(lengths)  # one past each line's sum byte
+    totals = np.add.reduceat(joined.astype(np.int64), ends - lengths)  # payload + sum byte
+    got = joined[ends - 1]
+    bad = np.flatnonzero(((totals - got) & 0x3F) + 0x30 != got)
+    if bad.size:
+        raise ChecksumError(f"bad sum byte in data line {int(bad[0]) + 1} of {len(lines)}")
+    return decode_array(b"".join([line[:-1] for line in lines]), width)
 
 
 # --- requests ---------------------------------------------------------------------------

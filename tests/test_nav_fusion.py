@@ -235,6 +235,28 @@ def test_late_and_out_of_order_fixes_are_re_propagated_exactly() -> None:
     assert on_time.stats.fixes_accepted == late.stats.fixes_accepted == shuffled.stats.fixes_accepted
 
 
+@pytest.mark.parametrize("position_error_m", [0.0, 1.0])  # 1 m: the position is gated out, the yaw is not
+def test_one_pose_correction_equals_a_position_then_a_yaw_correction(position_error_m: float) -> None:
+    """correct_pose re-propagates once; the state and counters are those of the two calls."""
+    rng = np.random.default_rng(5)
+    accel = rng.normal(0.0, 0.3, (30, 3)) + [0.0, 0.0, -GRAVITY_MPS2]
+    two_calls, one_call = _hovering_filter(), _hovering_filter()
+    for k in range(1, 30):
+        t = 1.0 + k * IMU_DT
+        for f in (two_calls, one_call):
+            _imu(f, t, tuple(accel[k]))
+        if k % 2 == 0:  # 40 ms late, 3 stored steps to re-run
+            t_capture, xy, yaw = t - 0.04, rng.normal(0.0, 0.01, 2) + position_error_m, rng.normal(0.0, 0.01)
+            accepted = two_calls.correct_position(t_capture, xy, np.eye(2) * 1e-4)
+            accepted &= two_calls.correct_yaw(t_capture, yaw, 1e-4)
+            assert one_call.correct_pose(t_capture, xy, np.eye(2) * 1e-4, yaw, 1e-4) == accepted
+    t = 1.0 + 29 * IMU_DT
+    assert _same(two_calls.state(t), one_call.state(t))
+    assert two_calls.stats == one_call.stats
+    assert one_call.stats.fixes_gated["position"] == (14 if position_error_m else 0)
+    assert one_call.stats.fixes_accepted["yaw"] > 14
+
+
 def test_gate_rejects_a_one_metre_outlier_and_counts_it(figure_eight: Run) -> None:
     with_outlier = simulate(20.0, outlier_at=15.03)
     clean = simulate(20.0)

@@ -76,9 +76,6 @@ _POSITION, _HEIGHT, _YAW, _RESET = range(4)
 _KIND_NAMES = ("position", "height", "yaw")
 _I3 = np.eye(3)
 _I9 = np.eye(9)
-# Process-noise entries: p-p, v-v, b-b diagonals, then the p-v and v-p couplings.
-_Q_ROWS = np.array([0, 1, 2, 3, 4, 5, 6, 7, 8, 0, 1, 2, 3, 4, 5])
-_Q_COLS = np.array([0, 1, 2, 3, 4, 5, 6, 7, 8, 3, 4, 5, 0, 1, 2])
 
 
 @dataclass(frozen=True)
@@ -191,7 +188,14 @@ class FusionFilter:
         self._yaw_var = 0.0
         self._accel_ned = (0.0, 0.0, 0.0)  # of the newest step, for extrapolation
         self._F = np.eye(9)
-        self._q_values = np.zeros(15)
+        self._q_dt = -1.0  # the step length self._Q was made for (steps repeat: 1 / IMU rate)
+        self._Q = np.zeros((9, 9))
+        qa, qb = c.accel_noise_density ** 2, c.accel_bias_walk ** 2
+        cubic, square, linear = np.zeros((9, 9)), np.zeros((9, 9)), np.zeros((9, 9))
+        cubic[0:3, 0:3] = qa * _I3  # p-p: qa dt^3 / 3
+        square[0:3, 3:6] = square[3:6, 0:3] = qa * _I3  # p-v: qa dt^2 / 2
+        linear[3:6, 3:6], linear[6:9, 6:9] = qa * _I3, qb * _I3  # v-v: qa dt, b-b: qb dt
+        self._noise_terms = (cubic, square, linear)
         self._initialised = False
         self._t_imu: float | None = None  # time of the newest used IMU sample
         self._attitude_yaw: float | None = None  # attitude yaw of that sample
@@ -257,13 +261,28 @@ class FusionFilter:
         (3, 3) in m^2. Returns True if the fix was applied (or waits for the IMU to reach its
         capture time), False if it was rejected (invalid, stale or gated; all counted).
         """
+        fix = self._position_fix(t_capture, position, covariance)
+        return fix is not None and self._submit(fix)
+
+    def correct_pose(self, t_capture: float, position: np.ndarray, covariance: np.ndarray, yaw: float,
+                     yaw_variance: float) -> bool:
+        """:meth:`correct_position` and :meth:`correct_yaw` of one capture (a planar localizer's
+        fix) with one re-propagation instead of two; the same result as the two calls in that
+        order. Each part is validated, gated and counted on its own; returns True if both were
+        applied (or wait for the IMU)."""
+        fixes = [f for f in (self._position_fix(t_capture, position, covariance), self._yaw_fix(t_capture, yaw, yaw_variance))
+                 if f is not None]
+        return bool(fixes) and self._submit(*fixes) and len(fixes) == 2
+
+    def _position_fix(self, t_capture: float, position: np.ndarray, covariance: np.ndarray) -> _Fix | None:
+        """The logged fix of a position (see :meth:`correct_position`), None (counted) if invalid."""
         z = np.array(position, dtype=float).ravel()
         r = np.array(covariance, dtype=float)
         m = z.size
         if m not in (2, 3) or r.shape != (m, m) or not _valid(t_capture, z, r):
             self.stats.fixes_invalid += 1
-            return False
-        return self._submit(_Fix(float(t_capture), _POSITION, z, 0.5 * (r + r.T), slice(0, m)))
+            return None
+        return _Fix(float(t_capture), _POSITION, z, 0.5 * (r + r.T), slice(0, m))
 
     def correct_height(self, t_capture: float, height_m_up: float, variance: float) -> bool:
         """Fuse a height above the floor (m, positive up: NED z = -height), variance in m^2."""
@@ -276,10 +295,15 @@ class FusionFilter:
 
     def correct_yaw(self, t_capture: float, yaw: float, variance: float) -> bool:
         """Fuse a map heading (rad, north towards east) captured at ``t_capture``, variance rad^2."""
+        fix = self._yaw_fix(t_capture, yaw, variance)
+        return fix is not None and self._submit(fix)
+
+    def _yaw_fix(self, t_capture: float, yaw: float, variance: float) -> _Fix | None:
+        """The logged fix of a heading (see :meth:`correct_yaw`), None (counted) if invalid."""
         if not _valid(t_capture, np.array([yaw]), np.array([[float(variance)]])):
             self.stats.fixes_invalid += 1
-            return False
-        return self._submit(_Fix(float(t_capture), _YAW, wrap_pi(float(yaw)), float(variance), None))
+            return None
+        return _Fix(float(t_capture), _YAW, wrap_pi(float(yaw)), float(variance), None)
 
     def reset(self, position_ned: np.ndarray, yaw: float, t: float, position_variance: float | None = None,
               yaw_variance: float | None = None) -> bool:
@@ -372,35 +396,45 @@ class FusionFilter:
             reason = f"position fix {t - self._last_accepted[_POSITION]:.2f} s old"
         return worst, reason
 
-    def _submit(self, fix: _Fix) -> bool:
-        """Seed, queue (captured after the newest IMU sample) or apply a fix with re-propagation."""
+    def _submit(self, *fixes: _Fix) -> bool:
+        """Seed, queue (captured after the newest IMU sample) or apply fixes of one capture time
+        with one re-propagation. False if any was rejected (stale, a clock error or gated)."""
         if not self._initialised:
-            self._seed(fix)
+            for fix in fixes:
+                self._seed(fix)
             return True
-        if fix.t > self._t_imu:
-            if fix.t > self._t_imu + self.config.buffer_s:  # a clock error, not latency
-                self.stats.fixes_invalid += 1
+        t = fixes[0].t
+        if t > self._t_imu:
+            if t > self._t_imu + self.config.buffer_s:  # a clock error, not latency
+                self.stats.fixes_invalid += len(fixes)
                 return False
-            self._insert(fix)  # applied by predict() when the IMU reaches it
+            for fix in fixes:
+                self._insert(fix)  # applied by predict() when the IMU reaches it
             return True
         cap = self.config.buffer_capacity
         j, steps = self._newest, 1
-        while self._T[j] >= fix.t:
+        while self._T[j] >= t:
             if steps >= self._count:
                 j = -1
                 break
             j, steps = (j - 1) % cap, steps + 1
-        if j < 0 or fix.t < self._t_imu - self.config.buffer_s:
-            self.stats.fixes_stale += 1
+        if j < 0 or t < self._t_imu - self.config.buffer_s:
+            self.stats.fixes_stale += len(fixes)
             return False
-        self._insert(fix)
-        return self._replay(j)
+        for fix in fixes:
+            self._insert(fix)
+        applied = True
+        while not self._replay(j):  # a new fix was gated out and removed from the log: the newest
+            applied = False          # state was restored, so replay for the new fixes still logged
+            if not any(logged is fix for fix in fixes for logged in self._fixes):
+                break
+        return applied
 
     def _replay(self, j: int) -> bool:
         """Re-run stored IMU inputs and logged fixes from ring entry ``j`` to the newest.
 
-        The new fix lies in the first interval: if the gate rejects it the replay stops and
-        the newest state is restored untouched.
+        The new fixes lie in the first interval: if the gate rejects one the replay stops and
+        the newest state is restored untouched (the caller replays again for the others).
         """
         cap = self.config.buffer_capacity
         accel_ned = self._accel_ned
@@ -477,20 +511,25 @@ class FusionFilter:
         self._x[0:6] = (px + vx * dt + h * ax, py + vy * dt + h * ay, pz + vz * dt + h * az,
                         vx + dt * ax, vy + dt * ay, vz + dt * az)
         F = self._F
-        R = np.array(((r00, r01, r02), (r10, r11, r12), (r20, r21, r22)))
-        F[0:3, 6:9] = R * -h
-        F[3:6, 6:9] = R * -dt
+        F[0:6, 6:9] = ((-h * r00, -h * r01, -h * r02), (-h * r10, -h * r11, -h * r12), (-h * r20, -h * r21, -h * r22),
+                       (-dt * r00, -dt * r01, -dt * r02), (-dt * r10, -dt * r11, -dt * r12),
+                       (-dt * r20, -dt * r21, -dt * r22))  # dp/db = -R dt^2/2, dv/db = -R dt
         F[0, 3] = F[1, 4] = F[2, 5] = dt
         P = F @ self._cov @ F.T
-        qa, qb = c.accel_noise_density ** 2, c.accel_bias_walk ** 2
-        pp, pv, vv, bb = qa * dt ** 3 / 3.0, qa * h, qa * dt, qb * dt
-        q = self._q_values
-        q[0:3], q[3:6], q[6:9], q[9:15] = pp, vv, bb, pv
-        P[_Q_ROWS, _Q_COLS] += q
+        if dt != self._q_dt:
+            self._Q = self._process_noise(dt)
+            self._q_dt = dt
+        P += self._Q
         self._cov = P
         self._yaw = wrap_pi(self._yaw + yaw_rate * dt)
         self._yaw_var += c.yaw_rate_noise_density ** 2 * dt
         self._accel_ned = (ax, ay, az)
+
+    def _process_noise(self, dt: float) -> np.ndarray:
+        """(9, 9) discrete process noise of one ``dt`` s step: white acceleration integrated into
+        position and velocity (with their coupling) and the bias random walk."""
+        cubic, square, linear = self._noise_terms
+        return (dt ** 3 / 3.0) * cubic + (0.5 * dt * dt) * square + dt * linear
 
     def _apply(self, fix: _Fix) -> bool:
         """Apply one logged fix to the working state; gate it the first time. False if rejected."""
@@ -498,13 +537,14 @@ class FusionFilter:
             self._apply_reset(fix)
             self._mark_accepted(_RESET, fix.t)
             return True
+        s_inv = None if fix.kind == _YAW else np.linalg.inv(self._cov[fix.rows, fix.rows] + fix.r)  # innovation
         if fix.gated:
             if fix.kind == _YAW:
                 y = wrap_pi(fix.z - self._yaw)
                 nis, dof = y * y / (self._yaw_var + fix.r), 1
             else:
                 y = fix.z - self._x[fix.rows]
-                nis, dof = float(y @ np.linalg.solve(self._cov[fix.rows, fix.rows] + fix.r, y)), y.size
+                nis, dof = float(y @ s_inv @ y), y.size
             if nis > CHI2_GATE_999[dof]:
                 if fix.t - self._last_accepted[fix.kind] <= self.config.relock_after_s:
                     self.stats.fixes_gated[_KIND_NAMES[fix.kind]] += 1
@@ -534,7 +574,7 @@ class FusionFilter:
         else:
             rows = fix.rows
             P = self._cov
-            K = P[:, rows] @ np.linalg.inv(P[rows, rows] + fix.r)
+            K = P[:, rows] @ s_inv
             self._x += K @ (fix.z - self._x[rows])
             A = _I9.copy()
             A[:, rows] -= K
