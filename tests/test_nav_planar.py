@@ -229,30 +229,70 @@ def test_one_corner_is_a_degraded_but_usable_fix(arena: World, geometry: WorldGe
 # -- lost and relocalization ---------------------------------------------------------------------
 
 @pytest.mark.parametrize("pose", [(2.0, 2.0, 30.0), (8.5, 7.5, 200.0), (6.5, 2.0, -120.0), (3.0, 7.0, 100.0)])
-def test_relocalizes_from_an_unknown_start(arena: World, geometry: WorldGeometry,
-                                           pose: tuple[float, float, float]) -> None:
+def test_relocalizes_from_an_unknown_start_once_consecutive_scans_agree(
+        arena: World, geometry: WorldGeometry, pose: tuple[float, float, float]) -> None:
     x, y, yaw = pose[0], pose[1], math.radians(pose[2])
     loc = localizer(arena, geometry, None)
-    fix = loc.update(scan_at(geometry, x, y, yaw, np.random.default_rng(10)))
+    rng = np.random.default_rng(10)
+    needed = loc.params.reloc_confirm_frames
+    for k in range(1, needed):  # a candidate, not yet a pose: nothing to send
+        assert loc.update(scan_at(geometry, x, y, yaw, rng)) is None
+        assert f"found by {k} of the {needed} consecutive scans" in loc.last_reason
+        assert loc.candidate is not None and loc.candidate.frames == k and not loc.candidate.local
+    fix = loc.update(scan_at(geometry, x, y, yaw, rng))
     assert fix is not None, loc.last_reason
-    assert fix.relocalized and fix.measured and fix.matched >= 3
+    assert fix.relocalized and fix.measured and fix.matched >= 3 and loc.candidate is None
     assert math.hypot(fix.x - x, fix.y - y) < 0.03 and yaw_error(fix.yaw, yaw) < math.radians(0.3)
     assert_finite(fix)
 
 
 def test_relocalizes_from_a_wrong_start(arena: World, geometry: WorldGeometry) -> None:
     rng = np.random.default_rng(11)
-    loc = localizer(arena, geometry, (3.5, 3.0, 0.3))  # 2.6 m and 6 deg off
+    loc = localizer(arena, geometry, (3.5, 3.0, 0.3))  # 2.6 m and 6 deg off: beyond the local search
     states = []
-    for _ in range(8):
+    for _ in range(10):
         fix = loc.update(scan_at(geometry, 1.5, 1.2, 0.2, rng))
         assert_finite(fix)
         states.append((fix.state, fix.relocalized, fix.measured))
-    first = states.index(("tracking", True, True))  # after lost_after_frames frames without a match
-    assert first == loc.params.lost_after_frames - 1
-    assert all(s == ("degraded", False, False) for s in states[:first])
+    lost_at = loc.params.lost_after_frames - 1  # frames without a match: degraded, then lost
+    first = states.index(("tracking", True, True))
+    assert first == lost_at + loc.params.reloc_confirm_frames - 1  # the jump confirmed by consecutive scans
+    assert all(s == ("degraded", False, False) for s in states[:lost_at])
+    assert all(s == ("lost", False, False) for s in states[lost_at:first])  # never a confident wrong pose
     assert all(s == ("tracking", False, True) for s in states[first + 1:])
     assert math.hypot(fix.x - 1.5, fix.y - 1.2) < 0.02 and yaw_error(fix.yaw, 0.2) < math.radians(0.2)
+
+
+def test_a_relocalization_that_keeps_moving_is_never_confirmed(arena: World, geometry: WorldGeometry) -> None:
+    """Scans alternating between two places (a search fooled every other scan): no pose, ever."""
+    loc = localizer(arena, geometry, None)
+    rng = np.random.default_rng(15)
+    for k in range(4 * loc.params.reloc_confirm_frames):
+        x, y, yaw = (2.0, 2.0, math.radians(30.0)) if k % 2 == 0 else (8.5, 7.5, math.radians(200.0))
+        assert loc.update(scan_at(geometry, x, y, yaw, rng)) is None
+        assert loc.candidate is not None and loc.candidate.frames == 1
+
+
+def test_the_held_pose_picks_between_look_alike_rooms() -> None:
+    """Two identical rooms 10 m apart: the whole-map search has no clear winner, the held pose
+    (0.6 m and 5 deg off, lost) says which room; the jump to it is then confirmed as usual."""
+    room = square_room(4.0, 90)
+    corners = np.array([(0, 0), (4, 0), (4, 4), (0, 4)], dtype=float)
+    twins = np.vstack((corners, corners + (10.0, 0.0)))
+    geometry = WorldGeometry.from_world(room)
+    truth = (1.7, 2.2, math.radians(40))
+    rng = np.random.default_rng(16)
+    unknown = PlanarLocalizer(twins, 90, mount=MOUNT)
+    assert unknown.update(scan_at(geometry, *truth, rng)) is None
+    assert "no clear winner" in unknown.last_reason
+    held = PlanarLocalizer(twins, 90, mount=MOUNT, initial_pose=(truth[0] + 0.6, truth[1], truth[2] + math.radians(5)))
+    fixes = [held.update(scan_at(geometry, *truth, rng)) for _ in range(10)]
+    first = next(k for k, f in enumerate(fixes) if f.relocalized)
+    assert first == held.params.lost_after_frames - 1 + held.params.reloc_confirm_frames - 1
+    assert all(not f.measured for f in fixes[:first]) and all(f.measured for f in fixes[first:])
+    assert "local candidate" in fixes[first - 1].reason
+    fix = fixes[-1]
+    assert math.hypot(fix.x - truth[0], fix.y - truth[1]) < 0.03 and yaw_error(fix.yaw, truth[2]) < math.radians(0.5)
 
 
 def test_symmetric_room_has_no_clear_winner() -> None:

@@ -84,6 +84,9 @@ class LidarPipelineConfig:
         "Start pose [north m, east m, yaw deg] in the map; null = relocalize globally from the first scans."))
     correspondence_gate_m: float = field(default=0.5, metadata=meta(
         "Nearest-neighbour gate between an observed and a map corner.", (0.05, 5)))
+    relocalization_confirm_scans: int = field(default=3, metadata=meta(
+        "Consecutive scans that must find a relocalization jump (each near the previous one, turned as the gyro "
+        "says) before it becomes the pose; until then the lidar pose is lost.", (1, 40)))
 
     def sensor_inputs(self) -> dict[str, str]:
         return {"horizontal_sensor": "lidar", "vertical_sensor": "lidar", "imu_sensor": "imu"}
@@ -100,7 +103,7 @@ class LidarPipelineConfig:
 
 def planar_params(cfg: LidarPipelineConfig) -> PlanarParams:
     """The localizer's thresholds from the config (the rest keep the defaults of companion/nav)."""
-    return PlanarParams(gate_m=cfg.correspondence_gate_m)
+    return PlanarParams(gate_m=cfg.correspondence_gate_m, reloc_confirm_frames=cfg.relocalization_confirm_scans)
 
 
 def planar_mount(mount: MountConfig) -> Mount2D:
@@ -215,8 +218,8 @@ class LidarPipeline:
             z = self.fusion.state(scan.t_capture).position_ned[2]
             self.fusion.reset(np.array([fix.x, fix.y, z]), fix.yaw, scan.t_capture)
         elif fix.measured:
-            self.fusion.correct_position(scan.t_capture, np.array([fix.x, fix.y]), fix.covariance[:2, :2])
-            self.fusion.correct_yaw(scan.t_capture, fix.yaw, float(fix.covariance[2, 2]))
+            self.fusion.correct_pose(scan.t_capture, np.array([fix.x, fix.y]), fix.covariance[:2, :2], fix.yaw,
+                                     float(fix.covariance[2, 2]))
         if fix.measured:
             self.stats.planar_fixes += 1
             self.stats.first_fix_t = self.stats.first_fix_t if self.stats.first_fix_t is not None else scan.t_capture
@@ -248,9 +251,14 @@ class LidarPipeline:
         return to_pose_estimate(state, roll, pitch, reset=reset, source=self.name)
 
     def snapshot(self) -> dict:
-        """Telemetry: counters and the fix rate."""
+        """Telemetry: counters, the fix rate and the relocalization candidate waiting for confirmation."""
+        c = self.localizer.candidate
+        candidate = None if c is None else {
+            "position_ned_m": (c.x, c.y), "yaw_rad": c.yaw, "matched": c.matched, "local": c.local,
+            "frames": c.frames, "frames_needed": self.localizer.params.reloc_confirm_frames}
         return {**{k: v for k, v in vars(self.stats).items()}, "fix_rate_hz": self.stats.fix_rate_hz(),
-                "fusion": {"gated": dict(self.fusion.stats.fixes_gated), "stale": self.fusion.stats.fixes_stale}}
+                "fusion": {"gated": dict(self.fusion.stats.fixes_gated), "stale": self.fusion.stats.fixes_stale},
+                "relocalization_candidate": candidate}
 
     def telemetry(self, static_due: bool) -> dict[str, dict[str, Any]]:
         """The newest processed scan's scan, lines and corners (once per scan); the map when due."""

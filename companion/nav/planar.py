@@ -55,13 +55,22 @@ map pair in distance AND direction). The best distinct poses are refined by the 
 association and update; if the walls are known, the fraction of scan points lying on a wall
 breaks ties (it sees, for instance, which room's doors the beams go through). Only a clear
 winner is accepted (more corners than every other distinct pose, or as many but a wall fraction
-``reloc_wall_margin`` higher); the fix then has ``relocalized`` True when it is a jump from the
-pose held before (or there was none), so the daemon increments ``reset_counter``.
+``reloc_wall_margin`` higher). With a pose held (lost after coasting), the hypotheses within
+``reloc_local_m`` of it and at the heading nearest its yaw are tried first and the whole map only
+when they have no clear winner: a map has look-alike places, and the held pose says which one
+the vehicle is more likely in. A winner within ``jump_m`` / ``jump_rad`` of the held pose resumes
+tracking at once. A jump (or a first pose) is only a candidate (:attr:`PlanarLocalizer.candidate`)
+until ``reloc_confirm_frames`` consecutive scans found it, each within ``reloc_confirm_gate_m``
+of the previous one and turned by the gyro's yaw change within ``reloc_confirm_gate_rad`` (at 40
+scans/s the gate allows 12 m/s); meanwhile the fix stays lost (None without a pose), never a
+confident wrong pose. The confirming fix has ``relocalized`` True, so the daemon increments
+``reset_counter``.
 """
 
 from __future__ import annotations
 
 import math
+import statistics
 import time
 from dataclasses import dataclass, field
 from typing import Literal
@@ -113,6 +122,10 @@ class PlanarParams:
     reloc_min_wall_fraction: float = 0.5  # the winner's points on walls (when walls are known)
     jump_m: float = 0.3  # a relocalization moving the pose more than this is a reset
     jump_rad: float = math.radians(10.0)  # ... or turning it more than this
+    reloc_local_m: float = 1.5  # with a pose held, hypotheses within this of it are tried first, metres
+    reloc_confirm_frames: int = 3  # consecutive scans that must find a jump before it becomes the pose
+    reloc_confirm_gate_m: float = 0.3  # ... each within this of the previous one, metres
+    reloc_confirm_gate_rad: float = math.radians(5.0)  # ... and turned by the gyro's change within this
 
 
 @dataclass(frozen=True)
@@ -146,6 +159,19 @@ class Match:
     rms_m: float  # RMS residual of the matched corners after the update
 
 
+@dataclass(frozen=True)
+class RelocCandidate:
+    """A relocalization jump not yet confirmed: the pose the search found (x, y m; yaw rad), the
+    consecutive scans that found it, the corners it matched and how it ranked."""
+
+    x: float
+    y: float
+    yaw: float
+    frames: int
+    matched: int
+    local: bool  # found near the held pose (True) or by the global search
+
+
 def rotation(yaw: float) -> np.ndarray:
     """2-D rotation from the levelled body frame to the world (north, east)."""
     c, s = math.cos(yaw), math.sin(yaw)
@@ -174,6 +200,8 @@ class PlanarLocalizer:
         self.last_corners: Corners | None = None
         self._cov = np.diag([params.lost_variance_m2, params.lost_variance_m2, UNMEASURED_VARIANCE_RAD2])
         self._misses = 0
+        self.candidate: RelocCandidate | None = None  # an unconfirmed relocalization jump
+        self._yaw_delta = 0.0  # the gyro's yaw change given with the scan being processed, rad
         self._angles: np.ndarray | None = None
         self._unit = np.zeros((0, 2))
         self._level_cache: tuple[float, float, np.ndarray, np.ndarray] | None = None
@@ -207,6 +235,7 @@ class PlanarLocalizer:
         gyro's yaw change since the previous scan (rad), added to the predicted heading (leave
         it 0 with a ``prior`` whose yaw already includes the turn)."""
         t0 = time.perf_counter()
+        self._yaw_delta = yaw_delta
         points, ok, ranges = self.level_points(scan, roll, pitch, valid)
         lines = extract_lines(points, ok, self.params.lines, ranges)
         t1 = time.perf_counter()
@@ -261,13 +290,13 @@ class PlanarLocalizer:
             return Match(np.asarray(xy, dtype=float), self._cov, 0, 0.0)
         disp = self.map[idx] - (xy + world[obs])  # eq. 8: map corner minus observed corner
         cov = rot @ corners.cov[obs] @ rot.T
-        weight = 1.0 / np.trace(cov, axis1=1, axis2=2)
+        weight = 1.0 / (cov[:, 0, 0] + cov[:, 1, 1])
         keep = self._inliers(disp, weight)
         disp, cov, weight, arms = disp[keep], cov[keep], weight[keep], world[obs][keep]
         w = weight / weight.sum()
         delta = w @ disp
         resid = disp - delta
-        pos_cov = np.einsum("j,jkl->kl", w * w, cov) * _chi2_scale(resid, cov)
+        pos_cov = ((w * w) @ cov.reshape(-1, 4)).reshape(2, 2) * _chi2_scale(resid, cov)
         if w.size == 1:
             pos_cov = pos_cov * self.params.single_corner_inflation
         lever = w @ arms  # d(position)/d(yaw) = (lever_y, -lever_x): p = m - R(yaw) q
@@ -276,7 +305,7 @@ class PlanarLocalizer:
         full[:2, :2] = pos_cov + heading.variance * np.outer(dp_dyaw, dp_dyaw)
         full[:2, 2] = full[2, :2] = heading.variance * dp_dyaw
         full[2, 2] = heading.variance
-        rms = float(np.sqrt(np.mean(np.sum(resid ** 2, axis=1))))
+        rms = math.sqrt(float(np.dot(resid.ravel(), resid.ravel())) / w.size)
         return Match(xy + delta, full, int(w.size), rms)
 
     # -- internals ----------------------------------------------------------------------------
@@ -306,7 +335,7 @@ class PlanarLocalizer:
         while keep.sum() >= 3:
             w = weight[keep] / weight[keep].sum()
             resid = np.hypot(*(disp - w @ disp[keep]).T)
-            limit = max(self.params.outlier_k * float(np.median(resid[keep])), self.params.outlier_floor_m)
+            limit = max(self.params.outlier_k * statistics.median(resid[keep].tolist()), self.params.outlier_floor_m)
             bad = keep & (resid > limit)
             if not bad.any():
                 break
@@ -329,6 +358,7 @@ class PlanarLocalizer:
     def _accept(self, m: Match, yaw: float, heading: HeadingResult, relocalized: bool,
                 timing: dict[str, float], t0: float) -> PlanarFix:
         self._pose = (float(m.xy[0]), float(m.xy[1]), yaw)
+        self.candidate = None
         self._cov = m.covariance
         self._misses = 0
         state: PlanarState = "tracking"
@@ -365,16 +395,26 @@ class PlanarLocalizer:
 
     def _relocalize(self, lines: LineSet, corners: Corners, points: np.ndarray, why: str,
                     heading_status: str, timing: dict[str, float], t0: float) -> PlanarFix | None:
-        """Global search (see the module docstring); a lost fix (or None) when no clear winner."""
+        """Search (see the module docstring). A pose within ``jump_m`` / ``jump_rad`` of the held one
+        resumes tracking; a jump becomes the pose only after ``reloc_confirm_frames`` consecutive
+        scans found it; until then a lost fix (or None without a pose) names the candidate."""
         t = time.perf_counter()
         found, detail = self._search(lines, corners, points)
         timing["relocalize"] = (time.perf_counter() - t) * 1e3
-        if found is not None:
-            match, heading = found
+        if found is None:
+            self.candidate = None
+        else:
+            match, heading, local = found
             jump = self._pose is None or (
                 math.dist(self._pose[:2], match.xy) > self.params.jump_m
                 or abs(wrap_pi(self._pose[2] - heading.yaw)) > self.params.jump_rad)
-            return self._accept(match, heading.yaw, heading, jump, timing, t0)
+            if not jump or self._confirmed(match, heading.yaw, local):
+                return self._accept(match, heading.yaw, heading, jump, timing, t0)
+            c = self.candidate
+            assert c is not None
+            detail = (f"{'local' if local else 'global'} candidate ({c.x:.2f}, {c.y:.2f}) m, "
+                      f"{math.degrees(c.yaw):.0f} deg, {c.matched} corners: found by {c.frames} of the "
+                      f"{self.params.reloc_confirm_frames} consecutive scans needed")
         timing["total"] = (time.perf_counter() - t0) * 1e3
         if self._pose is None:
             self.last_reason = f"{why}; relocalization: {detail}"
@@ -384,22 +424,48 @@ class PlanarLocalizer:
         return PlanarFix(x, y, yaw, cov, 0, "lost", f"{why}; relocalization: {detail}", False, heading_status,
                          timing)
 
+    def _confirmed(self, match: Match, yaw: float, local: bool) -> bool:
+        """Count this scan for the candidate jump it found (a new candidate unless it agrees with the
+        previous one moved by the gyro's yaw change); True once enough consecutive scans found it."""
+        p, c = self.params, self.candidate
+        x, y = float(match.xy[0]), float(match.xy[1])
+        same = (c is not None and math.hypot(x - c.x, y - c.y) <= p.reloc_confirm_gate_m
+                and abs(wrap_pi(yaw - c.yaw - self._yaw_delta)) <= p.reloc_confirm_gate_rad)
+        self.candidate = RelocCandidate(x, y, yaw, c.frames + 1 if same and c else 1, match.matched, local)
+        return self.candidate.frames >= p.reloc_confirm_frames
+
     def _search(self, lines: LineSet, corners: Corners,
-                points: np.ndarray) -> tuple[tuple[Match, HeadingResult] | None, str]:
+                points: np.ndarray) -> tuple[tuple[Match, HeadingResult, bool] | None, str]:
+        """The relocalized pose (match, heading, whether it was found near the held pose) or why none.
+        With a pose held, the hypotheses within ``reloc_local_m`` of it and at the heading nearest
+        its yaw are tried first; the global search only when they give no clear winner."""
         p = self.params
         yaws, base = heading_hypotheses(lines, self.wall_angle, p.heading)
         if yaws.size == 0:
             return None, base.reason
         if corners.count < p.reloc_min_inliers:
             return None, f"{corners.count} corners visible, at least {p.reloc_min_inliers} needed"
-        spread = np.trace(corners.cov, axis1=1, axis2=2)
+        spread = corners.cov[:, 0, 0] + corners.cov[:, 1, 1]
         corners = corners.subset(np.argsort(spread)[:p.reloc_max_corners])
         poses = _pose_hypotheses(corners.xy, self.map, yaws, p.reloc_tolerance_m, p.reloc_min_inliers)
+        if self._pose is not None:
+            hx, hy, hyaw = self._pose
+            near = ((np.hypot(poses[:, 2] - hx, poses[:, 3] - hy) <= p.reloc_local_m)
+                    & (np.abs(wrap_pi(poses[:, 1] - hyaw)) <= 0.5 * self.wall_angle))
+            found, _ = self._clear_winner(poses[near], corners, points, base)
+            if found is not None:
+                return (*found, True), ""
+        found, detail = self._clear_winner(poses, corners, points, base)
+        return (None, detail) if found is None else ((*found, False), "")
+
+    def _clear_winner(self, poses: np.ndarray, corners: Corners, points: np.ndarray,
+                      base: HeadingResult) -> tuple[tuple[Match, HeadingResult] | None, str]:
+        """Refine the best distinct pose rows (score, yaw, x, y) and keep a clear winner, if any."""
+        p = self.params
         if poses.shape[0]:
             poses = poses[poses[:, 0] >= poses[0, 0] - 1]
-        poses = _distinct(poses, p.reloc_distinct_m, p.reloc_candidates)
         scored = []
-        for score, yaw, tx, ty in poses:
+        for score, yaw, tx, ty in _distinct(poses, p.reloc_distinct_m, p.reloc_candidates):
             heading = _with_yaw(base, float(yaw))
             m = self.match(corners, np.array([tx, ty]), heading, p.reloc_tolerance_m)
             frac = self._wall_fraction(points, m.xy, heading.yaw)
@@ -451,7 +517,9 @@ def _chi2_scale(resid: np.ndarray, cov: np.ndarray) -> float:
     n = resid.shape[0]
     if n < 2:
         return 1.0
-    chi2 = float(np.einsum("ji,jik,jk->", resid, np.linalg.inv(cov), resid))
+    x, y = resid[:, 0], resid[:, 1]
+    a, b, d = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+    chi2 = float(np.sum((d * x * x - 2.0 * b * x * y + a * y * y) / (a * d - b * b)))  # r^T C^-1 r, 2x2 closed form
     return max(1.0, chi2 / (2 * (n - 1)))
 
 
