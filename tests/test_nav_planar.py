@@ -3,17 +3,18 @@
 from __future__ import annotations
 
 import math
+import tracemalloc
 
 import numpy as np
 import pytest
 
 from companion.nav.lidar_pipeline import LidarPipelineConfig
-from companion.nav.bench_stages import DEFAULT_WORLD, make_mount, run_stage_bench, synthetic_scan
+from companion.nav.bench_stages import DEFAULT_WORLD, make_mount, run_stage_bench, synthetic_scan, tiled_map
 from companion.nav.corners import find_corners
 from companion.nav.heading import HeadingResult, track_heading, wall_mod
 from companion.nav.lidar_pipeline import planar_params
 from companion.nav.lines import LineSet, extract_lines
-from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer
+from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer, _pose_hypotheses
 from drivers.lidar_models import UTM_30LX
 from companion.messages import Scan
 from sitl.raycast import WorldGeometry
@@ -336,9 +337,56 @@ def test_ambiguous_walls_are_lost_at_once(arena: World) -> None:
     assert_finite(fix)
 
 
+def _brute_force_hypotheses(observed: np.ndarray, landmarks: np.ndarray, yaws: np.ndarray, tolerance: float,
+                            min_score: int) -> np.ndarray:
+    """The score of every (heading, observed i -> map a) translation by comparing it with all others."""
+    k, m = observed.shape[0], landmarks.shape[0]
+    rows = []
+    for yaw in yaws:
+        c, s_ = math.cos(yaw), math.sin(yaw)
+        trans = (landmarks[None, :, :] - (observed @ np.array([[c, -s_], [s_, c]]).T)[:, None, :]).reshape(-1, 2)
+        diff = trans[:, None, :] - trans[None, :, :]
+        close = (diff[..., 0] ** 2 + diff[..., 1] ** 2 <= tolerance ** 2).reshape(k * m, k, m)
+        score = close.any(axis=2).sum(axis=1)
+        good = score >= min_score
+        rows.append(np.column_stack((score[good], np.full(good.sum(), yaw), trans[good])))
+    out = np.concatenate(rows)
+    return out[np.argsort(-out[:, 0], kind="stable")]
+
+
+def test_pose_hypotheses_score_as_the_all_pairs_comparison_does() -> None:
+    rng = np.random.default_rng(17)
+    for trial in range(60):
+        landmarks = np.round(rng.uniform(0.0, 10.0, (int(rng.integers(1, 40)), 2)), 1)
+        yaw = rng.uniform(-math.pi, math.pi)
+        picked = landmarks[rng.choice(landmarks.shape[0], min(landmarks.shape[0], int(rng.integers(1, 11))), replace=False)]
+        c, s_ = math.cos(yaw), math.sin(yaw)
+        observed = (picked - rng.uniform(-5, 5, 2)) @ np.array([[c, -s_], [s_, c]]) + rng.normal(0, 0.05, picked.shape)
+        yaws = np.array([yaw, yaw + math.pi / 2, 0.0])
+        for tolerance, min_score in ((0.15, 1), (0.3, 2)):
+            np.testing.assert_array_equal(_pose_hypotheses(observed, landmarks, yaws, tolerance, min_score),
+                                          _brute_force_hypotheses(observed, landmarks, yaws, tolerance, min_score))
+
+
+def test_relocalization_on_a_1500_corner_map_stays_small(arena: World, geometry: WorldGeometry) -> None:
+    """The arena tiled 10 x 10: 100 look-alike rooms. No clear winner (honestly), in little memory."""
+    corners, walls = tiled_map(arena, 10, HEIGHT_M - MOUNT.z_m)
+    assert corners.shape[0] == 1500
+    loc = PlanarLocalizer(corners, arena.wall_angle_deg, mount=MOUNT, walls=walls)
+    scan = scan_at(geometry, 2.0, 2.0, math.radians(30), np.random.default_rng(18))
+    tracemalloc.start()
+    try:
+        assert loc.update(scan) is None and "no clear winner" in loc.last_reason
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 50e6  # the all-pairs comparison needed ~1.4 GB here
+
+
 def test_stage_bench_runs() -> None:
     result = run_stage_bench(3)
     assert "lidar.planar update (whole pipeline)" in result
+    assert "lidar.relocalize, 1,500 corners (arena tiled 10x10)" in result
     assert all(math.isfinite(m) and math.isfinite(p) and 0 < m <= p for m, p in result.values())
 
 

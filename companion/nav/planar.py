@@ -194,6 +194,9 @@ class PlanarLocalizer:
         self.wall_angle = math.radians(wall_angle_deg)
         self.mount = mount
         self.walls = None if walls is None else np.asarray(walls, dtype=float).reshape(-1, 4)
+        if self.walls is not None:  # each wall's bounding box, for the wall check near a pose only
+            self._wall_lo = np.minimum(self.walls[:, 0:2], self.walls[:, 2:4])
+            self._wall_hi = np.maximum(self.walls[:, 0:2], self.walls[:, 2:4])
         self.params = params
         self._pose: tuple[float, float, float] | None = None
         self.last_lines: LineSet | None = None  # what update() extracted from its last scan (never mutated)
@@ -215,8 +218,9 @@ class PlanarLocalizer:
         self._misses = 0
 
     def forget(self) -> None:
-        """Drop the pose: the next update relocalizes globally."""
+        """Drop the pose (and any relocalization candidate): the next update relocalizes afresh."""
         self._pose = None
+        self.candidate = None
 
     @property
     def pose(self) -> tuple[float, float, float] | None:
@@ -486,7 +490,12 @@ class PlanarLocalizer:
         if self.walls is None or points.shape[0] == 0:
             return 0.0
         world = xy + points[::4] @ rotation(yaw).T
-        a, b = self.walls[:, 0:2], self.walls[:, 2:4]
+        # Walls whose bounding box is further than the tolerance from the points' cannot hold one.
+        tol = self.params.reloc_wall_tolerance_m
+        near = np.all((self._wall_hi >= world.min(axis=0) - tol) & (self._wall_lo <= world.max(axis=0) + tol), axis=1)
+        if not near.any():
+            return 0.0
+        a, b = self.walls[near, 0:2], self.walls[near, 2:4]
         edge = b - a
         rel = world[:, None, :] - a[None, :, :]
         u = np.clip(np.einsum("psk,sk->ps", rel, edge) / np.einsum("sk,sk->s", edge, edge), 0.0, 1.0)
@@ -527,18 +536,58 @@ def _pose_hypotheses(observed: np.ndarray, landmarks: np.ndarray, yaws: np.ndarr
                      min_score: int) -> np.ndarray:
     """Rows (score, yaw, x, y): every (heading, observed corner i -> map corner a) hypothesis
     scoring at least ``min_score``, best first. The score counts the observed corners j that
-    have a map corner b with (b - R q_j) within ``tolerance`` of the hypothesis translation."""
+    have a map corner b with (b - R q_j) within ``tolerance`` of the hypothesis translation.
+
+    Each (j, b) pair proposes the translation ``b - R q_j``; the score is the number of distinct
+    observed corners among the proposals within ``tolerance`` of the hypothesis' own. Proposals
+    are bucketed in a grid of ``tolerance`` cells, so only neighbouring cells are compared:
+    time and memory grow with k * m (observed times map corners), not (k * m)^2."""
     k, m = observed.shape[0], landmarks.shape[0]
+    owner = np.repeat(np.arange(k), m)  # the observed corner of each proposal, row i * m + a
     rows = []
     for yaw in yaws:
         trans = (landmarks[None, :, :] - (observed @ rotation(float(yaw)).T)[:, None, :]).reshape(-1, 2)
-        diff = trans[:, None, :] - trans[None, :, :]
-        close = (diff[..., 0] ** 2 + diff[..., 1] ** 2 <= tolerance ** 2).reshape(k * m, k, m)
-        score = close.any(axis=2).sum(axis=1)
+        score = _owners_within(trans, owner, k, tolerance)
         good = score >= min_score
         rows.append(np.column_stack((score[good], np.full(good.sum(), yaw), trans[good])))
     out = np.concatenate(rows) if rows else np.zeros((0, 4))
     return out[np.argsort(-out[:, 0], kind="stable")]
+
+
+def _owners_within(points: np.ndarray, owner: np.ndarray, owners: int, radius: float) -> np.ndarray:
+    """For every point of ``points`` (n, 2), how many distinct ``owner`` values (0 .. owners-1) the
+    points within ``radius`` of it (itself included) have.
+
+    Grid of ``2 radius`` cells: the points within ``radius`` of a point lie in the 2 x 2 block of
+    cells around the cell corner nearest to it, so four lookups per point."""
+    n = points.shape[0]
+    if n == 0:
+        return np.zeros(0, dtype=int)
+    scaled = points / (2.0 * radius)
+    cell = np.floor(scaled).astype(np.int64)
+    step = np.where(scaled - cell >= 0.5, 1, -1)  # towards the nearer neighbour, per axis
+    cell -= cell.min(axis=0) - 1  # >= 1, so that a neighbour's index stays >= 0
+    width = int(cell[:, 1].max()) + 2
+    key = cell[:, 0] * width + cell[:, 1]
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    first = np.flatnonzero(np.concatenate(([True], sorted_key[1:] != sorted_key[:-1])))  # run starts
+    keys, count = sorted_key[first], np.diff(np.append(first, n))
+    codes = []
+    for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+        wanted = key + (dx * step[:, 0] * width + dy * step[:, 1])
+        slot = np.minimum(np.searchsorted(keys, wanted), keys.size - 1)
+        hits = np.where(keys[slot] == wanted, count[slot], 0)
+        total = int(hits.sum())
+        if total == 0:
+            continue
+        a = np.repeat(np.arange(n), hits)
+        b = order[np.repeat(first[slot], hits) + np.arange(total) - np.repeat(np.cumsum(hits) - hits, hits)]
+        d = points[a] - points[b]
+        near = d[:, 0] ** 2 + d[:, 1] ** 2 <= radius ** 2
+        codes.append(a[near] * owners + owner[b[near]])
+    distinct = np.unique(np.concatenate(codes))
+    return np.bincount(distinct // owners, minlength=n)
 
 
 def _distinct(poses: np.ndarray, distinct_m: float, limit: int) -> list[np.ndarray]:
