@@ -87,12 +87,16 @@ def test_long_noisy_wall_is_one_line_not_oversplit() -> None:
         assert abs(lines.d[0] - 1.0) < 0.005 and angle_diff(lines.alpha, 0.0)[0] < math.radians(0.2)
 
 
-def test_invalid_beams_and_range_jumps_break_lines() -> None:
+def test_scattered_dropouts_are_bridged_and_a_longer_gap_or_a_range_jump_breaks_lines() -> None:
     a = UTM30LX_ANGLES[np.abs(UTM30LX_ANGLES) < math.radians(60)]
     r = 1.0 / np.cos(a)
     points = np.column_stack((r * np.cos(a), r * np.sin(a)))
-    valid = np.ones(a.size, dtype=bool)
-    valid[200] = False  # one dropout in the middle of the wall
+    valid = np.random.default_rng(5).random(a.size) >= 0.3  # 30 % of the beams dropped at random
+    valid[[0, -1]] = True
+    valid[200:200 + LineParams().max_missing_beams] = False  # the longest gap bridged
+    lines = extract_lines(points, valid)
+    assert lines.count == 1 and lines.first_beam[0] == 0 and lines.last_beam[0] == a.size - 1
+    valid[200:201 + LineParams().max_missing_beams] = False  # one more: the wall is cut there
     lines = extract_lines(points, valid)
     assert lines.count == 2
     assert lines.last_beam[0] < 200 < lines.first_beam[1]

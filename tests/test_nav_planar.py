@@ -155,6 +155,27 @@ def test_tracks_a_path_through_the_arena(arena: World, geometry: WorldGeometry) 
     assert set(fix.timing_ms) >= {"lines", "corners", "heading", "match", "total"}
 
 
+@pytest.mark.parametrize("dropout", [0.1, 0.3])
+def test_random_beam_dropouts_keep_tracking(arena: World, geometry: WorldGeometry, dropout: float) -> None:
+    """A fraction of the beams invalid at random (dust, dark or glancing surfaces): still tracking
+    on >= 95 % of the scans, and as accurate."""
+    rng = np.random.default_rng(19)
+    path = arena_path()
+    loc = localizer(arena, geometry, tuple(path[0]))
+    tracking, errors = 0, []
+    for x, y, yaw in path:
+        scan = scan_at(geometry, x, y, yaw, rng)
+        scan = Scan(scan.sensor_id, scan.t_capture, scan.angles_rad, scan.ranges_m,
+                    scan.valid & (rng.random(scan.valid.size) >= dropout))
+        fix = loc.update(scan)
+        assert fix is not None and not fix.relocalized
+        tracking += fix.state == "tracking"
+        if fix.measured:
+            errors.append(math.hypot(fix.x - x, fix.y - y))
+    assert tracking >= 0.95 * len(path)
+    assert math.sqrt(np.mean(np.square(errors))) < 0.02
+
+
 def test_fast_turn_beyond_the_limit_is_resolved_by_the_corners(arena: World, geometry: WorldGeometry) -> None:
     rng = np.random.default_rng(4)
     loc = localizer(arena, geometry, (2.0, 2.0, 0.0))

@@ -6,9 +6,11 @@ mask. Output: a :class:`LineSet`, every line in the same frame as the points.
 
 Algorithm (the paper's steps 1-4, made vectorised and robust):
 
-0. Break the sweep into runs of consecutive beams at every invalid beam and at every range
-   discontinuity (consecutive points further apart than ``max_gap_m + max_gap_per_m * r``).
-   Runs with fewer than ``min_points`` points are dropped.
+0. Break the sweep into runs of valid beams at every gap of more than ``max_missing_beams``
+   invalid beams and at every range discontinuity (consecutive valid points further apart than
+   ``max_gap_m + max_gap_per_m * r``). Deviation: the paper breaks at every invalid beam; scattered
+   dropouts (dust, dark or glancing surfaces, a scanner's interference filter) would then cut a
+   wall into pieces too short to be lines. Runs with fewer than ``min_points`` points are dropped.
 1.-4. Split: connect the first (A) and last (B) point of a segment, find the point C furthest
    from the chord AB; if that distance exceeds the split threshold at C's range, split into
    A-C and C-B (C belongs to both) and repeat. All segments of one level are processed in
@@ -55,6 +57,7 @@ class LineParams:
     split_sigmas: float = 3.0  # plus this many noise sigmas at the range of the split point
     max_gap_m: float = 0.2  # consecutive points further apart than this break a run, metres ...
     max_gap_per_m: float = 0.03  # ... plus this much per metre of range (sparse far beams)
+    max_missing_beams: int = 10  # a run bridges at most this many consecutive invalid beams (2.5 deg on a UTM-30LX)
     merge_angle_deg: float = 2.0  # adjacent segments whose normals differ less may merge, degrees
     merge_rms_sigmas: float = 2.0  # ... if their joint fit RMS is within this many noise sigmas
     min_points: int = 6  # fewer points: no line
@@ -129,7 +132,7 @@ def _runs(beams: np.ndarray, pts: np.ndarray, rng: np.ndarray,
     step = np.diff(pts, axis=0)
     gap = np.hypot(step[:, 0], step[:, 1])
     limit = params.max_gap_m + params.max_gap_per_m * np.minimum(rng[1:], rng[:-1])
-    breaks = np.flatnonzero((np.diff(beams) != 1) | (gap > limit))
+    breaks = np.flatnonzero((np.diff(beams) > 1 + params.max_missing_beams) | (gap > limit))
     starts = np.concatenate(([0], breaks + 1))
     ends = np.concatenate((breaks, [pts.shape[0] - 1]))
     keep = ends - starts + 1 >= params.min_points
