@@ -21,6 +21,10 @@ Deviations from the paper, all for robustness:
   wrapped modulo A, so +A/2 and -A/2 are neighbours); the best-supported candidate's inliers
   are averaged as residuals around it, which is the circular mean modulo A without the wrap
   problem at +/-A/2. Too little support (clutter at arbitrary angles) is reported ``ambiguous``;
+* the candidates are ranked by their support times a Gaussian prior on their correction
+  (``prediction_sigma_deg``): when two wall families compete (clutter at 15 degrees outweighing
+  the building's walls) the one the predicted heading expects is chosen, and if it lacks the
+  consensus the heading is reported ``ambiguous`` rather than flipped to the other family;
 * ``predicted_delta`` (e.g. the gyro's integrated yaw change since the last scan) moves the
   prediction, so the inter-frame limit of A/2 applies to the unpredicted rotation only;
 * the limit itself is in every result (``limit_rad`` = A/2). A rotation beyond it aliases by a
@@ -51,6 +55,7 @@ class HeadingParams:
     inlier_tolerance_deg: float = 2.0  # a line agrees with a candidate within this, degrees
     min_consensus: float = 0.6  # the inliers must carry this fraction of the weight
     warn_fraction: float = 0.5  # |correction| beyond this fraction of A/2 is near_limit
+    prediction_sigma_deg: float = 5.0  # 1-sigma of the predicted heading, for ranking wall families, degrees
     variance_floor_rad2: float = math.radians(0.05) ** 2  # floor: map walls may be 0.1 deg off
 
 
@@ -96,7 +101,7 @@ def track_heading(lines: LineSet, previous_yaw: float, wall_angle_rad: float,
     diff = wall_mod(corr[:, None] - corr[None, :], wall_angle_rad)  # candidate row - line column
     agree = np.abs(diff) <= math.radians(params.inlier_tolerance_deg)
     support = agree @ weight
-    best = int(np.argmax(support))
+    best = int(np.argmax(support * np.exp(-0.5 * (corr / math.radians(params.prediction_sigma_deg)) ** 2)))
     consensus = float(support[best] / weight.sum())
     inl = agree[best]
     if consensus < params.min_consensus:
@@ -132,7 +137,7 @@ def heading_hypotheses(lines: LineSet, wall_angle_rad: float,
     """All headings compatible with the observed wall directions (for global relocalization):
     the heading modulo A from the lines' consensus, plus every multiple of A, in [-pi, pi).
     Empty when the lines give no heading; the HeadingResult says why and carries the variance."""
-    base = track_heading(lines, 0.0, wall_angle_rad, 0.0, replace(params, warn_fraction=1.0))
+    base = track_heading(lines, 0.0, wall_angle_rad, 0.0, replace(params, warn_fraction=1.0, prediction_sigma_deg=math.inf))
     if not base.measured:
         return np.zeros(0), base
     count = int(round(2 * math.pi / wall_angle_rad))
