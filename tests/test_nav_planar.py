@@ -47,7 +47,8 @@ def scan_at(geometry: WorldGeometry, x: float, y: float, yaw: float, rng: np.ran
 def localizer(arena: World, geometry: WorldGeometry, pose: tuple[float, float, float] | None,
               mount: Mount2D = MOUNT) -> PlanarLocalizer:
     return PlanarLocalizer(arena.corner_array(), arena.wall_angle_deg, mount=mount,
-                           walls=arena.segments_at(HEIGHT_M - mount.z_m), initial_pose=pose)
+                           walls=arena.segments_at(HEIGHT_M - mount.z_m), initial_pose=pose,
+                           ceiling_m=-geometry.ceiling_z)
 
 
 def yaw_error(a: float, b: float) -> float:
@@ -222,6 +223,35 @@ def test_tilt_and_mount_are_compensated(arena: World, geometry: WorldGeometry) -
         fix = loc.update(scan_at(geometry, 2.0, 2.0, 0.5, rng, roll, pitch, mount), roll=roll, pitch=pitch)
         assert fix.state == "tracking"
         assert math.hypot(fix.x - 2.0, fix.y - 2.0) < 0.01 and yaw_error(fix.yaw, 0.5) < math.radians(0.2)
+
+
+@pytest.mark.parametrize("tilt_deg", [20.0, 30.0])
+def test_floor_hits_of_a_tilted_scanner_are_dropped_with_the_height_known(
+        arena: World, geometry: WorldGeometry, tilt_deg: float) -> None:
+    """Rolled or pitched 20-30 deg at 1 m, the scanner sweeps the floor 2-3 m away and the ceiling
+    (3 m) 4-6 m away: those hits are no walls. With the height given they are dropped and the
+    pose holds within 5 cm."""
+    rng = np.random.default_rng(20)
+    loc = localizer(arena, geometry, None)
+    tilt = math.radians(tilt_deg)
+    for roll, pitch in ((tilt, 0.0), (0.0, -tilt), (-tilt, 0.0), (0.0, tilt)):
+        for x, y, yaw in ((2.0, 2.0, 0.5), (7.0, 3.0, 2.0), (3.0, 7.5, -1.0)):
+            loc.reset(x, y, yaw)
+            scan = scan_at(geometry, x, y, yaw, rng, roll, pitch)
+            assert np.any(np.isfinite(scan.ranges_m[scan.valid]))
+            fix = loc.update(scan, roll=roll, pitch=pitch, height_m=HEIGHT_M)
+            assert fix.measured and math.hypot(fix.x - x, fix.y - y) < 0.05, (roll, pitch, x, y, fix)
+            assert yaw_error(fix.yaw, yaw) < math.radians(1.0)
+
+
+def test_a_level_scanner_near_the_floor_keeps_its_hits(arena: World, geometry: WorldGeometry) -> None:
+    """On the ground the scanner is 10 cm above the floor: its level hits are walls, not floor."""
+    loc = localizer(arena, geometry, (2.0, 2.0, 0.5))
+    scan = scan_at(geometry, 2.0, 2.0, 0.5, np.random.default_rng(21))
+    _, everything, _ = loc.level_points(scan)
+    for height in (0.0, 0.05, HEIGHT_M):
+        _, kept, _ = loc.level_points(scan, height_m=height)
+        np.testing.assert_array_equal(kept, everything)
 
 
 def test_points_input_equals_scan_input(arena: World, geometry: WorldGeometry) -> None:

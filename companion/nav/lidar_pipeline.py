@@ -133,7 +133,8 @@ class LidarPipeline:
         mount = planar_mount(horizontal)
         self.localizer = PlanarLocalizer(world_map.corner_array(), world_map.wall_angle_deg, mount,
                                          walls=world_map.segments_at(RELOCALIZATION_SCAN_HEIGHT_M),
-                                         params=planar_params(cfg), initial_pose=initial)
+                                         params=planar_params(cfg), initial_pose=initial,
+                                         ceiling_m=max((w.height_m for w in world_map.walls), default=None))
         self.height = HeightEstimator(tuple(vertical.position_m), tuple(math.radians(a) for a in vertical.rpy_deg))
         self.fusion = FusionFilter()
         self.stats = LidarPipelineStats()
@@ -203,8 +204,10 @@ class LidarPipeline:
         roll, pitch, yaw = self._attitude()
         yaw_delta = 0.0 if self._scan_yaw is None else wrap_pi(yaw - self._scan_yaw)
         self._scan_yaw = yaw
+        state = self.fusion.state(scan.t_capture)
+        height = -float(state.position_ned[2]) if state.healthy else None  # floor hits dropped with it
         started = time.perf_counter()
-        fix = self.localizer.update(scan, roll=roll, pitch=pitch, yaw_delta=yaw_delta)
+        fix = self.localizer.update(scan, roll=roll, pitch=pitch, yaw_delta=yaw_delta, height_m=height)
         elapsed = (time.perf_counter() - started) * 1e3
         assert self.localizer.last_lines is not None and self.localizer.last_corners is not None  # set by update()
         self.last_horizontal = ProcessedScan(scan, roll, pitch, fix, self.localizer.last_lines,
@@ -215,8 +218,7 @@ class LidarPipeline:
         self.health.report("nav:lidar", PLANAR_HEALTH[fix.state], fix.reason or f"{fix.matched} corners matched")
         if fix.relocalized:
             self.stats.relocalizations += 1
-            z = self.fusion.state(scan.t_capture).position_ned[2]
-            self.fusion.reset(np.array([fix.x, fix.y, z]), fix.yaw, scan.t_capture)
+            self.fusion.reset(np.array([fix.x, fix.y, state.position_ned[2]]), fix.yaw, scan.t_capture)
         elif fix.measured:
             self.fusion.correct_pose(scan.t_capture, np.array([fix.x, fix.y]), fix.covariance[:2, :2], fix.yaw,
                                      float(fix.covariance[2, 2]))

@@ -120,6 +120,7 @@ class PlanarParams:
     reloc_wall_tolerance_m: float = 0.1  # a scan point on a wall, metres
     reloc_wall_margin: float = 0.1  # wall fraction lead needed to break a tie in corners
     reloc_min_wall_fraction: float = 0.5  # the winner's points on walls (when walls are known)
+    floor_clearance_m: float = 0.15  # with the height known, hits this close to the floor or ceiling are dropped, metres
     jump_m: float = 0.3  # a relocalization moving the pose more than this is a reset
     jump_rad: float = math.radians(10.0)  # ... or turning it more than this
     reloc_local_m: float = 1.5  # with a pose held, hypotheses within this of it are tried first, metres
@@ -183,13 +184,15 @@ class PlanarLocalizer:
 
     def __init__(self, corners: np.ndarray, wall_angle_deg: float, mount: Mount2D = Mount2D(),
                  walls: np.ndarray | None = None, params: PlanarParams = PlanarParams(),
-                 initial_pose: tuple[float, float, float] | None = None) -> None:
+                 initial_pose: tuple[float, float, float] | None = None, ceiling_m: float | None = None) -> None:
         """``corners``: (M, 2) known map corners [north, east] m; ``wall_angle_deg``: every
         wall at a multiple of it (90, 45, 30); ``walls``: optional (S, 4) segments
         [x0, y0, x1, y1] m, used only to break relocalization ties (cut the doors and windows
         at the scan height out of them: beams through an opening then tell rooms apart);
         ``initial_pose``:
-        (x m, y m, yaw rad), or None to relocalize from the first scans."""
+        (x m, y m, yaw rad), or None to relocalize from the first scans; ``ceiling_m``: the
+        ceiling's height above the floor (m), if known, to drop a tilted scanner's ceiling hits."""
+        self.ceiling_m = ceiling_m
         self.map = np.asarray(corners, dtype=float).reshape(-1, 2)
         self.wall_angle = math.radians(wall_angle_deg)
         self.mount = mount
@@ -229,7 +232,7 @@ class PlanarLocalizer:
 
     def update(self, scan: Scan | np.ndarray, prior: tuple[float, float, float] | None = None, *,
                roll: float = 0.0, pitch: float = 0.0, yaw_delta: float = 0.0,
-               valid: np.ndarray | None = None) -> PlanarFix | None:
+               valid: np.ndarray | None = None, height_m: float | None = None) -> PlanarFix | None:
         """Process one scan; None only when no pose is known and relocalization found none.
 
         ``scan``: a Scan, or (N, 2) sensor-frame points in beam order (``valid`` marks the
@@ -237,10 +240,11 @@ class PlanarLocalizer:
         capture time (e.g. the EKF), replacing the held pose as the prediction. ``roll``,
         ``pitch``: body attitude at capture (rad) for tilt compensation. ``yaw_delta``: the
         gyro's yaw change since the previous scan (rad), added to the predicted heading (leave
-        it 0 with a ``prior`` whose yaw already includes the turn)."""
+        it 0 with a ``prior`` whose yaw already includes the turn). ``height_m``: the body's height
+        above the floor (m) when known, to drop floor hits of a tilted scanner."""
         t0 = time.perf_counter()
         self._yaw_delta = yaw_delta
-        points, ok, ranges = self.level_points(scan, roll, pitch, valid)
+        points, ok, ranges = self.level_points(scan, roll, pitch, valid, height_m)
         lines = extract_lines(points, ok, self.params.lines, ranges)
         t1 = time.perf_counter()
         corners = find_corners(lines, self.params.corners)
@@ -268,8 +272,14 @@ class PlanarLocalizer:
         return self._accept(best, yaw_used, heading, False, timing, t0)
 
     def level_points(self, scan: Scan | np.ndarray, roll: float = 0.0, pitch: float = 0.0,
-                     valid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(points (N, 2) in the levelled body frame, metres; valid (N,); measured ranges (N,))."""
+                     valid: np.ndarray | None = None,
+                     height_m: float | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(points (N, 2) in the levelled body frame, metres; valid (N,); measured ranges (N,)).
+
+        ``height_m``: the body origin's height above the floor (m), if known: hits less than
+        ``floor_clearance_m`` above the floor or below the ceiling (a tilted scanner sweeping
+        them) are marked invalid, they are no walls; a scanner itself that close (on the ground)
+        keeps the hits at its own height."""
         if isinstance(scan, Scan):
             ok = scan.valid & np.isfinite(scan.ranges_m)
             r = np.where(ok, scan.ranges_m, 0.0)
@@ -280,7 +290,16 @@ class PlanarLocalizer:
             local = np.where(ok[:, None], local, 0.0)
             r = np.hypot(local[:, 0], local[:, 1])
         matrix, offset = self._level_transform(roll, pitch)
-        return local @ matrix.T + offset, ok, r
+        levelled = local @ matrix.T + offset  # (N, 3): x, y and z (down) from the body origin
+        if height_m is not None:
+            above_floor = height_m - levelled[:, 2]
+            scanner = height_m - offset[2]  # the scanner's own height above the floor
+            # A scanner closer to the floor (or ceiling) than twice the clearance keeps its level hits.
+            clearance = self.params.floor_clearance_m
+            ok = ok & (above_floor >= min(clearance, scanner - clearance))
+            if self.ceiling_m is not None:
+                ok &= above_floor <= self.ceiling_m - min(clearance, self.ceiling_m - scanner - clearance)
+        return levelled[:, :2], ok, r
 
     def match(self, corners: Corners, xy: np.ndarray, heading: HeadingResult,
               gate_m: float | None = None) -> Match:
@@ -322,11 +341,11 @@ class PlanarLocalizer:
         return self._unit
 
     def _level_transform(self, roll: float, pitch: float) -> tuple[np.ndarray, np.ndarray]:
-        """(2x2 matrix, offset) from sensor-plane x, y to levelled-body x, y (see module doc)."""
+        """(3x2 matrix, offset (3,)) from sensor-plane x, y to levelled-body x, y, z (see module doc)."""
         cached = self._level_cache
         if cached is not None and cached[0] == roll and cached[1] == pitch:
             return cached[2], cached[3]
-        level = rotation_from_euler(roll, pitch, 0.0)[:2, :]
+        level = rotation_from_euler(roll, pitch, 0.0)
         m = self.mount
         matrix = level[:, :2] @ rotation(m.yaw_rad)
         offset = level @ np.array([m.x_m, m.y_m, m.z_m])
