@@ -388,6 +388,26 @@ def test_featureless_views_become_lost_without_nan(arena: World) -> None:
         assert PlanarLocalizer(arena.corner_array(), 45).update(scan) is None
 
 
+def test_a_corridor_without_corners_still_measures_its_cross_track_position() -> None:
+    """An 80 m corridor, 2 m wide, its ends out of the scanner's range: no corner in view. The
+    walls give the cross-track position and the heading; the along-track position is reported
+    unmeasured (a huge variance along the corridor) rather than the fix going lost."""
+    corridor = walls_world([(-40.0, -1.0, 40.0, -1.0), (-40.0, 1.0, 40.0, 1.0)], wall_angle_deg=90)
+    geometry = WorldGeometry.from_world(corridor)
+    ends = np.array([(-40.0, -1.0), (-40.0, 1.0), (40.0, -1.0), (40.0, 1.0)])
+    loc = PlanarLocalizer(ends, 90, mount=MOUNT, walls=corridor.segments_at(HEIGHT_M - MOUNT.z_m),
+                          initial_pose=(0.0, 0.0, 0.0))
+    rng = np.random.default_rng(22)
+    for k in range(3 * loc.params.lost_after_frames):
+        x, y, yaw = 0.05 * k, 0.3 * math.sin(0.3 * k), math.radians(3.0) * math.sin(0.2 * k)
+        fix = loc.update(scan_at(geometry, x, y, yaw, rng))
+        assert fix.measured and fix.state == "degraded" and fix.walls_matched == 2 and fix.matched == 0
+        assert "cross-track" in fix.reason
+        assert abs(fix.y - y) < 0.01 and yaw_error(fix.yaw, yaw) < math.radians(0.3)
+        assert fix.covariance[0, 0] > 0.99 * loc.params.lost_variance_m2 and fix.covariance[1, 1] < 0.01 ** 2
+        assert_finite(fix)
+
+
 def test_ambiguous_walls_are_lost_at_once(arena: World) -> None:
     # Three walls at 0, 20 and 40 degrees: no consensus modulo 45 degrees.
     walls = []

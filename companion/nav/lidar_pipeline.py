@@ -145,6 +145,7 @@ class LidarPipeline:
         self._euler: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the autopilot's, newest, rad
         self._published: ProcessedScan | None = None  # the last scan telemetry() returned
         self._scan_yaw: float | None = None  # autopilot yaw at the previous horizontal scan
+        self._coasting = False  # the previous horizontal fix matched no corner: its position is stale
         self._reset_counter = 0
         self.last_horizontal: ProcessedScan | None = None  # read-only, for telemetry
         health.report("nav:lidar", State.LOST, "waiting for scans")
@@ -206,9 +207,16 @@ class LidarPipeline:
         self._scan_yaw = yaw
         state = self.fusion.state(scan.t_capture)
         height = -float(state.position_ned[2]) if state.healthy else None  # floor hits dropped with it
+        # While no corner is matched (a corridor, a blank wall) the localizer's position is stale: the
+        # fused one (IMU-propagated) predicts the next scan instead, along the unmeasured direction too.
+        held = self.localizer.pose
+        prior = None
+        if self._coasting and state.healthy and held is not None:
+            prior = (float(state.position_ned[0]), float(state.position_ned[1]), held[2])
         started = time.perf_counter()
-        fix = self.localizer.update(scan, roll=roll, pitch=pitch, yaw_delta=yaw_delta, height_m=height)
+        fix = self.localizer.update(scan, prior, roll=roll, pitch=pitch, yaw_delta=yaw_delta, height_m=height)
         elapsed = (time.perf_counter() - started) * 1e3
+        self._coasting = fix is not None and fix.matched == 0
         assert self.localizer.last_lines is not None and self.localizer.last_corners is not None  # set by update()
         self.last_horizontal = ProcessedScan(scan, roll, pitch, fix, self.localizer.last_lines,
                                              self.localizer.last_corners)

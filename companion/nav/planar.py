@@ -39,12 +39,20 @@ One update (eqs. 2-8):
    lever-arm term, but nothing cross-checks the association: the covariance is multiplied by
    ``single_corner_inflation`` and the state is degraded.
 
-States: ``tracking`` (>= ``min_matches`` corners), ``degraded`` (1 corner; or 0 corners for
-fewer than ``lost_after_frames`` frames: then the fix is not a measurement, ``measured`` is
-False and the position is the previous one with a growing covariance; or the heading near
-its inter-frame limit), ``lost`` (no corner for ``lost_after_frames`` frames, or the wall
-directions are ambiguous; tracking then resumes only with ``min_matches`` corners or by
-relocalization). A fix that is not ``measured`` must not be sent to the autopilot.
+Walls (beyond the paper): when no corner matches while tracking, the observed lines lying on
+map walls (parallel within ``wall_angle_tolerance_deg``, within ``wall_gate_m`` along the normal,
+overlapping the wall within ``wall_overlap_margin_m``) each measure the position along their
+normal (point-to-line, weight from the line's offset variance at the vehicle plus
+``map_error_m``). Walls in two directions give the position; a corridor's parallel walls give
+the cross-track position only, and the fix reports the along-track direction with
+``lost_variance_m2`` (``walls_matched`` > 0, ``matched`` 0, ``degraded``, measured).
+
+States: ``tracking`` (>= ``min_matches`` corners), ``degraded`` (1 corner; walls only; or
+neither for fewer than ``lost_after_frames`` frames: then the fix is not a measurement,
+``measured`` is False and the position is the previous one with a growing covariance; or the
+heading near its inter-frame limit), ``lost`` (nothing matched for ``lost_after_frames``
+frames, or the wall directions are ambiguous; tracking then resumes only with ``min_matches``
+corners or by relocalization). A fix that is not ``measured`` must not be sent to the autopilot.
 
 Relocalization (beyond the paper), tried when lost or when no pose is known: the wall
 directions fix the heading modulo the wall angle, so the candidate headings are a small
@@ -120,6 +128,10 @@ class PlanarParams:
     reloc_wall_tolerance_m: float = 0.1  # a scan point on a wall, metres
     reloc_wall_margin: float = 0.1  # wall fraction lead needed to break a tie in corners
     reloc_min_wall_fraction: float = 0.5  # the winner's points on walls (when walls are known)
+    wall_gate_m: float = 0.3  # an observed line within this of a map wall (and parallel) constrains, metres
+    wall_angle_tolerance_deg: float = 3.0  # ... parallel within this, degrees
+    wall_overlap_margin_m: float = 0.3  # ... and overlapping the wall's extent within this, metres
+    map_error_m: float = 0.01  # 1-sigma of a map wall's position (survey error), metres
     floor_clearance_m: float = 0.15  # with the height known, hits this close to the floor or ceiling are dropped, metres
     jump_m: float = 0.3  # a relocalization moving the pose more than this is a reset
     jump_rad: float = math.radians(10.0)  # ... or turning it more than this
@@ -143,11 +155,14 @@ class PlanarFix:
     relocalized: bool  # a jump from the pose held before: increment reset_counter
     heading_status: str  # HeadingResult.status of this scan
     timing_ms: dict[str, float] = field(default_factory=dict)  # per stage, wall clock
+    walls_matched: int = 0  # map walls used (point-to-line) when no corner was matched
 
     @property
     def measured(self) -> bool:
-        """Whether this fix is a position measurement (send it) or a coasted / lost report."""
-        return self.matched > 0 and self.state != "lost"
+        """Whether this fix is a position measurement (send it) or a coasted / lost report. A
+        fix from walls alone measures the directions they constrain; the covariance is large
+        (``lost_variance_m2``) along a direction no wall constrains (a corridor's axis)."""
+        return (self.matched > 0 or self.walls_matched > 0) and self.state != "lost"
 
 
 @dataclass(frozen=True)
@@ -200,6 +215,9 @@ class PlanarLocalizer:
         if self.walls is not None:  # each wall's bounding box, for the wall check near a pose only
             self._wall_lo = np.minimum(self.walls[:, 0:2], self.walls[:, 2:4])
             self._wall_hi = np.maximum(self.walls[:, 0:2], self.walls[:, 2:4])
+            edge = self.walls[:, 2:4] - self.walls[:, 0:2]
+            self._wall_len = np.hypot(edge[:, 0], edge[:, 1])
+            self._wall_dir = edge / np.maximum(self._wall_len, 1e-9)[:, None]  # unit, start -> end
         self.params = params
         self._pose: tuple[float, float, float] | None = None
         self.last_lines: LineSet | None = None  # what update() extracted from its last scan (never mutated)
@@ -267,8 +285,12 @@ class PlanarLocalizer:
         # Once lost, the held position is stale: resume tracking only on a cross-checked match.
         needed = self.params.min_matches if self._misses >= self.params.lost_after_frames else 1
         if best.matched < needed:
-            return self._miss(heading, f"{best.matched} corners within {self.params.gate_m:g} m of a map "
-                              "corner", False, lines, corners, points[ok], timing, t0)
+            why = f"{best.matched} corners within {self.params.gate_m:g} m of a map corner"
+            if self._misses < self.params.lost_after_frames:  # tracking: the walls still constrain
+                walls = self._wall_fix(lines, np.array([x, y]), heading, why, timing, t0)
+                if walls is not None:
+                    return walls
+            return self._miss(heading, why, False, lines, corners, points[ok], timing, t0)
         return self._accept(best, yaw_used, heading, False, timing, t0)
 
     def level_points(self, scan: Scan | np.ndarray, roll: float = 0.0, pitch: float = 0.0,
@@ -377,6 +399,65 @@ class PlanarLocalizer:
                 if m.matched > best.matched or (m.matched == best.matched > 0 and m.rms_m < best.rms_m):
                     best, yaw = m, alias.yaw
         return best, yaw
+
+    def _wall_fix(self, lines: LineSet, xy: np.ndarray, heading: HeadingResult, why: str,
+                  timing: dict[str, float], t0: float) -> PlanarFix | None:
+        """Position from observed lines lying on map walls (point-to-line) when no corner matched,
+        None if no wall matched. Each matched line measures the position along its normal; in a
+        corridor that is the cross-track direction only, and the fix reports the along-track
+        direction as unmeasured (``lost_variance_m2``) instead of going lost."""
+        p = self.params
+        if self.walls is None:
+            return None
+        use = np.flatnonzero(lines.length >= p.heading.min_length_m)
+        if use.size == 0:
+            return None
+        rot = rotation(heading.yaw)
+        angle = lines.alpha[use] + heading.yaw
+        normal = np.column_stack((np.cos(angle), np.sin(angle)))  # world normals of the observed lines
+        start, end = xy + lines.start[use] @ rot.T, xy + lines.end[use] @ rot.T
+        mid = 0.5 * (start + end)
+        # Residual to every wall along the observed normal, its angle and extent overlap.
+        parallel = np.abs(normal @ self._wall_dir.T) <= math.sin(math.radians(p.wall_angle_tolerance_deg))
+        resid = np.einsum("jk,ik->ji", normal, self.walls[:, 0:2]) - np.sum(normal * mid, axis=1)[:, None]
+        u_start = np.einsum("jik,ik->ji", start[:, None, :] - self.walls[None, :, 0:2], self._wall_dir)
+        u_end = np.einsum("jik,ik->ji", end[:, None, :] - self.walls[None, :, 0:2], self._wall_dir)
+        overlap = ((np.maximum(u_start, u_end) >= -p.wall_overlap_margin_m)
+                   & (np.minimum(u_start, u_end) <= self._wall_len + p.wall_overlap_margin_m))
+        candidate = parallel & overlap & (np.abs(resid) <= p.wall_gate_m)
+        has = candidate.any(axis=1)
+        if not has.any():
+            return None
+        nearest = np.argmin(np.where(candidate, np.abs(resid), np.inf), axis=1)[has]
+        n, r = normal[has], resid[has, nearest]
+        k = use[has]
+        tangent = np.column_stack((-np.sin(lines.alpha[k]), np.cos(lines.alpha[k])))
+        lever = np.einsum("ij,ij->i", lines.centroid[k], tangent)  # the offset is measured at the foot of the normal
+        var = lines.offset_var[k] + lines.alpha_var[k] * lever ** 2 + p.map_error_m ** 2
+        w = 1.0 / var
+        info = (w[:, None, None] * n[:, :, None] * n[:, None, :]).sum(axis=0)
+        eigval, eigvec = np.linalg.eigh(info)
+        if eigval[1] <= 0.0:
+            return None
+        b = (w * r) @ n
+        if eigval[0] < 1e-4 * eigval[1]:  # one direction: a corridor's walls
+            u = eigvec[:, 1]
+            delta = (u @ b) / eigval[1] * u
+            cov2 = np.outer(u, u) / eigval[1] + p.lost_variance_m2 * np.outer(eigvec[:, 0], eigvec[:, 0])
+            reason = f"{why}: {k.size} walls constrain the cross-track position only"
+        else:
+            cov2 = np.linalg.inv(info)
+            delta = cov2 @ b
+            reason = f"{why}: {k.size} walls constrain the position"
+        self._pose = (float(xy[0] + delta[0]), float(xy[1] + delta[1]), heading.yaw)
+        cov = np.zeros((3, 3))
+        cov[:2, :2] = cov2
+        cov[2, 2] = heading.variance
+        self._cov = cov
+        self._misses = 0
+        timing["total"] = (time.perf_counter() - t0) * 1e3
+        return PlanarFix(self._pose[0], self._pose[1], heading.yaw, cov.copy(), 0, "degraded", reason, False,
+                         heading.status, timing, walls_matched=int(k.size))
 
     def _accept(self, m: Match, yaw: float, heading: HeadingResult, relocalized: bool,
                 timing: dict[str, float], t0: float) -> PlanarFix:
