@@ -268,7 +268,7 @@ class ArduPilotObserver:
             return
         if kind == "VISION_POSITION_ESTIMATE":
             self.log.add_vision_position(t, msg.usec, (msg.x, msg.y, msg.z), (msg.roll, msg.pitch, msg.yaw),
-                                         msg.reset_counter, msg.covariance[0])
+                                         msg.reset_counter, msg.covariance)
         elif kind == "VISION_SPEED_ESTIMATE":
             self.log.add_vision_speed(t, msg.usec, (msg.x, msg.y, msg.z))
         elif kind == "SET_POSITION_TARGET_LOCAL_NED":

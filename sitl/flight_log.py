@@ -15,6 +15,9 @@ from collections.abc import Iterable, Sequence
 from typing import Any
 
 SCHEMA = 1
+# Indices of xx, xy, xz, yy, yz, zz in VISION_POSITION_ESTIMATE's row-major upper triangle of the
+# 6x6 (x, y, z, roll, pitch, yaw) covariance.
+POSITION_TRIANGLE = (0, 1, 2, 6, 7, 11)
 
 
 def _num(value: float) -> float | None:
@@ -40,7 +43,7 @@ class FlightLog:
         self.vehicle_estimate: dict[str, list] = {"t": [], "pos_valid": [], "pos_ned": []}
         self.vision_position: dict[str, list] = {
             "t_rx": [], "usec": [], "pos_ned": [], "euler_rad": [], "reset_counter": [],
-            "covariance0": [],
+            "position_covariance": [],  # rows [xx, xy, xz, yy, yz, zz], m^2 (NaN where not sent)
         }
         self.vision_speed: dict[str, list] = {"t_rx": [], "usec": [], "vel_ned": []}
         self.setpoints: dict[str, list] = {
@@ -80,16 +83,17 @@ class FlightLog:
         pos_ned: Sequence[float],
         euler_rad: Sequence[float],
         reset_counter: int,
-        covariance0: float,
+        covariance: Sequence[float],
     ) -> None:
-        """A VISION_POSITION_ESTIMATE as received (t_rx: sim time of reception)."""
+        """A VISION_POSITION_ESTIMATE as received (t_rx: sim time of reception); ``covariance``
+        is the message's 21-value upper triangle (x, y, z, roll, pitch, yaw; NaN first = unknown)."""
         rec = self.vision_position
         rec["t_rx"].append(t_rx)
         rec["usec"].append(int(usec))
         rec["pos_ned"].append(_vec(pos_ned))
         rec["euler_rad"].append(_vec(euler_rad))
         rec["reset_counter"].append(int(reset_counter))
-        rec["covariance0"].append(_num(covariance0))
+        rec["position_covariance"].append(_vec([covariance[i] for i in POSITION_TRIANGLE]))
 
     def add_vision_speed(self, t_rx: float, usec: int, vel_ned: Sequence[float]) -> None:
         """A VISION_SPEED_ESTIMATE as received."""

@@ -45,7 +45,7 @@ def score_estimate(log: dict) -> dict[str, float | None]:
     """Position/yaw/height error of the received vision estimates against truth."""
     vp = log["vision_position"]
     empty = dict.fromkeys(("position_rms_m", "position_max_m", "yaw_rms_deg", "height_rms_m",
-                           "fix_rate_hz", "lost_seconds"))
+                           "fix_rate_hz", "lost_seconds", "nees_mean", "wrong_resets"))
     if not vp["usec"]:
         return empty
     truth = log["truth"]
@@ -67,8 +67,36 @@ def score_estimate(log: dict) -> dict[str, float | None]:
         "height_rms_m": _rms(est[:, 2] - true_pos[:, 2]),
         "fix_rate_hz": None,  # measured fixes per second, from the daemon's pipeline statistics
         "lost_seconds": float(np.sum(gaps[gaps > LOST_GAP_S])),
+        "nees_mean": nees_mean(est - true_pos, [vp["position_covariance"][i] for i in np.flatnonzero(inside)]),
+        "wrong_resets": wrong_resets(np.asarray(vp["reset_counter"])[inside], est, true_pos),
         "horizontal_rms_m": _rms(horizontal),
     }
+
+
+def nees_mean(errors: np.ndarray, triangles: list[list[float | None]]) -> float | None:
+    """Mean normalised estimation error squared of the 3-D position: e^T P^-1 e per estimate with
+    the covariance it was sent with (rows [xx, xy, xz, yy, yz, zz], m^2). 3 is consistent (its
+    95 % band over N estimates: 3 +/- 1.96 sqrt(6 / N) for independent ones); below, the
+    estimator is over-cautious; above, over-confident. None when no estimate carried a usable
+    covariance."""
+    values = []
+    for e, tri in zip(errors, triangles):
+        if tri is None or any(v is None for v in tri):
+            continue
+        xx, xy, xz, yy, yz, zz = tri
+        cov = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+        try:
+            values.append(float(e @ np.linalg.solve(cov, e)))
+        except np.linalg.LinAlgError:
+            continue
+    return float(np.mean(values)) if values else None
+
+
+def wrong_resets(reset_counter: np.ndarray, estimate: np.ndarray, truth: np.ndarray, limit_m: float = 0.5) -> int:
+    """Position resets (``reset_counter`` changing) whose first estimate is more than ``limit_m``
+    (horizontally) from the truth: a relocalization to the wrong place."""
+    changed = np.flatnonzero(np.diff(reset_counter) != 0) + 1
+    return int(np.sum(np.linalg.norm(estimate[changed, :2] - truth[changed, :2], axis=1) > limit_m))
 
 
 def score_tracking(log: dict) -> tuple[float | None, float | None]:

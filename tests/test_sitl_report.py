@@ -15,14 +15,17 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from sitl.report import nees_mean, wrong_resets
 from tests.conftest import REPO, free_port
 from tests.sitl_helpers import write_config, write_sitl_config
 
 SCHEMA_1 = {
     "schema": None, "mission": None, "seconds": None, "lockstep": None, "seed": None,
-    "estimate": {"position_rms_m", "position_max_m", "yaw_rms_deg", "height_rms_m", "fix_rate_hz", "lost_seconds"},
+    "estimate": {"position_rms_m", "position_max_m", "yaw_rms_deg", "height_rms_m", "fix_rate_hz", "lost_seconds",
+                 "nees_mean", "wrong_resets"},
     "autopilot": {"origin_confirmed", "external_nav_in_use", "vision_position_estimate_hz",
                   "vision_speed_estimate_hz", "setpoint_hz", "nonfinite_dropped", "firmware", "internal_errors"},
     "control": {"law", "mission_completed", "tracking_rms_m", "tracking_max_m", "failsafes_triggered", "degraded_slowdowns"},
@@ -130,3 +133,20 @@ def test_a_second_run_on_the_same_ports_is_refused(tmp_path: Path) -> None:
                               cwd=REPO, capture_output=True, text=True, timeout=30)
     assert proc.returncode == 2
     assert f"UDP 127.0.0.1:{vehicle_port} (sitl.vehicle_url)" in proc.stderr
+
+
+def test_nees_is_3_for_errors_drawn_from_the_sent_covariance_and_scales_with_it() -> None:
+    rng = np.random.default_rng(1)
+    cov = np.array([[4e-4, 1e-4, 0.0], [1e-4, 2e-4, 0.0], [0.0, 0.0, 1e-4]])
+    errors = rng.multivariate_normal(np.zeros(3), cov, 20000)
+    triangle = [cov[0, 0], cov[0, 1], cov[0, 2], cov[1, 1], cov[1, 2], cov[2, 2]]
+    assert nees_mean(errors, [triangle] * len(errors)) == pytest.approx(3.0, abs=0.1)
+    assert nees_mean(errors, [[4 * v for v in triangle]] * len(errors)) == pytest.approx(0.75, abs=0.03)
+    assert nees_mean(errors[:2], [[None] * 6, [None] * 6]) is None
+
+
+def test_a_reset_far_from_the_truth_is_a_wrong_one() -> None:
+    truth = np.zeros((6, 3))
+    estimate = np.array([[0.0, 0, 0], [0.1, 0, 0], [3.0, 0, 0], [3.0, 0, 0], [0.2, 0.0, 0], [0.0, 0.1, 0]])
+    counter = np.array([0, 0, 1, 1, 2, 2])  # reset to 3 m off (wrong), then back within 0.2 m (right)
+    assert wrong_resets(counter, estimate, truth) == 1

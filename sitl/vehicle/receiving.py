@@ -126,7 +126,7 @@ class ReceivingMixin:
         t_rx = self._now()
         pos = (msg.x, msg.y, msg.z)
         euler = (msg.roll, msg.pitch, msg.yaw)
-        self.log.add_vision_position(t_rx, msg.usec, pos, euler, msg.reset_counter, msg.covariance[0])
+        self.log.add_vision_position(t_rx, msg.usec, pos, euler, msg.reset_counter, msg.covariance)
         t_capture = self._vision_capture_time(link, msg.usec, t_rx, pos + euler)
         if t_capture is not None:
             self.copter.vision_position(t_capture, np.array(pos), np.array(euler), _covariance(msg), msg.reset_counter)
