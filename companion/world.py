@@ -177,6 +177,10 @@ class World:
     floor_markers: tuple[FloorMarker, ...] = field(default=(), metadata=meta("Fiducials on the floor."))
     obstacles: tuple[Obstacle, ...] = field(default=(), metadata=meta("Boxes standing on the floor."))
     openings: tuple[Opening, ...] = field(default=(), metadata=meta("Doors and windows in the walls."))
+    survey_error_m: float = field(default=0.005, metadata=meta(
+        "1-sigma error of the walls' and corners' positions as surveyed, metres: a property of this map that every "
+        "lidar fix from it carries (the default: corners are accepted within 1 cm of their walls' corner).",
+        (0.0, 1.0)))
 
     def segments(self) -> np.ndarray:
         """Walls as an (N, 4) float array of rows [x0, y0, x1, y1], metres (NED north, east)."""

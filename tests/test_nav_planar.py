@@ -485,3 +485,19 @@ def test_heading_result_is_reported(arena: World, geometry: WorldGeometry) -> No
 def test_the_configured_correspondence_gate_reaches_the_localizer() -> None:
     cfg = LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v", correspondence_gate_m=0.3)
     assert planar_params(cfg).gate_m == 0.3
+
+
+def test_the_maps_survey_error_widens_every_fix_from_it(arena: World, geometry: WorldGeometry) -> None:
+    """World.survey_error_m is the floor of every matched corner's covariance (and of every wall's)."""
+    cfg = LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v")
+    scan = scan_at(geometry, 2.0, 2.0, 0.5, np.random.default_rng(23))
+    variances = []
+    for survey in (0.005, 0.03):
+        params = planar_params(cfg, survey)
+        assert params.corners.floor_m == params.map_error_m == survey
+        loc = PlanarLocalizer(arena.corner_array(), arena.wall_angle_deg, mount=MOUNT, params=params,
+                              initial_pose=(2.0, 2.0, 0.5))
+        fix = loc.update(scan)
+        assert fix.state == "tracking"
+        variances.append(np.trace(fix.covariance[:2, :2]))
+    assert variances[1] > 4 * variances[0]

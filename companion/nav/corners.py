@@ -34,7 +34,7 @@ class CornerParams:
 
     min_angle_deg: float = 30.0  # the two line directions must differ by more, degrees
     max_endpoint_distance_m: float = 0.2  # intersection to each facing end point, metres
-    floor_m: float = 0.005  # 1-sigma floor of every corner (map tolerance), metres ...
+    floor_m: float = 0.005  # 1-sigma floor of every corner (the map's survey error: World.survey_error_m), metres ...
     floor_per_m: float = 0.001  # ... plus this per metre of range
 
 

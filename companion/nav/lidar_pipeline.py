@@ -34,6 +34,7 @@ from companion.config import MountConfig
 from companion.frames import wrap_pi
 from companion.health import Health, State
 from companion.messages import Estimate, ImuSample, PoseEstimate, Scan
+from companion.nav.corners import CornerParams
 from companion.nav.fusion import FusionFilter, to_pose_estimate
 from companion.nav.height import HeightEstimator
 from companion.nav.lidar_streams import STREAMS, ProcessedScan, map_payload, scan_payloads
@@ -101,9 +102,11 @@ class LidarPipelineConfig:
         return out
 
 
-def planar_params(cfg: LidarPipelineConfig) -> PlanarParams:
-    """The localizer's thresholds from the config (the rest keep the defaults of companion/nav)."""
-    return PlanarParams(gate_m=cfg.correspondence_gate_m, reloc_confirm_frames=cfg.relocalization_confirm_scans)
+def planar_params(cfg: LidarPipelineConfig, survey_error_m: float = CornerParams.floor_m) -> PlanarParams:
+    """The localizer's thresholds from the config and the map's survey error (m, 1-sigma: the floor
+    of every corner's and wall's covariance); the rest keep the defaults of companion/nav."""
+    return PlanarParams(gate_m=cfg.correspondence_gate_m, reloc_confirm_frames=cfg.relocalization_confirm_scans,
+                        corners=CornerParams(floor_m=survey_error_m), map_error_m=survey_error_m)
 
 
 def planar_mount(mount: MountConfig) -> Mount2D:
@@ -133,7 +136,7 @@ class LidarPipeline:
         mount = planar_mount(horizontal)
         self.localizer = PlanarLocalizer(world_map.corner_array(), world_map.wall_angle_deg, mount,
                                          walls=world_map.segments_at(RELOCALIZATION_SCAN_HEIGHT_M),
-                                         params=planar_params(cfg), initial_pose=initial,
+                                         params=planar_params(cfg, world_map.survey_error_m), initial_pose=initial,
                                          ceiling_m=max((w.height_m for w in world_map.walls), default=None))
         self.height = HeightEstimator(tuple(vertical.position_m), tuple(math.radians(a) for a in vertical.rpy_deg))
         self.fusion = FusionFilter()

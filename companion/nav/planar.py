@@ -131,7 +131,7 @@ class PlanarParams:
     wall_gate_m: float = 0.3  # an observed line within this of a map wall (and parallel) constrains, metres
     wall_angle_tolerance_deg: float = 3.0  # ... parallel within this, degrees
     wall_overlap_margin_m: float = 0.3  # ... and overlapping the wall's extent within this, metres
-    map_error_m: float = 0.01  # 1-sigma of a map wall's position (survey error), metres
+    map_error_m: float = 0.005  # 1-sigma of a map wall's position (World.survey_error_m), metres
     floor_clearance_m: float = 0.15  # with the height known, hits this close to the floor or ceiling are dropped, metres
     jump_m: float = 0.3  # a relocalization moving the pose more than this is a reset
     jump_rad: float = math.radians(10.0)  # ... or turning it more than this
