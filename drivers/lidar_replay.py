@@ -22,6 +22,17 @@ Formats:
   Ranges: readings below the model's DMIN (0 and the URG error codes 1..19 mm) are invalid;
   readings up to DMAX = 5.6 m are kept (the device is rated to 4 m; the file holds up to 5.58 m).
 
+- ``carmen``: CARMEN logger logs (the Radish repository's FLASER / RLASER / ROBOTLASER1 /
+  ROBOTLASER2 lines, plain or gzip; :func:`read_carmen`). Every laser message carries the
+  robot's pose, which the "corrected" logs hold as the reference (kept by :func:`read_carmen`
+  for scoring, never given to the pipelines). CARMEN frames are x forward / y left with angles
+  counter-clockwise; ours are mirrored (FRD: y right, angles clockwise), so a beam at CARMEN
+  angle ``a`` is at ``-a`` here and a CARMEN pose (x, y, theta) is NED (x, -y, -theta) in a
+  map frame whose north is the log's x axis. FLASER / RLASER: ``n`` beams over 180 degrees,
+  from the robot's right (CARMEN -90 deg) in steps of 180 / n degrees (the rear laser's turned
+  by 180 deg); readings at the log's largest value (the scanner's maximum: 81.9, 50 or 32.7 m)
+  or 0 are no return. ROBOTLASER lines give start angle, resolution and maximum range.
+
 - ``npz``: our own recordings (:func:`record_npz`): arrays ``t_capture`` (S,) s,
   ``angles_rad`` (N,), ``ranges_m`` (S, N), ``valid`` (S, N), ``sweep_s`` (S,), ``sequence`` (S,)
   and the scalar ``sensor_id``.
@@ -39,6 +50,7 @@ before), so a corrupt record leaves a gap. A malformed line raises
 from __future__ import annotations
 
 import asyncio
+import gzip
 import io
 import math
 from collections.abc import Iterator, Sequence
@@ -104,6 +116,85 @@ def read_breezyslam(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarra
             np.array(odometry, dtype=np.int64).reshape(-1, 2))
 
 
+CARMEN_LASERS = {"FLASER": "front", "RLASER": "rear", "ROBOTLASER1": "front", "ROBOTLASER2": "rear"}
+_CARMEN_OLD_TAIL = 9  # x y theta odom_x odom_y odom_theta timestamp hostname logger_timestamp
+_CARMEN_ROBOT_TAIL = 14  # laser pose (3), robot pose (3), tv rv, 3 distances, timestamp host logger_timestamp
+
+
+@dataclass(frozen=True)
+class CarmenScan:
+    """One laser message of a CARMEN log, in our frames (module docstring)."""
+
+    laser: str  # "front" or "rear"
+    t_s: float  # the log's timestamp, s
+    angles_rad: np.ndarray  # (n,) sensor frame, positive to the right
+    ranges_m: np.ndarray  # (n,) metres as logged (no return: see ``max_range_m``)
+    max_range_m: float | None  # the message's maximum range (ROBOTLASER), None for FLASER / RLASER
+    pose_ned: tuple[float, float, float]  # the log's robot pose: x, y (m, NED map frame), yaw (rad)
+
+
+def parse_carmen_line(line: str) -> CarmenScan | None:
+    """The laser message of one CARMEN log line; None for other messages (ODOM, PARAM, comments);
+    ValueError if a laser line is malformed."""
+    tokens = line.split()
+    if not tokens or tokens[0] not in CARMEN_LASERS:
+        return None
+    laser = CARMEN_LASERS[tokens[0]]
+    try:
+        if tokens[0].startswith("ROBOTLASER"):
+            start, _fov, step, max_range = (float(v) for v in tokens[2:6])
+            n = int(tokens[8])
+            ranges = np.array(tokens[9:9 + n], dtype=float)
+            remissions = int(tokens[9 + n])
+            tail = tokens[10 + n + remissions:]
+            if len(tail) != _CARMEN_ROBOT_TAIL:
+                raise ValueError(f"{len(tail)} values after the readings, expected {_CARMEN_ROBOT_TAIL}")
+            x, y, theta = (float(v) for v in tail[3:6])
+            stamp, carmen_angles = float(tail[11]), start + step * np.arange(n)
+            maximum: float | None = max_range
+        else:
+            n = int(tokens[1])
+            ranges = np.array(tokens[2:2 + n], dtype=float)
+            tail = tokens[2 + n:]
+            if len(tail) != _CARMEN_OLD_TAIL:
+                raise ValueError(f"{len(tail)} values after the readings, expected {_CARMEN_OLD_TAIL}")
+            x, y, theta = (float(v) for v in tail[0:3])
+            stamp, maximum = float(tail[6]), None
+            carmen_angles = -math.pi / 2 + math.pi / n * np.arange(n) + (math.pi if laser == "rear" else 0.0)
+    except (IndexError, ValueError) as exc:
+        raise ValueError(f"malformed {tokens[0]} line: {exc}") from None
+    if ranges.size != n or n == 0:
+        raise ValueError(f"malformed {tokens[0]} line: {ranges.size} of {n} readings")
+    if not np.isfinite(ranges).all() or not all(map(math.isfinite, (x, y, theta, stamp))):
+        raise ValueError(f"malformed {tokens[0]} line: a reading, the pose or the time is not a finite number")
+    angles = np.angle(np.exp(-1j * carmen_angles))  # mirrored into our frame, wrapped to (-pi, pi]
+    return CarmenScan(laser, stamp, angles, ranges, maximum, (x, -y, -theta))
+
+
+def carmen_valid(scan: CarmenScan, log_max_m: float) -> np.ndarray:
+    """(n,) bool: the readings that are returns: above 0 and below the message's maximum range, or
+    (FLASER / RLASER, which do not carry it) below ``log_max_m``, the largest reading of the log."""
+    limit = scan.max_range_m if scan.max_range_m is not None else log_max_m
+    return (scan.ranges_m > 0.0) & (scan.ranges_m < limit - 1e-6)
+
+
+def read_carmen(path: str | Path, laser: str = "front") -> list[CarmenScan]:
+    """The ``laser`` ("front" or "rear") messages of a CARMEN log (plain or gzip), in file order;
+    ValueError naming the first malformed line."""
+    data = read_recording(path)
+    if data[:2] == b"\x1f\x8b":
+        data = gzip.decompress(data)
+    scans = []
+    for number, line in enumerate(io.TextIOWrapper(io.BytesIO(data), encoding="ascii", errors="replace"), start=1):
+        try:
+            scan = parse_carmen_line(line)
+        except ValueError as exc:
+            raise ValueError(f"{path}:{number}: {exc}") from None
+        if scan is not None and scan.laser == laser:
+            scans.append(scan)
+    return scans
+
+
 def record_npz(path: str | Path, scans: Sequence[Scan]) -> None:
     """Write ``scans`` (one sensor, same beam angles, at least one) as an npz recording."""
     if not scans:
@@ -124,8 +215,11 @@ class ReplayLidarSettings:
     """``settings:`` of a lidar with ``backend: replay`` (a companion.schema dataclass)."""
 
     file: str = field(metadata=meta("The recording; a relative path is relative to the config file's directory."))
-    format: Literal["breezyslam", "npz"] = field(default="npz", metadata=meta(
-        "breezyslam: a BreezySLAM/CoreSLAM URG-04LX text log; npz: written by drivers.lidar_replay.record_npz."))
+    format: Literal["breezyslam", "carmen", "npz"] = field(default="npz", metadata=meta(
+        "breezyslam: a BreezySLAM/CoreSLAM URG-04LX text log; carmen: a CARMEN logger log (FLASER, RLASER, "
+        "ROBOTLASER1/2 lines; plain or gzip); npz: written by drivers.lidar_replay.record_npz."))
+    laser: Literal["front", "rear"] = field(default="front", metadata=meta(
+        "carmen: which laser's messages (FLASER / ROBOTLASER1: front, RLASER / ROBOTLASER2: rear)."))
     rate_scale: float = field(default=1.0, metadata=meta(
         "Replay speed: 1 = the recorded timing, 2 = twice as fast.", (0.01, 1000)))
     loop: bool = field(default=False, metadata=meta("Start over at the end instead of ending."))
@@ -162,6 +256,8 @@ class ReplayLidar(Backend[Scan]):
         """Load the recording (OSError if it cannot be read) and start at its first scan now."""
         if self.settings.format == "breezyslam":
             self._load_breezyslam()
+        elif self.settings.format == "carmen":
+            self._load_carmen()
         else:
             self._load_npz()
         for record in self._records:  # scans share these arrays, on every pass
@@ -187,6 +283,20 @@ class ReplayLidar(Backend[Scan]):
             valid = (ranges >= URG_04LX.min_range_m) & (ranges <= URG_04LX.max_range_m)
             records.append(_Record(stamp, np.where(valid, ranges, 0.0), valid, sweep))
         self._records = records
+
+    def _load_carmen(self) -> None:
+        try:
+            scans = read_carmen(self.path, self.settings.laser)
+        except ValueError as exc:
+            raise OSError(str(exc)) from exc
+        if not scans:
+            raise OSError(f"{self.path}: no {self.settings.laser} laser message")
+        self._angles = scans[0].angles_rad
+        log_max = max(float(scan.ranges_m.max()) for scan in scans)
+        self._records = [
+            _Record(scan.t_s, scan.ranges_m, carmen_valid(scan, log_max), 0.0) if np.array_equal(scan.angles_rad, self._angles)
+            else _Record(math.nan, np.empty(0), np.empty(0, bool), 0.0, f"message {k + 1}: other beam angles than the first")
+            for k, scan in enumerate(scans)]
 
     def _load_npz(self) -> None:
         try:

@@ -7,8 +7,9 @@ see its README) and are skipped when it is absent.
 from __future__ import annotations
 
 import asyncio
+import gzip
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -22,8 +23,8 @@ from companion.schema import SchemaError, load_text
 from drivers.base import Backend, EndOfData, SensorDriver
 from drivers.checks import sensor_driver
 from drivers.lidar_models import MODELS, URG_04LX, UTM_30LX
-from drivers.lidar_replay import (ReplayLidar, ReplayLidarSettings, breezyslam_angles, read_breezyslam,
-                                  record_npz)
+from drivers.lidar_replay import (ReplayLidar, ReplayLidarSettings, breezyslam_angles, carmen_valid,
+                                  parse_carmen_line, read_breezyslam, read_carmen, record_npz)
 from sitl.lidar_sim import SimLidarSettings, SimulatedLidar
 from drivers.mount import Mount
 from companion.messages import Scan
@@ -32,6 +33,8 @@ from tests.conftest import REPO
 
 REAL_FILE = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "urg04lx-corridor-exp2.dat"
 needs_real_file = pytest.mark.skipif(not REAL_FILE.exists(), reason=f"real URG-04LX recording not found at {REAL_FILE}")
+CARMEN_DIR = REAL_FILE.parent / "carmen"
+CARMEN_LOGS = {"intel": CARMEN_DIR / "intel-corrected.log.gz", "aces": CARMEN_DIR / "aces-corrected.log.gz"}
 
 
 @dataclass(frozen=True)
@@ -232,6 +235,83 @@ def test_breezyslam_sweep_direction_matches_odometry() -> None:
     turning = [k for k in range(0, len(stamps) - 3, 7) if abs(heading[k + 3] - heading[k]) > math.radians(10)]
     wins = [misfit(k, driver_ccw) < misfit(k, -driver_ccw) for k in turning]
     assert len(turning) >= 15 and sum(wins) >= 0.8 * len(wins)
+
+
+def _carmen_world_points(scan: object, log_max: float) -> np.ndarray:
+    """A CARMEN scan's returns in the map (NED) frame, placed with the log's reference pose."""
+    ok = carmen_valid(scan, log_max) & (scan.ranges_m < 15.0)
+    r, a = scan.ranges_m[ok], scan.angles_rad[ok]
+    x, y, yaw = scan.pose_ned
+    c, s_ = math.cos(yaw), math.sin(yaw)
+    q = np.column_stack((r * np.cos(a), r * np.sin(a)))  # FRD: x forward, y right
+    return np.array([x, y]) + q @ np.array([[c, -s_], [s_, c]]).T
+
+
+@pytest.mark.parametrize("log", sorted(CARMEN_LOGS))
+def test_carmen_scans_placed_with_their_reference_poses_overlap(log: str) -> None:
+    """The mirrored frames (beam angles and poses) are right: consecutive scans of the real log,
+    each placed with its own reference pose, land on the same walls; the unmirrored beam angles
+    with the same poses do not."""
+    path = CARMEN_LOGS[log]
+    if not path.exists():
+        pytest.skip(f"CARMEN log not found at {path}")
+    scans = read_carmen(path)
+    assert len(scans) == {"intel": 910, "aces": 440}[log]
+    assert all(s.angles_rad.size == 180 and s.laser == "front" for s in scans)
+    assert scans[0].angles_rad[0] == pytest.approx(math.pi / 2)  # the first beam looks right
+    log_max = max(float(s.ranges_m.max()) for s in scans)
+
+    def misfit(a: object, b: object) -> float:
+        p, q = _carmen_world_points(a, log_max), _carmen_world_points(b, log_max)
+        return float(np.median(np.sqrt(((q[:, None] - p[None]) ** 2).sum(-1)).min(axis=1)))
+
+    pairs = range(0, len(scans) - 1, max(1, len(scans) // 40))
+    good = [misfit(scans[k], scans[k + 1]) for k in pairs]
+    mirrored = [misfit(scans[k], replace(scans[k], angles_rad=-scans[k].angles_rad)) for k in pairs]
+    assert np.median(good) < 0.05 and np.median(mirrored) > 4 * np.median(good)
+
+
+def test_carmen_lines_are_parsed_and_malformed_ones_named() -> None:
+    flaser = "FLASER 4 1.0 2.0 81.9 0 1.5 -2.0 0.5 1.5 -2.0 0.5 12.25 host 12.3"
+    scan = parse_carmen_line(flaser)
+    assert scan is not None and scan.laser == "front" and scan.t_s == 12.25
+    np.testing.assert_allclose(scan.angles_rad, [math.pi / 2, math.pi / 4, 0.0, -math.pi / 4])
+    assert scan.pose_ned == (1.5, 2.0, -0.5)
+    np.testing.assert_array_equal(carmen_valid(scan, 81.9), [True, True, False, False])
+    rear = parse_carmen_line(flaser.replace("FLASER", "RLASER"))
+    np.testing.assert_allclose(np.exp(1j * rear.angles_rad),  # turned by 180 deg (+/- pi alike)
+                               np.exp(1j * np.array([-math.pi / 2, -3 * math.pi / 4, math.pi, 3 * math.pi / 4])), atol=1e-12)
+    robot = parse_carmen_line("ROBOTLASER1 0 -1.5708 3.1416 1.5708 30.0 0.01 0 3 1.0 30.0 2.0 0 "
+                              "0.1 0 0 1.0 2.0 0.25 0 0 0 0 0 7.5 host 7.6")
+    assert robot is not None and robot.max_range_m == 30.0 and robot.pose_ned == (1.0, -2.0, -0.25)
+    np.testing.assert_array_equal(carmen_valid(robot, 99.0), [True, False, True])
+    assert parse_carmen_line("ODOM 0 0 0 0 0 0 1.0 host 1.0") is None
+    with pytest.raises(ValueError, match="FLASER"):
+        parse_carmen_line("FLASER 4 1.0 2.0 0 1.5 -2.0 0.5 1.5 -2.0 0.5 12.25 host 12.3")  # a reading short
+
+
+def test_carmen_replay_through_the_driver_frontend(tmp_path: Path) -> None:
+    lines = [f"FLASER 3 1.0 {2.0 + k} 50.0 {0.1 * k} 0 0 0 0 0 {10.0 + 0.05 * k} host 0" for k in range(4)]
+    lines.insert(2, "FLASER 3 1.0 nan 2.0 0 0 0 0 0 0 10.07 host 0")
+    log = tmp_path / "walk.log.gz"
+    log.write_bytes(gzip.compress(("\n".join(["PARAM x 1 host 0", *lines]) + "\n").encode()))
+    with pytest.raises(OSError, match=r"walk.log.gz:4: .*not a finite number"):  # refused, the line named
+        asyncio.run(ReplayLidar("h", ReplayLidarSettings(file=str(log), format="carmen")).open())
+    log.write_bytes(gzip.compress(("\n".join(lines[:2] + lines[3:]) + "\n").encode()))
+
+    async def run() -> list[Scan]:
+        backend = ReplayLidar("h", ReplayLidarSettings(file=str(log), format="carmen", rate_scale=50.0))
+        await backend.open()
+        scans = []
+        with pytest.raises(EndOfData):
+            while True:
+                scans.append(await backend.read())
+        return scans
+
+    scans = asyncio.run(run())
+    assert len(scans) == 4 and [s.sequence for s in scans] == [0, 1, 2, 3]
+    np.testing.assert_allclose(np.diff([s.t_capture for s in scans]), 0.05 / 50.0, atol=1e-6)
+    assert [s.valid.tolist() for s in scans[:1]] == [[True, True, False]]  # 50 m: the log's maximum
 
 
 def breezyslam_excerpt(tmp_path: Path, lines: int, corrupt_at: int | None = None) -> Path:
