@@ -178,7 +178,8 @@ class Match:
 @dataclass(frozen=True)
 class RelocCandidate:
     """A relocalization jump not yet confirmed: the pose the search found (x, y m; yaw rad), the
-    consecutive scans that found it, the corners it matched and how it ranked."""
+    consecutive scans that found it, the corners it matched and whether it was found near the
+    held pose."""
 
     x: float
     y: float
@@ -440,7 +441,7 @@ class PlanarLocalizer:
         if eigval[1] <= 0.0:
             return None
         b = (w * r) @ n
-        if eigval[0] < 1e-4 * eigval[1]:  # one direction: a corridor's walls
+        if eigval[0] < 1e-4 * eigval[1]:  # one direction (normals within ~0.6 deg): a corridor's walls
             u = eigvec[:, 1]
             delta = (u @ b) / eigval[1] * u
             cov2 = np.outer(u, u) / eigval[1] + p.lost_variance_m2 * np.outer(eigvec[:, 0], eigvec[:, 0])
