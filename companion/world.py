@@ -12,8 +12,8 @@ navigation pipelines rely on (the structured-arena assumptions of the two-lidar 
 localization: walls at multiples of a constant angle, known corner features):
 
 * no wall is shorter than 1 cm;
-* every wall direction is a multiple of ``wall_angle_deg`` within 0.1 deg (the lidar heading
-  tracker follows the heading modulo that angle);
+* every wall direction is ``wall_offset_deg`` plus a multiple of ``wall_angle_deg`` within
+  0.1 deg (the lidar heading tracker follows the heading modulo that angle);
 * every listed corner is a real corner of the map: within 1 cm of the end of one wall that
   lies on another, non-parallel wall (an L corner, or a T junction where a wall meets another);
 * every opening (door, window) is centred within 1 cm of a wall, fits within its length and
@@ -167,7 +167,8 @@ class World:
 
     name: str = field(metadata=meta("Name of the world, for logs and plots."))
     wall_angle_deg: Literal[90, 45, 30] = field(metadata=meta(
-        "Every wall runs at a multiple of this angle (degrees); the lidar tracks heading modulo it."))
+        "Every wall runs at a multiple of this angle (degrees, plus wall_offset_deg); the lidar tracks heading "
+        "modulo it."))
     bounds: Bounds = field(metadata=meta("Rectangle holding the whole arena (the geofence)."))
     start: tuple[float, float, float] = field(metadata=meta(
         "Take-off pose on the floor: x north m, y east m, yaw deg (from north towards east).", _COORD_RANGE))
@@ -177,6 +178,9 @@ class World:
     floor_markers: tuple[FloorMarker, ...] = field(default=(), metadata=meta("Fiducials on the floor."))
     obstacles: tuple[Obstacle, ...] = field(default=(), metadata=meta("Boxes standing on the floor."))
     openings: tuple[Opening, ...] = field(default=(), metadata=meta("Doors and windows in the walls."))
+    wall_offset_deg: float = field(default=0.0, metadata=meta(
+        "The walls run at this angle plus multiples of wall_angle_deg (degrees from north towards east): the map "
+        "is in the autopilot's NED frame, and a building need not be aligned with north.", (-90.0, 90.0)))
     survey_error_m: float = field(default=0.005, metadata=meta(
         "1-sigma error of the walls' and corners' positions as surveyed, metres: a property of this map that every "
         "lidar fix from it carries (the default: corners are accepted within 1 cm of their walls' corner).",
@@ -252,10 +256,11 @@ class World:
             for end in ("start", "end"):
                 if not self.bounds.contains(*getattr(wall, end), margin=-TOLERANCE_M):
                     yield f"walls[{i}].{end}", f"{_fmt(getattr(wall, end))} is outside bounds"
-            remainder = wall.direction_deg % self.wall_angle_deg
+            remainder = (wall.direction_deg - self.wall_offset_deg) % self.wall_angle_deg
             if min(remainder, self.wall_angle_deg - remainder) > ANGLE_TOLERANCE_DEG:
-                yield (f"walls[{i}]", f"direction {wall.direction_deg:.2f} deg is not a multiple of "
-                       f"wall_angle_deg = {self.wall_angle_deg} (within {ANGLE_TOLERANCE_DEG} deg)")
+                yield (f"walls[{i}]", f"direction {wall.direction_deg:.2f} deg minus wall_offset_deg = "
+                       f"{self.wall_offset_deg:g} is not a multiple of wall_angle_deg = {self.wall_angle_deg} "
+                       f"(within {ANGLE_TOLERANCE_DEG} deg)")
         for j, corner in enumerate(self.corners):
             if not self.is_corner(*corner):
                 yield (f"corners[{j}]", f"{_fmt(corner)} is not a corner of the map: no wall ends "

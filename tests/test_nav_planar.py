@@ -408,6 +408,33 @@ def test_a_corridor_without_corners_still_measures_its_cross_track_position() ->
         assert_finite(fix)
 
 
+def test_a_building_not_aligned_with_north_is_tracked_and_found() -> None:
+    """The map frame is the autopilot's NED, so a building's walls may run at any angle: the arena
+    turned by 20 deg (wall_offset_deg 20) is tracked along a path and relocalized from nothing."""
+    arena = load_world(DEFAULT_WORLD)
+    turn = math.radians(20.0)
+    rot = np.array([[math.cos(turn), -math.sin(turn)], [math.sin(turn), math.cos(turn)]])
+    walls = arena.segments_at(HEIGHT_M - MOUNT.z_m)
+    turned = np.hstack((walls[:, :2] @ rot.T, walls[:, 2:] @ rot.T))
+    geometry = WorldGeometry.from_world(walls_world([tuple(w) for w in turned], wall_angle_deg=45))
+    corners = arena.corner_array() @ rot.T
+    path = [(np.array([x, y]) @ rot.T, yaw + turn) for x, y, yaw in arena_path()[::2]]
+    rng = np.random.default_rng(24)
+    loc = PlanarLocalizer(corners, 45, mount=MOUNT, walls=turned, wall_offset_deg=20.0,
+                          initial_pose=(*path[0][0], path[0][1]))
+    for xy, yaw in path:
+        fix = loc.update(scan_at(geometry, xy[0], xy[1], yaw, rng))
+        assert fix.state == "tracking" and math.hypot(fix.x - xy[0], fix.y - xy[1]) < 0.03, fix
+        assert yaw_error(fix.yaw, yaw) < math.radians(0.3)
+    unknown = PlanarLocalizer(corners, 45, mount=MOUNT, walls=turned, wall_offset_deg=20.0)
+    xy, yaw = path[3]
+    fixes = [unknown.update(scan_at(geometry, xy[0], xy[1], yaw, rng)) for _ in range(unknown.params.reloc_confirm_frames)]
+    assert fixes[-1] is not None and fixes[-1].relocalized, unknown.last_reason
+    assert math.hypot(fixes[-1].x - xy[0], fixes[-1].y - xy[1]) < 0.03
+    aligned = PlanarLocalizer(corners, 45, mount=MOUNT, walls=turned, initial_pose=(*xy, yaw))
+    assert not aligned.update(scan_at(geometry, xy[0], xy[1], yaw, rng)).measured  # without the offset: no heading
+
+
 def test_ambiguous_walls_are_lost_at_once(arena: World) -> None:
     # Three walls at 0, 20 and 40 degrees: no consensus modulo 45 degrees.
     walls = []

@@ -90,6 +90,18 @@ def test_the_base_world_is_valid(tmp_path: Path) -> None:
     assert world.corners == () and world.floor_height_at(2, 2) == 0.0
 
 
+def test_a_box_turned_by_the_wall_offset_is_valid(tmp_path: Path) -> None:
+    """A square room turned by 30 deg: valid with wall_offset_deg 30, refused without."""
+    c, s_ = math.cos(math.radians(30)), math.sin(math.radians(30))
+    corners = [(2 + c * x - s_ * y, 2 + s_ * x + c * y) for x, y in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+    walls = "".join(f"  - {{start: [{a[0]:.5f}, {a[1]:.5f}], end: [{b[0]:.5f}, {b[1]:.5f}]}}\n"
+                    for a, b in zip(corners, corners[1:] + corners[:1]))
+    text = f"name: turned\nwall_angle_deg: 90\nbounds: {{min: [0, 0], max: [4, 4]}}\nstart: [2, 2, 30]\nwalls:\n{walls}"
+    with pytest.raises(SchemaError, match="minus wall_offset_deg = 0 is not a multiple of wall_angle_deg = 90"):
+        load_world(write(tmp_path, text))
+    assert load_world(write(tmp_path, text + "wall_offset_deg: 30\n")).wall_offset_deg == 30.0
+
+
 @pytest.mark.parametrize("extra, line, key_path, words", [
     ("  - {start: [1, 1], end: [1.866, 1.5]}\n", 10, "walls[4]", "not a multiple of wall_angle_deg = 45"),
     ("  - {start: [1, 1], end: [2, 1]}\n  - start: [1, 1]\n    end: [1.866, 1.5]\n",

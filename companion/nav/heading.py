@@ -10,6 +10,8 @@ or 30 degrees), and so does its normal because 90 degrees is itself a multiple o
     c = -[(yaw_p + a) % A]                       (eq. 2, normals instead of directions)
 
 with the paper's ``%`` (eq. 3) mapping into (-A/2, A/2], and ``yaw = yaw_p + c`` (eq. 4).
+A building need not be aligned with north (the map frame is the autopilot's NED): its walls
+run at ``offset + n A``, and ``offset`` is subtracted before the modulo.
 
 Deviations from the paper, all for robustness:
 
@@ -88,15 +90,17 @@ def wall_mod(a: np.ndarray | float, b: float) -> np.ndarray:
 
 
 def track_heading(lines: LineSet, previous_yaw: float, wall_angle_rad: float,
-                  predicted_delta: float = 0.0, params: HeadingParams = HeadingParams()) -> HeadingResult:
-    """Heading now, from the previous heading (plus ``predicted_delta``, rad) and the lines."""
+                  predicted_delta: float = 0.0, params: HeadingParams = HeadingParams(),
+                  wall_offset_rad: float = 0.0) -> HeadingResult:
+    """Heading now, from the previous heading (plus ``predicted_delta``, rad) and the lines; the
+    map's walls run at ``wall_offset_rad`` plus multiples of ``wall_angle_rad``."""
     predicted = previous_yaw + predicted_delta
     limit = wall_angle_rad / 2
     use = lines.length >= params.min_length_m
     if not use.any():
         return HeadingResult(wrap_pi(predicted), 0.0, UNMEASURED_VARIANCE_RAD2, "no_lines",
                              f"no line of {params.min_length_m:g} m or longer", 0, 0.0, limit)
-    corr = -wall_mod(predicted + lines.alpha[use], wall_angle_rad)  # eq. 2 per line
+    corr = -wall_mod(predicted + lines.alpha[use] - wall_offset_rad, wall_angle_rad)  # eq. 2 per line
     weight = 1.0 / lines.alpha_var[use]
     diff = wall_mod(corr[:, None] - corr[None, :], wall_angle_rad)  # candidate row - line column
     agree = np.abs(diff) <= math.radians(params.inlier_tolerance_deg)
@@ -132,12 +136,13 @@ def _variance(weight: np.ndarray, resid: np.ndarray) -> float:
     return formal * max(1.0, chi2_dof)
 
 
-def heading_hypotheses(lines: LineSet, wall_angle_rad: float,
-                       params: HeadingParams = HeadingParams()) -> tuple[np.ndarray, HeadingResult]:
+def heading_hypotheses(lines: LineSet, wall_angle_rad: float, params: HeadingParams = HeadingParams(),
+                       wall_offset_rad: float = 0.0) -> tuple[np.ndarray, HeadingResult]:
     """All headings compatible with the observed wall directions (for global relocalization):
     the heading modulo A from the lines' consensus, plus every multiple of A, in [-pi, pi).
     Empty when the lines give no heading; the HeadingResult says why and carries the variance."""
-    base = track_heading(lines, 0.0, wall_angle_rad, 0.0, replace(params, warn_fraction=1.0, prediction_sigma_deg=math.inf))
+    base = track_heading(lines, 0.0, wall_angle_rad, 0.0, replace(params, warn_fraction=1.0, prediction_sigma_deg=math.inf),
+                         wall_offset_rad)
     if not base.measured:
         return np.zeros(0), base
     count = int(round(2 * math.pi / wall_angle_rad))

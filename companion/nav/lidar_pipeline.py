@@ -137,7 +137,8 @@ class LidarPipeline:
         self.localizer = PlanarLocalizer(world_map.corner_array(), world_map.wall_angle_deg, mount,
                                          walls=world_map.segments_at(RELOCALIZATION_SCAN_HEIGHT_M),
                                          params=planar_params(cfg, world_map.survey_error_m), initial_pose=initial,
-                                         ceiling_m=max((w.height_m for w in world_map.walls), default=None))
+                                         ceiling_m=max((w.height_m for w in world_map.walls), default=None),
+                                         wall_offset_deg=world_map.wall_offset_deg)
         self.height = HeightEstimator(tuple(vertical.position_m), tuple(math.radians(a) for a in vertical.rpy_deg))
         self.fusion = FusionFilter()
         self.stats = LidarPipelineStats()

@@ -71,4 +71,5 @@ def map_payload(localizer: PlanarLocalizer) -> dict[str, Any]:
     """The map the localizer uses: wall segments at the scan height (doors and windows cut
     out), known corners, and the wall angle."""
     walls = np.zeros((0, 4)) if localizer.walls is None else localizer.walls
-    return {"walls_ned_m": walls, "corners_ned_m": localizer.map, "wall_angle_deg": math.degrees(localizer.wall_angle)}
+    return {"walls_ned_m": walls, "corners_ned_m": localizer.map, "wall_angle_deg": math.degrees(localizer.wall_angle),
+            "wall_offset_deg": math.degrees(localizer.wall_offset)}

@@ -200,15 +200,19 @@ class PlanarLocalizer:
 
     def __init__(self, corners: np.ndarray, wall_angle_deg: float, mount: Mount2D = Mount2D(),
                  walls: np.ndarray | None = None, params: PlanarParams = PlanarParams(),
-                 initial_pose: tuple[float, float, float] | None = None, ceiling_m: float | None = None) -> None:
+                 initial_pose: tuple[float, float, float] | None = None, ceiling_m: float | None = None,
+                 wall_offset_deg: float = 0.0) -> None:
         """``corners``: (M, 2) known map corners [north, east] m; ``wall_angle_deg``: every
         wall at a multiple of it (90, 45, 30); ``walls``: optional (S, 4) segments
         [x0, y0, x1, y1] m, used only to break relocalization ties (cut the doors and windows
         at the scan height out of them: beams through an opening then tell rooms apart);
         ``initial_pose``:
         (x m, y m, yaw rad), or None to relocalize from the first scans; ``ceiling_m``: the
-        ceiling's height above the floor (m), if known, to drop a tilted scanner's ceiling hits."""
+        ceiling's height above the floor (m), if known, to drop a tilted scanner's ceiling hits;
+        ``wall_offset_deg``: the walls run at this plus multiples of the wall angle (degrees from
+        north towards east: a building not aligned with north)."""
         self.ceiling_m = ceiling_m
+        self.wall_offset = math.radians(wall_offset_deg)
         self.map = np.asarray(corners, dtype=float).reshape(-1, 2)
         self.wall_angle = math.radians(wall_angle_deg)
         self.mount = mount
@@ -275,7 +279,7 @@ class PlanarLocalizer:
         if self._pose is None:
             return self._relocalize(lines, corners, points[ok], "no pose known", "", timing, t0)
         x, y, yaw = self._pose
-        heading = track_heading(lines, yaw, self.wall_angle, yaw_delta, self.params.heading)
+        heading = track_heading(lines, yaw, self.wall_angle, yaw_delta, self.params.heading, self.wall_offset)
         t3 = time.perf_counter()
         timing["heading"] = (t3 - t2) * 1e3
         if not heading.measured:
@@ -545,7 +549,7 @@ class PlanarLocalizer:
         With a pose held, the hypotheses within ``reloc_local_m`` of it and at the heading nearest
         its yaw are tried first; the global search only when they give no clear winner."""
         p = self.params
-        yaws, base = heading_hypotheses(lines, self.wall_angle, p.heading)
+        yaws, base = heading_hypotheses(lines, self.wall_angle, p.heading, self.wall_offset)
         if yaws.size == 0:
             return None, base.reason
         if corners.count < p.reloc_min_inliers:
