@@ -112,6 +112,20 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return run_bench(args.repeat)
 
 
+def _cmd_map_build(args: argparse.Namespace) -> int:
+    from companion.mapping import build_map_file
+    from companion.schema import SchemaError
+
+    try:
+        built = build_map_file(args.log, args.format, args.out, args.wall_angle, args.laser)
+    except (OSError, ValueError, SchemaError) as exc:
+        print(f"companion map build: {exc}", file=sys.stderr)
+        return EXIT_CONFIG_ERROR
+    print(f"{args.out}: {len(built.walls)} walls, {len(built.corners)} corners, walls at "
+          f"{built.wall_offset_deg:+.2f} deg + n x {built.wall_angle_deg} deg, survey error {built.survey_error_m * 100:.1f} cm")
+    return 0
+
+
 def _cmd_experiment_faults(args: argparse.Namespace) -> int:
     from sitl.faults import run_faults
 
@@ -188,6 +202,18 @@ def build_parser() -> argparse.ArgumentParser:
     bench = sub.add_parser("bench", help="per-stage timings (median, p99) of every pipeline present")
     bench.add_argument("--repeat", type=int, default=2000)
     bench.set_defaults(func=_cmd_bench)
+
+    mapping = sub.add_parser("map", help="lidar maps of a user's own building")
+    maps = mapping.add_subparsers(dest="map", required=True)
+    build = maps.add_parser("build", help="build a map (world YAML for pipelines.lidar.map) from a log with poses")
+    build.add_argument("log", help="the log (e.g. a CARMEN log, plain or .gz)")
+    build.add_argument("--format", required=True, choices=["carmen", "ros", "breezyslam", "npz"],
+                       help="the log's format (only carmen carries the poses the builder needs today)")
+    build.add_argument("--out", required=True, help="write the map (world YAML) here")
+    build.add_argument("--wall-angle", type=int, choices=[90, 45, 30], default=90,
+                       help="the building's walls run at multiples of this angle (default 90)")
+    build.add_argument("--laser", choices=["front", "rear"], default="front", help="carmen: which laser's messages")
+    build.set_defaults(func=_cmd_map_build)
 
     experiment = sub.add_parser("experiment", help="experiments against the SITL that print figures")
     experiments = experiment.add_subparsers(dest="experiment", required=True)

@@ -1,0 +1,66 @@
+"""`companion map build`: a lidar map from a log with reference poses, written as a world YAML.
+
+Reads the log (drivers/lidar_replay.py), builds the map (companion/nav/map_build.py) and writes
+it in the world format (companion/world.py) that ``pipelines.lidar.map`` names, then loads it
+back, so a map the daemon would refuse is never left behind.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from companion.nav.map_build import BuiltMap, MapBuildParams, build_map
+from companion.world import load_world
+
+FORMATS_WITH_POSES = ("carmen",)
+BOUNDS_MARGIN_M = 1.0
+
+
+def build_map_file(log: str | Path, log_format: str, out: str | Path, wall_angle_deg: int = 90,
+                   laser: str = "front") -> BuiltMap:
+    """Build the map of ``log`` and write it to ``out``; ValueError for a log it cannot use."""
+    if log_format not in FORMATS_WITH_POSES:
+        raise ValueError(f"--format {log_format}: the log holds no reference poses; building a map from such a "
+                         "log (mapping it without poses) is not implemented yet, use a log with poses (carmen)")
+    from drivers.lidar_replay import carmen_valid, read_carmen
+
+    scans = read_carmen(log, laser)
+    if not scans:
+        raise ValueError(f"{log}: no {laser} laser message")
+    log_max = max(float(s.ranges_m.max()) for s in scans)
+    built = build_map(((np.column_stack((s.ranges_m * np.cos(s.angles_rad), s.ranges_m * np.sin(s.angles_rad))),
+                        carmen_valid(s, log_max), s.pose_ned) for s in scans), MapBuildParams(wall_angle_deg=wall_angle_deg))
+    x, y, yaw = scans[0].pose_ned
+    write_world(built, out, Path(log).name, (x, y, math.degrees(yaw)))
+    load_world(out)  # the daemon's own checks: a map it would refuse raises here (SchemaError names the key)
+    return built
+
+
+def write_world(built: BuiltMap, path: str | Path, source: str, start: tuple[float, float, float]) -> None:
+    """``built`` as a world YAML at ``path`` (``start``: take-off pose x m, y m, yaw deg)."""
+    lo = np.minimum(built.walls[:, 0:2], built.walls[:, 2:4]).min(axis=0) - BOUNDS_MARGIN_M
+    hi = np.maximum(built.walls[:, 0:2], built.walls[:, 2:4]).max(axis=0) + BOUNDS_MARGIN_M
+
+    def point(p: np.ndarray | tuple[float, float]) -> list[float]:
+        return [round(float(p[0]), 4), round(float(p[1]), 4)]
+
+    world = {
+        "name": Path(source).stem,
+        "wall_angle_deg": built.wall_angle_deg,
+        "wall_offset_deg": round(built.wall_offset_deg, 4),
+        "survey_error_m": round(built.survey_error_m, 4),
+        "bounds": {"min": point(lo), "max": point(hi)},
+        "start": [round(float(v), 4) for v in start],
+        "walls": [{"start": point(w[0:2]), "end": point(w[2:4])} for w in built.walls],
+        "corners": [point(c) for c in built.corners],
+    }
+    header = (f"# Built by `companion map build` from {source}: {len(built.walls)} walls (each seen in at least "
+              f"{int(built.observations.min())} scan lines), {len(built.corners)} corners.\n"
+              "# Frame: the log's map frame as NED (x north, y east, metres; directions from north towards east).\n"
+              "# survey_error_m is the spread of the scan lines about their walls (scan noise and pose error\n"
+              "# included). Check the map on the dashboard before flying on it.\n")
+    Path(path).write_text(header + yaml.safe_dump(world, sort_keys=False, default_flow_style=None))
