@@ -35,8 +35,14 @@ def build_map_file(log: str | Path, log_format: str, out: str | Path, wall_angle
     built = build_map(((np.column_stack((s.ranges_m * np.cos(s.angles_rad), s.ranges_m * np.sin(s.angles_rad))),
                         carmen_valid(s, log_max), s.pose_ned) for s in scans), MapBuildParams(wall_angle_deg=wall_angle_deg))
     x, y, yaw = scans[0].pose_ned
-    write_world(built, out, Path(log).name, (x, y, math.degrees(yaw)))
-    load_world(out)  # the daemon's own checks: a map it would refuse raises here (SchemaError names the key)
+    out = Path(out)
+    draft = out.with_name(f".{out.name}.draft")
+    try:
+        write_world(built, draft, Path(log).name, (x, y, math.degrees(yaw)))
+        load_world(draft)  # the daemon's own checks: a map it would refuse raises here (SchemaError names the key)
+        draft.replace(out)
+    finally:
+        draft.unlink(missing_ok=True)
     return built
 
 
