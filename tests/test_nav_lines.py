@@ -93,13 +93,15 @@ def test_scattered_dropouts_are_bridged_and_a_longer_gap_or_a_range_jump_breaks_
     points = np.column_stack((r * np.cos(a), r * np.sin(a)))
     valid = np.random.default_rng(5).random(a.size) >= 0.3  # 30 % of the beams dropped at random
     valid[[0, -1]] = True
-    valid[200:200 + LineParams().max_missing_beams] = False  # the longest gap bridged
-    lines = extract_lines(points, valid)
+    bridging = LineParams(max_missing_beams=10)
+    valid[200:210] = False  # the longest gap bridged
+    lines = extract_lines(points, valid, bridging)
     assert lines.count == 1 and lines.first_beam[0] == 0 and lines.last_beam[0] == a.size - 1
-    valid[200:201 + LineParams().max_missing_beams] = False  # one more: the wall is cut there
-    lines = extract_lines(points, valid)
+    valid[210] = False  # one more: the wall is cut there
+    lines = extract_lines(points, valid, bridging)
     assert lines.count == 2
     assert lines.last_beam[0] < 200 < lines.first_beam[1]
+    assert extract_lines(points, valid).count == 0  # without bridging (the paper): pieces too short
     # A doorway: the beams in between see a wall 3 m further; collinear pieces stay apart.
     far = np.abs(a) < math.radians(5)
     r2 = np.where(far, 4.0 / np.cos(a), r)

@@ -128,14 +128,16 @@ def test_competing_wall_families_follow_the_prediction_not_the_heavier_clutter()
     """Five lines of clutter at 15 deg outweigh three walls of the building (at 0 and 90 deg): with
     the heading predicted at 0 (the gyro saw no turn) the building's family is the candidate, and
     without the consensus for it the heading is ambiguous, never flipped by 15 deg."""
+    gyro = planar_params(LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v")).heading  # the pipeline's
     clutter_heavy = synthetic_lines([0.2, 90.2, -89.8, 15.0, 15.1, 105.0, -75.1, 15.2])
-    result = track_heading(clutter_heavy, 0.0, A45)
+    result = track_heading(clutter_heavy, 0.0, A45, params=gyro)
     assert result.status == "ambiguous" and result.yaw == 0.0
+    assert track_heading(clutter_heavy, 0.0, A45).measured  # no prior (no gyro): the heavier family wins
     walls_heavy = synthetic_lines([0.2, 90.2, -89.8, 180.2, 0.2, 15.0, 15.1, 105.0])
-    result = track_heading(walls_heavy, 0.0, A45)
+    result = track_heading(walls_heavy, 0.0, A45, params=gyro)
     assert result.status == "ok" and math.degrees(result.correction) == pytest.approx(-0.2)
     # Predicted near the clutter's family (a 15 deg turn the gyro measured): that family it is.
-    result = track_heading(clutter_heavy, 0.0, A45, predicted_delta=math.radians(-15.0))
+    result = track_heading(clutter_heavy, 0.0, A45, predicted_delta=math.radians(-15.0), params=gyro)
     assert result.measured and math.degrees(result.yaw) == pytest.approx(-15.1, abs=0.1)
 
 

@@ -23,8 +23,8 @@ Deviations from the paper, all for robustness:
   wrapped modulo A, so +A/2 and -A/2 are neighbours); the best-supported candidate's inliers
   are averaged as residuals around it, which is the circular mean modulo A without the wrap
   problem at +/-A/2. Too little support (clutter at arbitrary angles) is reported ``ambiguous``;
-* the candidates are ranked by their support times a Gaussian prior on their correction
-  (``prediction_sigma_deg``): when two wall families compete (clutter at 15 degrees outweighing
+* with a trusted prediction (``prediction_sigma_deg`` finite: a gyro) the candidates are ranked
+  by their support times a Gaussian prior on their correction: when two wall families compete (clutter at 15 degrees outweighing
   the building's walls) the one the predicted heading expects is chosen, and if it lacks the
   consensus the heading is reported ``ambiguous`` rather than flipped to the other family;
 * ``predicted_delta`` (e.g. the gyro's integrated yaw change since the last scan) moves the
@@ -57,7 +57,10 @@ class HeadingParams:
     inlier_tolerance_deg: float = 2.0  # a line agrees with a candidate within this, degrees
     min_consensus: float = 0.6  # the inliers must carry this fraction of the weight
     warn_fraction: float = 0.5  # |correction| beyond this fraction of A/2 is near_limit
-    prediction_sigma_deg: float = 5.0  # 1-sigma of the predicted heading, for ranking wall families, degrees
+    # 1-sigma of the predicted heading for ranking wall families, degrees; inf: no prior (without a
+    # gyro the prediction is only the previous heading). The lidar pipeline, predicting with the
+    # autopilot's gyro, uses 5.
+    prediction_sigma_deg: float = math.inf
     variance_floor_rad2: float = math.radians(0.05) ** 2  # floor: map walls may be 0.1 deg off
 
 

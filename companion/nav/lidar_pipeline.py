@@ -36,6 +36,7 @@ from companion.health import Health, State
 from companion.messages import Estimate, ImuSample, PoseEstimate, Scan
 from companion.nav.corners import CornerParams
 from companion.nav.fusion import FusionFilter, to_pose_estimate
+from companion.nav.heading import HeadingParams
 from companion.nav.height import HeightEstimator
 from companion.nav.lidar_streams import STREAMS, ProcessedScan, map_payload, scan_payloads
 from companion.nav.planar import Mount2D, PlanarLocalizer, PlanarParams
@@ -46,6 +47,9 @@ from companion.timing import Timings
 from companion.world import World, load_world
 
 LEVEL_TOLERANCE_DEG = 1.0
+# The heading between two scans is predicted with the autopilot's gyro (its yaw change): a wall
+# family this far (1-sigma) from that prediction is unlikely (companion/nav/heading.py).
+GYRO_PREDICTION_SIGMA_DEG = 5.0
 # Walls are cut at this scanner height above the floor for relocalization's wall check (an
 # indoor flight height: doors and windows at it are openings the scanner sees through).
 RELOCALIZATION_SCAN_HEIGHT_M = 1.0
@@ -106,7 +110,8 @@ def planar_params(cfg: LidarPipelineConfig, survey_error_m: float = CornerParams
     """The localizer's thresholds from the config and the map's survey error (m, 1-sigma: the floor
     of every corner's and wall's covariance); the rest keep the defaults of companion/nav."""
     return PlanarParams(gate_m=cfg.correspondence_gate_m, reloc_confirm_frames=cfg.relocalization_confirm_scans,
-                        corners=CornerParams(floor_m=survey_error_m), map_error_m=survey_error_m)
+                        corners=CornerParams(floor_m=survey_error_m), map_error_m=survey_error_m,
+                        heading=HeadingParams(prediction_sigma_deg=GYRO_PREDICTION_SIGMA_DEG))
 
 
 def planar_mount(mount: MountConfig) -> Mount2D:

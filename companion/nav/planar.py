@@ -95,6 +95,11 @@ from companion.messages import Scan
 PlanarState = Literal["tracking", "degraded", "lost"]
 
 
+# Consecutive invalid beams a wall's run bridges in the horizontal scan (lines.py: scattered
+# dropouts keep walls whole; the heading between scans is predicted with the gyro).
+BRIDGED_DROPOUTS = 10
+
+
 @dataclass(frozen=True)
 class Mount2D:
     """Pose of the horizontal scanner in the body frame (FRD, metres, radians)."""
@@ -109,7 +114,7 @@ class Mount2D:
 class PlanarParams:
     """Thresholds of the planar localizer (stage thresholds in their own dataclasses)."""
 
-    lines: LineParams = field(default_factory=LineParams)
+    lines: LineParams = field(default_factory=lambda: LineParams(max_missing_beams=BRIDGED_DROPOUTS))
     heading: HeadingParams = field(default_factory=HeadingParams)
     corners: CornerParams = field(default_factory=CornerParams)
     gate_m: float = 0.5  # association gate around a predicted corner, metres
