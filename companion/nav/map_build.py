@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.nav.lines import LineParams, extract_lines
+from companion.nav.planar import rotation
 
 
 @dataclass(frozen=True)
@@ -85,7 +86,7 @@ def build_map(scans: Iterable[tuple[np.ndarray, np.ndarray, tuple[float, float, 
         sel = keep & (family == f)
         mid = 0.5 * (start[sel] + end[sel])
         rho, u0, u1 = mid @ n, np.minimum(start[sel] @ t, end[sel] @ t), np.maximum(start[sel] @ t, end[sel] @ t)
-        for members in _walls_of_family(rho, u0, u1, length[sel], params):
+        for members in _walls_of_family(rho, u0, u1, params):
             w = length[sel][members]
             wall_rho = float(w @ rho[members] / w.sum())
             a, b = float(u0[members].min()), float(u1[members].max())
@@ -113,8 +114,7 @@ def _segments(scans: Iterable[tuple[np.ndarray, np.ndarray, tuple[float, float, 
         near = valid & (np.hypot(points[:, 0], points[:, 1]) <= params.max_range_m)
         lines = extract_lines(points, near, line_params)
         long = lines.length >= params.min_segment_m
-        c, s = math.cos(yaw), math.sin(yaw)
-        rot = np.array([[c, -s], [s, c]])
+        rot = rotation(yaw)
         starts.append(np.array([x, y]) + lines.start[long] @ rot.T)
         ends.append(np.array([x, y]) + lines.end[long] @ rot.T)
     if not starts:
@@ -129,8 +129,7 @@ def _circular_mean(direction: np.ndarray, weight: np.ndarray, period: float) -> 
     return mean if mean > -period / 2 else mean + period
 
 
-def _walls_of_family(rho: np.ndarray, u0: np.ndarray, u1: np.ndarray, length: np.ndarray,
-                     params: MapBuildParams) -> list[np.ndarray]:
+def _walls_of_family(rho: np.ndarray, u0: np.ndarray, u1: np.ndarray, params: MapBuildParams) -> list[np.ndarray]:
     """Index arrays of the segments of one direction that form one wall each (module doc, step 3)."""
     order = np.argsort(rho, kind="stable")
     breaks = np.flatnonzero(np.diff(rho[order]) > params.merge_offset_m) + 1
