@@ -306,7 +306,7 @@ def test_relocalizes_from_an_unknown_start_once_consecutive_scans_agree(
     needed = loc.params.reloc_confirm_frames
     for k in range(1, needed):  # a candidate, not yet a pose: nothing to send
         assert loc.update(scan_at(geometry, x, y, yaw, rng)) is None
-        assert f"found by {k} of the {needed} consecutive scans" in loc.last_reason
+        assert f"found by {k} of the {needed} scans needed" in loc.last_reason
         assert loc.candidate is not None and loc.candidate.frames == k and not loc.candidate.local
     fix = loc.update(scan_at(geometry, x, y, yaw, rng))
     assert fix is not None, loc.last_reason
@@ -340,6 +340,31 @@ def test_a_relocalization_that_keeps_moving_is_never_confirmed(arena: World, geo
         x, y, yaw = (2.0, 2.0, math.radians(30.0)) if k % 2 == 0 else (8.5, 7.5, math.radians(200.0))
         assert loc.update(scan_at(geometry, x, y, yaw, rng)) is None
         assert loc.candidate is not None and loc.candidate.frames == 1
+
+
+def test_a_candidate_moves_with_the_body_and_survives_scans_that_cannot_test_it(
+        arena: World, geometry: WorldGeometry) -> None:
+    """Scans 0.5 m apart (beyond the confirmation gate), one of them blind (every beam invalid):
+    given the motion between scans (``moved_m``, body frame) the candidate is moved with it,
+    carried over the blind scan, and confirmed where the body is."""
+    loc = localizer(arena, geometry, None)
+    rng = np.random.default_rng(17)
+    yaw = math.radians(30.0)
+    forward = (0.5, 0.0)
+    path = [(2.0 + k * 0.5 * math.cos(yaw), 2.0 + k * 0.5 * math.sin(yaw)) for k in range(4)]
+    assert loc.update(scan_at(geometry, *path[0], yaw, rng)) is None
+    blind = scan_at(geometry, *path[1], yaw, rng)
+    assert loc.update(Scan(blind.sensor_id, 0.0, blind.angles_rad, blind.ranges_m, np.zeros_like(blind.valid)),
+                      moved_m=forward) is None
+    c = loc.candidate
+    assert c is not None and c.frames == 1 and c.idle == 1 and math.dist((c.x, c.y), path[1]) < 0.05
+    assert loc.update(scan_at(geometry, *path[2], yaw, rng), moved_m=forward) is None
+    assert loc.candidate is not None and loc.candidate.frames == 2
+    fix = loc.update(scan_at(geometry, *path[3], yaw, rng), moved_m=forward)
+    assert fix is not None and fix.relocalized and math.dist((fix.x, fix.y), path[3]) < 0.03
+    unmoved = localizer(arena, geometry, None)  # the same scans without the motion: never confirmed
+    for xy in path:
+        assert unmoved.update(scan_at(geometry, *xy, yaw, rng)) is None
 
 
 def test_the_held_pose_picks_between_look_alike_rooms() -> None:
@@ -408,6 +433,25 @@ def test_a_corridor_without_corners_still_measures_its_cross_track_position() ->
         assert abs(fix.y - y) < 0.01 and yaw_error(fix.yaw, yaw) < math.radians(0.3)
         assert fix.covariance[0, 0] > 0.99 * loc.params.lost_variance_m2 and fix.covariance[1, 1] < 0.01 ** 2
         assert_finite(fix)
+
+
+def test_a_corridor_wall_a_little_off_its_map_line_does_not_move_the_along_track_position() -> None:
+    """Real walls are not exactly where the map says: here one corridor wall is turned by 1 deg.
+    Its line and the other wall's then differ by 1 deg, but both lie on map walls of one direction:
+    the fix measures the cross-track position only and leaves the along-track position at the
+    prediction (solving for it from the 1 deg difference threw it metres along the corridor)."""
+    turn = math.radians(1.0)
+    crooked = (-20.0, 1.0 - 20.0 * math.tan(turn), 20.0, 1.0 + 20.0 * math.tan(turn))
+    geometry = WorldGeometry.from_world(walls_world([(-40.0, -1.0, 40.0, -1.0), crooked], wall_angle_deg=90))
+    mapped = walls_world([(-40.0, -1.0, 40.0, -1.0), (-40.0, 1.0, 40.0, 1.0)], wall_angle_deg=90)
+    ends = np.array([(-40.0, -1.0), (-40.0, 1.0), (40.0, -1.0), (40.0, 1.0)])
+    loc = PlanarLocalizer(ends, 90, mount=MOUNT, walls=mapped.segments_at(HEIGHT_M - MOUNT.z_m))
+    rng = np.random.default_rng(23)
+    for x in (-3.0, 0.0, 2.0, 5.0):
+        fix = loc.update(scan_at(geometry, x, 0.0, 0.0, rng), (x, 0.0, 0.0))
+        assert fix.measured and fix.walls_matched == 2 and "cross-track" in fix.reason, fix
+        assert abs(fix.x - x) < 1e-6 and abs(fix.y) < 0.1
+        assert fix.covariance[0, 0] > 0.99 * loc.params.lost_variance_m2
 
 
 def test_a_building_not_aligned_with_north_is_tracked_and_found() -> None:

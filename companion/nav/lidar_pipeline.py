@@ -35,7 +35,7 @@ from companion.frames import wrap_pi
 from companion.health import Health, State
 from companion.messages import Estimate, ImuSample, PoseEstimate, Scan
 from companion.nav.corners import CornerParams
-from companion.nav.fusion import FusionFilter, to_pose_estimate
+from companion.nav.fusion import FusedState, FusionFilter, to_pose_estimate
 from companion.nav.heading import HeadingParams
 from companion.nav.height import HeightEstimator
 from companion.nav.lidar_streams import STREAMS, ProcessedScan, map_payload, scan_payloads
@@ -90,8 +90,9 @@ class LidarPipelineConfig:
     correspondence_gate_m: float = field(default=0.5, metadata=meta(
         "Nearest-neighbour gate between an observed and a map corner.", (0.05, 5)))
     relocalization_confirm_scans: int = field(default=3, metadata=meta(
-        "Consecutive scans that must find a relocalization jump (each near the previous one, turned as the gyro "
-        "says) before it becomes the pose; until then the lidar pose is lost.", (1, 40)))
+        "Scans that must find a relocalization jump (each near the previous one moved as the fused IMU says, turned "
+        "as the gyro says; scans too poor to test it carry it, one finding another pose starts over) before it "
+        "becomes the pose; until then the lidar pose is lost.", (1, 40)))
 
     def sensor_inputs(self) -> dict[str, str]:
         return {"horizontal_sensor": "lidar", "vertical_sensor": "lidar", "imu_sensor": "imu"}
@@ -123,6 +124,18 @@ def planar_mount(mount: MountConfig) -> Mount2D:
     return Mount2D(x_m=x, y_m=y, yaw_rad=math.radians(yaw), z_m=z)
 
 
+def planar_localizer(params: PlanarParams, world_map: World, mount: Mount2D,
+                     initial_pose: tuple[float, float, float] | None) -> PlanarLocalizer:
+    """The horizontal scanner's localizer on ``world_map`` (its corners, walls at the flight height,
+    ceiling and wall directions); ``initial_pose``: x, y (m), yaw (rad) in the map, None to
+    relocalize globally."""
+    return PlanarLocalizer(world_map.corner_array(), world_map.wall_angle_deg, mount,
+                           walls=world_map.segments_at(RELOCALIZATION_SCAN_HEIGHT_M), params=params,
+                           initial_pose=initial_pose,
+                           ceiling_m=max((w.height_m for w in world_map.walls), default=None),
+                           wall_offset_deg=world_map.wall_offset_deg)
+
+
 class LidarPipeline:
     """Two-lidar localization + fusion; see the module docstring."""
 
@@ -138,12 +151,8 @@ class LidarPipeline:
         if cfg.initial_pose is not None:
             x, y, yaw_deg = cfg.initial_pose
             initial = (x, y, math.radians(yaw_deg))
-        mount = planar_mount(horizontal)
-        self.localizer = PlanarLocalizer(world_map.corner_array(), world_map.wall_angle_deg, mount,
-                                         walls=world_map.segments_at(RELOCALIZATION_SCAN_HEIGHT_M),
-                                         params=planar_params(cfg, world_map.survey_error_m), initial_pose=initial,
-                                         ceiling_m=max((w.height_m for w in world_map.walls), default=None),
-                                         wall_offset_deg=world_map.wall_offset_deg)
+        self.localizer = planar_localizer(planar_params(cfg, world_map.survey_error_m), world_map,
+                                          planar_mount(horizontal), initial)
         self.height = HeightEstimator(tuple(vertical.position_m), tuple(math.radians(a) for a in vertical.rpy_deg))
         self.fusion = FusionFilter()
         self.stats = LidarPipelineStats()
@@ -154,6 +163,7 @@ class LidarPipeline:
         self._euler: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the autopilot's, newest, rad
         self._published: ProcessedScan | None = None  # the last scan telemetry() returned
         self._scan_yaw: float | None = None  # autopilot yaw at the previous horizontal scan
+        self._scan_state: tuple[float, float, float] | None = None  # fused x, y (m), yaw (rad) there, if healthy
         self._coasting = False  # the previous horizontal fix matched no corner: its position is stale
         self._reset_counter = 0
         self.last_horizontal: ProcessedScan | None = None  # read-only, for telemetry
@@ -222,8 +232,10 @@ class LidarPipeline:
         prior = None
         if self._coasting and state.healthy and held is not None:
             prior = (float(state.position_ned[0]), float(state.position_ned[1]), held[2])
+        moved = self._moved_since_last_scan(state)
         started = time.perf_counter()
-        fix = self.localizer.update(scan, prior, roll=roll, pitch=pitch, yaw_delta=yaw_delta, height_m=height)
+        fix = self.localizer.update(scan, prior, roll=roll, pitch=pitch, yaw_delta=yaw_delta, moved_m=moved,
+                                    height_m=height)
         elapsed = (time.perf_counter() - started) * 1e3
         self._coasting = fix is not None and fix.matched == 0
         assert self.localizer.last_lines is not None and self.localizer.last_corners is not None  # set by update()
@@ -244,6 +256,17 @@ class LidarPipeline:
             self.stats.first_fix_t = self.stats.first_fix_t if self.stats.first_fix_t is not None else scan.t_capture
             self.stats.last_fix_t = scan.t_capture
         return elapsed
+
+    def _moved_since_last_scan(self, state: FusedState) -> tuple[float, float]:
+        """The fused displacement since the previous horizontal scan in the body frame then
+        (forward, right, m); zero unless the fusion was healthy at both scans."""
+        before = self._scan_state
+        self._scan_state = (float(state.position_ned[0]), float(state.position_ned[1]), state.yaw) if state.healthy else None
+        if before is None or self._scan_state is None:
+            return (0.0, 0.0)
+        dx, dy = self._scan_state[0] - before[0], self._scan_state[1] - before[1]
+        c, s = math.cos(before[2]), math.sin(before[2])
+        return (c * dx + s * dy, -s * dx + c * dy)
 
     def _process_vertical(self, scan: Scan) -> float:
         roll, pitch, _ = self._attitude()

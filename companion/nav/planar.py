@@ -68,10 +68,13 @@ winner is accepted (more corners than every other distinct pose, or as many but 
 when they have no clear winner: a map has look-alike places, and the held pose says which one
 the vehicle is more likely in. A winner within ``jump_m`` / ``jump_rad`` of the held pose resumes
 tracking at once. A jump (or a first pose) is only a candidate (:attr:`PlanarLocalizer.candidate`)
-until ``reloc_confirm_frames`` consecutive scans found it, each within ``reloc_confirm_gate_m``
-of the previous one and turned by the gyro's yaw change within ``reloc_confirm_gate_rad`` (at 40
-scans/s the gate allows 12 m/s); meanwhile the fix stays lost (None without a pose), never a
-confident wrong pose. The confirming fix has ``relocalized`` True, so the daemon increments
+until ``reloc_confirm_frames`` scans found it, each within ``reloc_confirm_gate_m`` of the
+previous one moved by the motion given with the scans (``moved_m``: odometry or the fused IMU;
+at 40 scans/s without it the gate allows 12 m/s) and turned by the gyro's yaw change within
+``reloc_confirm_gate_rad``. A scan that can test nothing (too few corners, no clear winner)
+carries the candidate along with that motion, up to ``reloc_confirm_frames`` such scans in a row;
+a scan finding another pose starts over. Meanwhile the fix stays lost (None without a pose),
+never a confident wrong pose. The confirming fix has ``relocalized`` True, so the daemon increments
 ``reset_counter``.
 """
 
@@ -141,7 +144,7 @@ class PlanarParams:
     jump_m: float = 0.3  # a relocalization moving the pose more than this is a reset
     jump_rad: float = math.radians(10.0)  # ... or turning it more than this
     reloc_local_m: float = 1.5  # with a pose held, hypotheses within this of it are tried first, metres
-    reloc_confirm_frames: int = 3  # consecutive scans that must find a jump before it becomes the pose
+    reloc_confirm_frames: int = 3  # scans that must find a jump (none finding another) before it becomes the pose
     reloc_confirm_gate_m: float = 0.3  # ... each within this of the previous one, metres
     reloc_confirm_gate_rad: float = math.radians(5.0)  # ... and turned by the gyro's change within this
 
@@ -182,9 +185,9 @@ class Match:
 
 @dataclass(frozen=True)
 class RelocCandidate:
-    """A relocalization jump not yet confirmed: the pose the search found (x, y m; yaw rad), the
-    consecutive scans that found it, the corners it matched and whether it was found near the
-    held pose."""
+    """A relocalization jump not yet confirmed: the pose the search found (x, y m; yaw rad; moved
+    with the body since), the scans that found it, the corners it matched and whether it was found
+    near the held pose."""
 
     x: float
     y: float
@@ -192,6 +195,7 @@ class RelocCandidate:
     frames: int
     matched: int
     local: bool  # found near the held pose (True) or by the global search
+    idle: int = 0  # scans since it was last found that could not test it (carried by the motion)
 
 
 def rotation(yaw: float) -> np.ndarray:
@@ -236,6 +240,7 @@ class PlanarLocalizer:
         self._misses = 0
         self.candidate: RelocCandidate | None = None  # an unconfirmed relocalization jump
         self._yaw_delta = 0.0  # the gyro's yaw change given with the scan being processed, rad
+        self._moved: tuple[float, float] = (0.0, 0.0)  # the body displacement given with it (forward, right), m
         self._angles: np.ndarray | None = None
         self._unit = np.zeros((0, 2))
         self._level_cache: tuple[float, float, np.ndarray, np.ndarray] | None = None
@@ -259,7 +264,7 @@ class PlanarLocalizer:
         return self._pose
 
     def update(self, scan: Scan | np.ndarray, prior: tuple[float, float, float] | None = None, *,
-               roll: float = 0.0, pitch: float = 0.0, yaw_delta: float = 0.0,
+               roll: float = 0.0, pitch: float = 0.0, yaw_delta: float = 0.0, moved_m: tuple[float, float] = (0.0, 0.0),
                valid: np.ndarray | None = None, height_m: float | None = None) -> PlanarFix | None:
         """Process one scan; None only when no pose is known and relocalization found none.
 
@@ -268,10 +273,13 @@ class PlanarLocalizer:
         capture time (e.g. the EKF), replacing the held pose as the prediction. ``roll``,
         ``pitch``: body attitude at capture (rad) for tilt compensation. ``yaw_delta``: the
         gyro's yaw change since the previous scan (rad), added to the predicted heading (leave
-        it 0 with a ``prior`` whose yaw already includes the turn). ``height_m``: the body's height
+        it 0 with a ``prior`` whose yaw already includes the turn). ``moved_m``: the body's
+        displacement since the previous scan (forward, right, metres, in the body frame of the
+        previous scan; odometry or the fused IMU), which moves a relocalization candidate before
+        this scan is checked against it. ``height_m``: the body's height
         above the floor (m) when known, to drop floor hits of a tilted scanner."""
         t0 = time.perf_counter()
-        self._yaw_delta = yaw_delta
+        self._yaw_delta, self._moved = yaw_delta, moved_m
         points, ok, ranges = self.level_points(scan, roll, pitch, valid, height_m)
         lines = extract_lines(points, ok, self.params.lines, ranges)
         t1 = time.perf_counter()
@@ -427,9 +435,12 @@ class PlanarLocalizer:
         normal = np.column_stack((np.cos(angle), np.sin(angle)))  # world normals of the observed lines
         start, end = xy + lines.start[use] @ rot.T, xy + lines.end[use] @ rot.T
         mid = 0.5 * (start + end)
-        # Residual to every wall along the observed normal, its angle and extent overlap.
+        # Residual to every wall along the wall's normal (a real wall is a little off its map line:
+        # measured along the observed line's normal, a long wall's residual would grow with its
+        # length), its angle and extent overlap.
         parallel = np.abs(normal @ self._wall_dir.T) <= math.sin(math.radians(p.wall_angle_tolerance_deg))
-        resid = np.einsum("jk,ik->ji", normal, self.walls[:, 0:2]) - np.sum(normal * mid, axis=1)[:, None]
+        wall_normal = np.column_stack((-self._wall_dir[:, 1], self._wall_dir[:, 0]))
+        resid = np.sum(wall_normal * self.walls[:, 0:2], axis=1)[None, :] - mid @ wall_normal.T
         u_start = np.einsum("jik,ik->ji", start[:, None, :] - self.walls[None, :, 0:2], self._wall_dir)
         u_end = np.einsum("jik,ik->ji", end[:, None, :] - self.walls[None, :, 0:2], self._wall_dir)
         overlap = ((np.maximum(u_start, u_end) >= -p.wall_overlap_margin_m)
@@ -439,7 +450,9 @@ class PlanarLocalizer:
         if not has.any():
             return None
         nearest = np.argmin(np.where(candidate, np.abs(resid), np.inf), axis=1)[has]
-        n, r = normal[has], resid[has, nearest]
+        # Along the map wall's normal, not the observed line's: a corridor's parallel walls then
+        # leave the along-track direction exactly unmeasured.
+        n, r = wall_normal[nearest], resid[has, nearest]
         k = use[has]
         tangent = np.column_stack((-np.sin(lines.alpha[k]), np.cos(lines.alpha[k])))
         lever = np.einsum("ij,ij->i", lines.centroid[k], tangent)  # the offset is measured at the foot of the normal
@@ -450,7 +463,7 @@ class PlanarLocalizer:
         if eigval[1] <= 0.0:
             return None
         b = (w * r) @ n
-        if eigval[0] < 1e-4 * eigval[1]:  # one direction (normals within ~0.6 deg): a corridor's walls
+        if eigval[0] * p.wall_gate_m ** 2 < 1.0:  # a direction measured worse than the gate: a corridor's axis
             u = eigvec[:, 1]
             delta = (u @ b) / eigval[1] * u
             cov2 = np.outer(u, u) / eigval[1] + p.lost_variance_m2 * np.outer(eigvec[:, 0], eigvec[:, 0])
@@ -510,13 +523,13 @@ class PlanarLocalizer:
     def _relocalize(self, lines: LineSet, corners: Corners, points: np.ndarray, why: str,
                     heading_status: str, timing: dict[str, float], t0: float) -> PlanarFix | None:
         """Search (see the module docstring). A pose within ``jump_m`` / ``jump_rad`` of the held one
-        resumes tracking; a jump becomes the pose only after ``reloc_confirm_frames`` consecutive
-        scans found it; until then a lost fix (or None without a pose) names the candidate."""
+        resumes tracking; a jump becomes the pose only after ``reloc_confirm_frames`` scans found it
+        (module docstring); until then a lost fix (or None without a pose) names the candidate."""
         t = time.perf_counter()
         found, detail = self._search(lines, corners, points)
         timing["relocalize"] = (time.perf_counter() - t) * 1e3
         if found is None:
-            self.candidate = None
+            self.candidate = self._carried(self.candidate)
         else:
             match, heading, local = found
             jump = self._pose is None or (
@@ -528,7 +541,7 @@ class PlanarLocalizer:
             assert c is not None
             detail = (f"{'local' if local else 'global'} candidate ({c.x:.2f}, {c.y:.2f}) m, "
                       f"{math.degrees(c.yaw):.0f} deg, {c.matched} corners: found by {c.frames} of the "
-                      f"{self.params.reloc_confirm_frames} consecutive scans needed")
+                      f"{self.params.reloc_confirm_frames} scans needed")
         timing["total"] = (time.perf_counter() - t0) * 1e3
         if self._pose is None:
             self.last_reason = f"{why}; relocalization: {detail}"
@@ -538,12 +551,25 @@ class PlanarLocalizer:
         return PlanarFix(x, y, yaw, cov, 0, "lost", f"{why}; relocalization: {detail}", False, heading_status,
                          timing)
 
+    def _carried(self, c: RelocCandidate | None) -> RelocCandidate | None:
+        """The candidate after a scan that neither found nor contradicted it (too few corners, no
+        clear winner): moved with the body, dropped after ``reloc_confirm_frames`` such scans in
+        a row."""
+        if c is None or c.idle >= self.params.reloc_confirm_frames:
+            return None
+        x, y = np.array([c.x, c.y]) + rotation(c.yaw) @ np.asarray(self._moved, dtype=float)
+        return RelocCandidate(float(x), float(y), wrap_pi(c.yaw + self._yaw_delta), c.frames, c.matched, c.local,
+                              c.idle + 1)
+
     def _confirmed(self, match: Match, yaw: float, local: bool) -> bool:
         """Count this scan for the candidate jump it found (a new candidate unless it agrees with the
-        previous one moved by the gyro's yaw change); True once enough consecutive scans found it."""
+        previous one moved by the motion since: ``moved_m`` and the gyro's yaw change); True once
+        enough scans found it, none finding another pose in between."""
         p, c = self.params, self.candidate
         x, y = float(match.xy[0]), float(match.xy[1])
-        same = (c is not None and math.hypot(x - c.x, y - c.y) <= p.reloc_confirm_gate_m
+        if c is not None:
+            cx, cy = np.array([c.x, c.y]) + rotation(c.yaw) @ np.asarray(self._moved, dtype=float)
+        same = (c is not None and math.hypot(x - cx, y - cy) <= p.reloc_confirm_gate_m
                 and abs(wrap_pi(yaw - c.yaw - self._yaw_delta)) <= p.reloc_confirm_gate_rad)
         self.candidate = RelocCandidate(x, y, yaw, c.frames + 1 if same and c else 1, match.matched, local)
         return self.candidate.frames >= p.reloc_confirm_frames
