@@ -1,4 +1,5 @@
-"""`companion` command line: run, check-config, setup-autopilot, sitl, dashboard, bench, experiment, config-reference."""
+"""`companion` command line: run, check-config, setup-autopilot, sitl, dashboard, bench, map, replay, experiment,
+config-reference."""
 
 from __future__ import annotations
 
@@ -126,6 +127,27 @@ def _cmd_map_build(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_replay(args: argparse.Namespace) -> int:
+    import json
+
+    from companion.replay import replay_report
+    from companion.schema import SchemaError
+    from companion.world import load_world
+
+    try:
+        world_map = load_world(args.map)
+        report = replay_report(args.log, args.format, world_map, args.map, laser=args.laser,
+                               odometry=args.odometry, start=args.start, seed=args.seed)
+    except (OSError, ValueError, SchemaError) as exc:
+        print(f"companion replay: {exc}", file=sys.stderr)
+        return EXIT_CONFIG_ERROR
+    text = json.dumps(report, indent=2)
+    if args.report:
+        Path(args.report).write_text(text + "\n")
+    print(text)
+    return 0
+
+
 def _cmd_experiment_faults(args: argparse.Namespace) -> int:
     from sitl.faults import run_faults
 
@@ -214,6 +236,21 @@ def build_parser() -> argparse.ArgumentParser:
                        help="the building's walls run at multiples of this angle (default 90)")
     build.add_argument("--laser", choices=["front", "rear"], default="front", help="carmen: which laser's messages")
     build.set_defaults(func=_cmd_map_build)
+
+    replay = sub.add_parser("replay", help="replay a scanner log through the lidar localizer, scored against the "
+                                           "log's own poses (companion/replay.py)")
+    replay.add_argument("log", help="the log (e.g. a CARMEN log, plain or .gz)")
+    replay.add_argument("--format", required=True, choices=["carmen", "ros", "breezyslam", "npz"], help="the log's format")
+    replay.add_argument("--map", required=True, help="the map (world YAML, e.g. from `companion map build`)")
+    replay.add_argument("--report", help="also write the report (JSON) here")
+    replay.add_argument("--laser", choices=["front", "rear"], default="front", help="carmen: which laser's messages")
+    replay.add_argument("--odometry", choices=["auto", "log", "noisy", "none"], default="auto",
+                        help="motion between scans: the log's odometry, with simulated wheel errors, or none "
+                             "(default auto: noisy when the log's odometry is its reference)")
+    replay.add_argument("--start", choices=["reference", "relocalize"], default="reference",
+                        help="start at the log's first reference pose (default) or relocalize from nothing")
+    replay.add_argument("--seed", type=int, default=0, help="seed of the simulated wheel-odometry errors")
+    replay.set_defaults(func=_cmd_replay)
 
     experiment = sub.add_parser("experiment", help="experiments against the SITL that print figures")
     experiments = experiment.add_subparsers(dest="experiment", required=True)

@@ -116,6 +116,11 @@ def read_breezyslam(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarra
             np.array(odometry, dtype=np.int64).reshape(-1, 2))
 
 
+def breezyslam_valid(ranges_m: np.ndarray) -> np.ndarray:
+    """The readings of a BreezySLAM log that are returns (within the URG-04LX's range)."""
+    return (ranges_m >= URG_04LX.min_range_m) & (ranges_m <= URG_04LX.max_range_m)
+
+
 CARMEN_LASERS = {"FLASER": "front", "RLASER": "rear", "ROBOTLASER1": "front", "ROBOTLASER2": "rear"}
 _CARMEN_OLD_TAIL = 9  # x y theta odom_x odom_y odom_theta timestamp hostname logger_timestamp
 _CARMEN_ROBOT_TAIL = 14  # laser pose (3), robot pose (3), tv rv, 3 distances, timestamp host logger_timestamp
@@ -131,6 +136,7 @@ class CarmenScan:
     ranges_m: np.ndarray  # (n,) metres as logged (no return: see ``max_range_m``)
     max_range_m: float | None  # the message's maximum range (ROBOTLASER), None for FLASER / RLASER
     pose_ned: tuple[float, float, float]  # the log's robot pose: x, y (m, NED map frame), yaw (rad)
+    odometry_ned: tuple[float, float, float] | None = None  # FLASER / RLASER: the odometry pose, same frame
 
 
 def parse_carmen_line(line: str) -> CarmenScan | None:
@@ -152,6 +158,7 @@ def parse_carmen_line(line: str) -> CarmenScan | None:
             x, y, theta = (float(v) for v in tail[3:6])
             stamp, carmen_angles = float(tail[11]), start + step * np.arange(n)
             maximum: float | None = max_range
+            odometry = None
         else:
             n = int(tokens[1])
             ranges = np.array(tokens[2:2 + n], dtype=float)
@@ -159,16 +166,17 @@ def parse_carmen_line(line: str) -> CarmenScan | None:
             if len(tail) != _CARMEN_OLD_TAIL:
                 raise ValueError(f"{len(tail)} values after the readings, expected {_CARMEN_OLD_TAIL}")
             x, y, theta = (float(v) for v in tail[0:3])
-            stamp, maximum = float(tail[6]), None
+            ox, oy, otheta = (float(v) for v in tail[3:6])
+            stamp, maximum, odometry = float(tail[6]), None, (ox, -oy, -otheta)
             carmen_angles = -math.pi / 2 + math.pi / n * np.arange(n) + (math.pi if laser == "rear" else 0.0)
     except (IndexError, ValueError) as exc:
         raise ValueError(f"malformed {tokens[0]} line: {exc}") from None
     if ranges.size != n or n == 0:
         raise ValueError(f"malformed {tokens[0]} line: {ranges.size} of {n} readings")
-    if not np.isfinite(ranges).all() or not all(map(math.isfinite, (x, y, theta, stamp))):
-        raise ValueError(f"malformed {tokens[0]} line: a reading, the pose or the time is not a finite number")
+    if not np.isfinite(ranges).all() or not all(map(math.isfinite, (x, y, theta, stamp, *(odometry or ())))):
+        raise ValueError(f"malformed {tokens[0]} line: a reading, a pose or the time is not a finite number")
     angles = np.angle(np.exp(-1j * carmen_angles))  # mirrored into our frame, wrapped to (-pi, pi]
-    return CarmenScan(laser, stamp, angles, ranges, maximum, (x, -y, -theta))
+    return CarmenScan(laser, stamp, angles, ranges, maximum, (x, -y, -theta), odometry)
 
 
 def carmen_valid(scan: CarmenScan, log_max_m: float) -> np.ndarray:
@@ -193,6 +201,23 @@ def read_carmen(path: str | Path, laser: str = "front") -> list[CarmenScan]:
         if scan is not None and scan.laser == laser:
             scans.append(scan)
     return scans
+
+
+def read_npz(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """An npz recording (:func:`record_npz`): beam angles (N,) rad, capture times (S,) s, ranges
+    (S, N) m, valid (S, N), sweep times (S,) s; OSError if it is not one."""
+    try:
+        with np.load(io.BytesIO(read_recording(path))) as data:
+            angles = np.asarray(data["angles_rad"], dtype=float)
+            t, ranges, valid = data["t_capture"], data["ranges_m"], data["valid"]
+            sweep = data["sweep_s"] if "sweep_s" in data else np.zeros(len(t))
+    except (KeyError, ValueError) as exc:
+        raise OSError(f"{path}: not a scan recording: {exc}") from exc
+    shape = (len(t), len(angles))
+    if t.ndim != 1 or angles.ndim != 1 or ranges.shape != shape or valid.shape != shape or sweep.shape != t.shape:
+        raise OSError(f"{path}: inconsistent arrays: t_capture {t.shape}, angles_rad "
+                      f"{angles.shape}, ranges_m {ranges.shape}, valid {valid.shape}, sweep_s {sweep.shape}")
+    return angles, np.asarray(t, dtype=float), np.asarray(ranges, dtype=float), np.asarray(valid, dtype=bool), sweep
 
 
 def record_npz(path: str | Path, scans: Sequence[Scan]) -> None:
@@ -280,7 +305,7 @@ class ReplayLidar(Backend[Scan]):
             except ValueError as exc:
                 records.append(_Record(math.nan, np.empty(0), np.empty(0, bool), 0.0, f"line {number}: {exc}"))
                 continue
-            valid = (ranges >= URG_04LX.min_range_m) & (ranges <= URG_04LX.max_range_m)
+            valid = breezyslam_valid(ranges)
             records.append(_Record(stamp, np.where(valid, ranges, 0.0), valid, sweep))
         self._records = records
 
@@ -299,19 +324,8 @@ class ReplayLidar(Backend[Scan]):
             for k, scan in enumerate(scans)]
 
     def _load_npz(self) -> None:
-        try:
-            with np.load(io.BytesIO(read_recording(self.path))) as data:
-                self._angles = np.asarray(data["angles_rad"], dtype=float)
-                t, ranges, valid = data["t_capture"], data["ranges_m"], data["valid"]
-                sweep = data["sweep_s"] if "sweep_s" in data else np.zeros(len(t))
-        except (KeyError, ValueError) as exc:
-            raise OSError(f"{self.path}: not a scan recording: {exc}") from exc
-        shape = (len(t), len(self._angles))
-        if t.ndim != 1 or self._angles.ndim != 1 or ranges.shape != shape or valid.shape != shape or sweep.shape != t.shape:
-            raise OSError(f"{self.path}: inconsistent arrays: t_capture {t.shape}, angles_rad "
-                          f"{self._angles.shape}, ranges_m {ranges.shape}, valid {valid.shape}, sweep_s {sweep.shape}")
-        self._records = [_Record(float(t[i]), np.asarray(ranges[i], dtype=float), np.asarray(valid[i], dtype=bool),
-                                 float(sweep[i])) for i in range(len(t))]
+        self._angles, t, ranges, valid, sweep = read_npz(self.path)
+        self._records = [_Record(float(t[i]), ranges[i], valid[i], float(sweep[i])) for i in range(len(t))]
 
     async def read(self) -> Scan:
         """The next recorded scan, at its replay time; CorruptFrame for a bad record, EndOfData

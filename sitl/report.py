@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from companion.scoring import WRONG_RESET_M, mean_or_none, nees
+
 SCHEMA = 1
 ORIGIN_MATCH_M = 0.5
 LOST_GAP_S = 0.3  # ArduPilot calls an external-nav source unhealthy after 300 ms
@@ -74,25 +76,18 @@ def score_estimate(log: dict) -> dict[str, float | None]:
 
 
 def nees_mean(errors: np.ndarray, triangles: list[list[float | None]]) -> float | None:
-    """Mean normalised estimation error squared of the 3-D position: e^T P^-1 e per estimate with
-    the covariance it was sent with (rows [xx, xy, xz, yy, yz, zz], m^2). 3 is consistent (its
-    95 % band over N estimates: 3 +/- 1.96 sqrt(6 / N) for independent ones); below, the
-    estimator is over-cautious; above, over-confident. None when no estimate carried a usable
-    covariance."""
-    values = []
-    for e, tri in zip(errors, triangles):
-        if tri is None or any(v is None for v in tri):
-            continue
-        xx, xy, xz, yy, yz, zz = tri
-        cov = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
-        try:
-            values.append(float(e @ np.linalg.solve(cov, e)))
-        except np.linalg.LinAlgError:
-            continue
-    return float(np.mean(values)) if values else None
+    """Mean NEES (companion/scoring.py) of the 3-D position with the covariance each estimate was
+    sent with (rows [xx, xy, xz, yy, yz, zz], m^2): 3 is consistent. None when no estimate carried
+    a usable covariance."""
+    rows = [(e, tri) for e, tri in zip(errors, triangles) if tri is not None and not any(v is None for v in tri)]
+    if not rows:
+        return None
+    tri = np.array([t for _, t in rows], dtype=float)
+    cov = tri[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
+    return mean_or_none(nees(np.array([e for e, _ in rows]), cov))
 
 
-def wrong_resets(reset_counter: np.ndarray, estimate: np.ndarray, truth: np.ndarray, limit_m: float = 0.5) -> int:
+def wrong_resets(reset_counter: np.ndarray, estimate: np.ndarray, truth: np.ndarray, limit_m: float = WRONG_RESET_M) -> int:
     """Position resets (``reset_counter`` changing) whose first estimate is more than ``limit_m``
     (horizontally) from the truth: a relocalization to the wrong place."""
     changed = np.flatnonzero(np.diff(reset_counter) != 0) + 1

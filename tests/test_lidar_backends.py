@@ -272,11 +272,11 @@ def test_carmen_scans_placed_with_their_reference_poses_overlap(log: str) -> Non
 
 
 def test_carmen_lines_are_parsed_and_malformed_ones_named() -> None:
-    flaser = "FLASER 4 1.0 2.0 81.9 0 1.5 -2.0 0.5 1.5 -2.0 0.5 12.25 host 12.3"
+    flaser = "FLASER 4 1.0 2.0 81.9 0 1.5 -2.0 0.5 1.25 -2.5 0.75 12.25 host 12.3"
     scan = parse_carmen_line(flaser)
     assert scan is not None and scan.laser == "front" and scan.t_s == 12.25
     np.testing.assert_allclose(scan.angles_rad, [math.pi / 2, math.pi / 4, 0.0, -math.pi / 4])
-    assert scan.pose_ned == (1.5, 2.0, -0.5)
+    assert scan.pose_ned == (1.5, 2.0, -0.5) and scan.odometry_ned == (1.25, 2.5, -0.75)
     np.testing.assert_array_equal(carmen_valid(scan, 81.9), [True, True, False, False])
     rear = parse_carmen_line(flaser.replace("FLASER", "RLASER"))
     np.testing.assert_allclose(np.exp(1j * rear.angles_rad),  # turned by 180 deg (+/- pi alike)
@@ -284,6 +284,7 @@ def test_carmen_lines_are_parsed_and_malformed_ones_named() -> None:
     robot = parse_carmen_line("ROBOTLASER1 0 -1.5708 3.1416 1.5708 30.0 0.01 0 3 1.0 30.0 2.0 0 "
                               "0.1 0 0 1.0 2.0 0.25 0 0 0 0 0 7.5 host 7.6")
     assert robot is not None and robot.max_range_m == 30.0 and robot.pose_ned == (1.0, -2.0, -0.25)
+    assert robot.odometry_ned is None
     np.testing.assert_array_equal(carmen_valid(robot, 99.0), [True, False, True])
     assert parse_carmen_line("ODOM 0 0 0 0 0 0 1.0 host 1.0") is None
     with pytest.raises(ValueError, match="FLASER"):
