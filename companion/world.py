@@ -18,8 +18,11 @@ localization: walls at multiples of a constant angle, known corner features):
   lies on another, non-parallel wall (an L corner, or a T junction where a wall meets another);
 * every opening (door, window) is centred within 1 cm of a wall, fits within its length and
   does not reach above it; a door starts at the floor, a window above it;
-* walls, obstacles, floor markers and the take-off pose are inside ``bounds``, and the
-  take-off pose is not on an obstacle.
+* walls, obstacles, floor markers, walkers (their whole footprint, along all of their path)
+  and the take-off pose are inside ``bounds``, and the take-off pose is not on an obstacle.
+
+Walkers (``walkers:``) are people walking back and forth, for the simulated scanners only: they
+are not part of the map (a localizer never reads them) and the camera simulation does not draw them.
 """
 
 from __future__ import annotations
@@ -122,6 +125,32 @@ class Obstacle:
 
 
 @dataclass(frozen=True)
+class Walker:
+    """A person walking back and forth between ``start`` and ``end``: a vertical cylinder
+    standing on the floor, there at ``speed_mps`` and back, endlessly, from ``start`` at daemon
+    time 0 (a walker whose ends coincide stands still)."""
+
+    start: Point = field(metadata=meta("Where the walk starts, at daemon time 0 [x north, y east], metres.",
+                                       _COORD_RANGE))
+    end: Point = field(metadata=meta("The turning point [x north, y east], metres.", _COORD_RANGE))
+    speed_mps: float = field(default=1.2, metadata=meta("Walking speed, metres per second.", (0.1, 5)))
+    radius_m: float = field(default=0.25, metadata=meta("Radius of the cylinder, metres.", (0.05, 2)))
+    height_m: float = field(default=1.8, metadata=meta("Height of the cylinder above the floor, metres.", (0.1, 3)))
+
+    def position_at(self, t: float | np.ndarray) -> np.ndarray:
+        """Centre [x north, y east] (m) at daemon time ``t`` (s): (2,) for a scalar, (..., 2) for
+        an array of times; ``start + (end - start) * tri(t * speed / length)``, where the
+        triangle wave tri goes from 0 to 1 and back over two lengths of walk."""
+        start = np.asarray(self.start, dtype=float)
+        path = np.asarray(self.end, dtype=float) - start
+        length = float(np.hypot(*path))
+        if length == 0.0:
+            return np.broadcast_to(start, np.shape(t) + (2,)).copy()
+        phase = np.asarray(t, dtype=float) * (self.speed_mps / length) % 2.0
+        return start + (1.0 - np.abs(phase - 1.0))[..., None] * path
+
+
+@dataclass(frozen=True)
 class Opening:
     """A door or window: a rectangular hole in a wall, centred on the wall's line."""
 
@@ -178,6 +207,8 @@ class World:
     floor_markers: tuple[FloorMarker, ...] = field(default=(), metadata=meta("Fiducials on the floor."))
     obstacles: tuple[Obstacle, ...] = field(default=(), metadata=meta("Boxes standing on the floor."))
     openings: tuple[Opening, ...] = field(default=(), metadata=meta("Doors and windows in the walls."))
+    walkers: tuple[Walker, ...] = field(default=(), metadata=meta(
+        "People walking back and forth, seen by simulated scanners only (not part of the map)."))
     wall_offset_deg: float = field(default=0.0, metadata=meta(
         "The walls run at this angle plus multiples of wall_angle_deg (degrees from north towards east): the map "
         "is in the autopilot's NED frame, and a building need not be aligned with north.", (-90.0, 90.0)))
@@ -278,6 +309,11 @@ class World:
             if marker.id in seen:
                 yield f"floor_markers[{k}].id", f"marker id {marker.id} is used twice"
             seen.add(marker.id)
+        for k, walker in enumerate(self.walkers):
+            for end in ("start", "end"):
+                if not self.bounds.contains(*getattr(walker, end), margin=walker.radius_m):
+                    yield (f"walkers[{k}].{end}", f"{_fmt(getattr(walker, end))}: a walker of radius "
+                           f"{walker.radius_m:g} m there is not inside bounds")
         x, y, _ = self.start
         if not self.bounds.contains(x, y):
             yield "start", f"{_fmt((x, y))} is outside bounds"

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from companion.schema import SchemaError
-from companion.world import World, load_world
+from companion.world import Walker, World, load_world
 
 REPO = Path(__file__).resolve().parent.parent
 ARENA = REPO / "config" / "worlds" / "arena.yaml"
@@ -90,6 +90,11 @@ def test_the_base_world_is_valid(tmp_path: Path) -> None:
     assert world.corners == () and world.floor_height_at(2, 2) == 0.0
 
 
+def test_walkers_load_with_their_defaults(tmp_path: Path) -> None:
+    world = load_world(write(tmp_path, BASE + "walkers:\n  - {start: [1, 2], end: [3, 2], speed_mps: 0.8}\n"))
+    assert world.walkers == (Walker(start=(1.0, 2.0), end=(3.0, 2.0), speed_mps=0.8, radius_m=0.25, height_m=1.8),)
+
+
 def test_a_box_turned_by_the_wall_offset_is_valid(tmp_path: Path) -> None:
     """A square room turned by 30 deg: valid with wall_offset_deg 30, refused without."""
     c, s_ = math.cos(math.radians(30)), math.sin(math.radians(30))
@@ -122,6 +127,8 @@ def test_a_box_turned_by_the_wall_offset_is_valid(tmp_path: Path) -> None:
      11, "floor_markers[0].position", "does not lie inside bounds"),
     ("obstacles:\n  - {name: table, min: [0.5, 0.5], max: [1.5, 1.5], height_m: 0.75}\n",
      4, "start", "on obstacle 'table'"),
+    ("walkers:\n  - {start: [1, 1], end: [3.9, 1]}\n", 11, "walkers[0].end", "is not inside bounds"),
+    ("walkers:\n  - {start: [1, 1], end: [3, 1], speed_mps: 9}\n", 11, "walkers[0].speed_mps", "must be within"),
 ])
 def test_bad_worlds_name_file_key_and_line(
         tmp_path: Path, extra: str, line: int, key_path: str, words: str) -> None:
