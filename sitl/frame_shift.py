@@ -47,6 +47,8 @@ def shift_world(raw: dict, offset: Offset) -> dict:
     out["obstacles"] = [{**o, "min": shifted(o["min"], offset), "max": shifted(o["max"], offset)}
                         for o in raw.get("obstacles") or []]
     out["floor_markers"] = [{**m, "position": shifted(m["position"], offset)} for m in raw.get("floor_markers") or []]
+    out["walkers"] = [{**w, "start": shifted(w["start"], offset), "end": shifted(w["end"], offset)}
+                      for w in raw.get("walkers") or []]
     return out
 
 

@@ -80,7 +80,6 @@ from drivers.lidar_models import MODELS as LIDAR_MODELS  # noqa: E402
 from sitl.lidar_sim import SimLidarSettings, SimulatedLidar  # noqa: E402
 from drivers.mount import Mount  # noqa: E402
 from companion.messages import Scan  # noqa: E402
-from sitl.raycast import cast  # noqa: E402
 from sitl.scip_emulator import ScipEmulator  # noqa: E402
 from companion.world import World, load_world  # noqa: E402
 
@@ -260,7 +259,7 @@ class SweptLidar(SimulatedLidar):
         body_to_ned = rotations_from_quats(quats)
         origins = positions + body_to_ned @ self.mount.offset_m
         directions = np.einsum("nij,nj->ni", body_to_ned @ self.mount.rotation, self._directions)
-        ranges, valid = self.measure(cast(self.geometry, origins, directions))
+        ranges, valid = self.measure(self.true_ranges(beam_times, origins, directions))
         return Scan(self.sensor_id, float(beam_times[0]), self._angles, ranges, valid,
                     sweep_s=float(beam_times[-1] - beam_times[0]), sequence=sequence)
 

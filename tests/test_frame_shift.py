@@ -26,6 +26,16 @@ def write(tmp_path: Path, name: str, doc: dict) -> Path:
     return path
 
 
+def test_the_walkers_of_a_world_move_with_it(tmp_path: Path) -> None:
+    as_built = ARENA.with_name("arena-as-built.yaml")
+    before = load_world(as_built)
+    after = load_world(write(tmp_path, "w.yaml", shift_world(yaml.safe_load(as_built.read_text()), (-1.0, -2.0))))
+    assert len(after.walkers) == len(before.walkers) == 2
+    for a, b in zip(after.walkers, before.walkers):
+        np.testing.assert_allclose([a.start, a.end], np.array([b.start, b.end]) + (-1.0, -2.0))
+        assert (a.speed_mps, a.radius_m, a.height_m) == (b.speed_mps, b.radius_m, b.height_m)
+
+
 def test_every_position_of_a_world_moves_and_nothing_else(tmp_path: Path) -> None:
     before = load_world(ARENA)
     after = load_world(write(tmp_path, "w.yaml", shift_world(yaml.safe_load(ARENA.read_text()), (-1.0, -2.0))))
