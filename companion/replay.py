@@ -25,7 +25,8 @@ the log has none:
 - ``heading_rms_deg``, ``position_median_m``, ``position_p95_m``: of the measured fixes
   (corners or walls); the position error counts both directions, also the one a corridor's
   walls leave unmeasured;
-- ``nees_mean``: 2-D position NEES of the measured fixes with their covariance (2 is consistent);
+- ``nees_mean``: 2-D position NEES of the measured fixes with their covariance (2 is consistent),
+  and ``nees_band``, its 95 % band for the independent samples the fixes are worth;
 - ``lost_fraction``: scans without a measured fix;
 - ``relocalizations``, ``wrong_resets``: relocalization jumps, and those landing more than
   :data:`~companion.scoring.WRONG_RESET_M` from the reference;
@@ -45,7 +46,7 @@ import numpy as np
 from companion.frames import wrap_pi
 from companion.nav.lidar_pipeline import LidarPipelineConfig, planar_localizer, planar_params
 from companion.nav.planar import Mount2D, PlanarFix, PlanarParams
-from companion.scoring import WRONG_RESET_M, mean_or_none, nees
+from companion.scoring import WRONG_RESET_M, mean_or_none, nees, nees_band
 from companion.world import World
 
 Pose = tuple[float, float, float]  # x north, y east (m), yaw (rad) in the log's map frame as NED
@@ -180,7 +181,7 @@ def score(steps: list[ReplayStep]) -> dict[str, float | int | None]:
     resets = [s for s in steps if s.fix is not None and s.fix.relocalized]
     out: dict[str, float | int | None] = {
         "scans": len(steps),
-        "heading_rms_deg": None, "position_median_m": None, "position_p95_m": None, "nees_mean": None,
+        "heading_rms_deg": None, "position_median_m": None, "position_p95_m": None, "nees_mean": None, "nees_band": None,
         "lost_fraction": 1.0 - len(measured) / len(steps) if steps else None,
         "relocalizations": len(resets),
         "wrong_resets": sum(math.dist((s.fix.x, s.fix.y), s.scan.reference[:2]) > WRONG_RESET_M  # type: ignore[union-attr,index]
@@ -193,11 +194,14 @@ def score(steps: list[ReplayStep]) -> dict[str, float | int | None]:
         error = np.array([[f.x, f.y] for f in fixes]) - reference[:, :2]  # type: ignore[union-attr]
         heading = np.array([wrap_pi(f.yaw - r) for f, r in zip(fixes, reference[:, 2])])  # type: ignore[union-attr]
         distance = np.hypot(error[:, 0], error[:, 1])
+        values = nees(error, np.array([f.covariance[:2, :2] for f in fixes]))  # type: ignore[union-attr]
+        band = nees_band(values, 2)
         out.update({
             "heading_rms_deg": math.degrees(math.sqrt(float(np.mean(heading ** 2)))),
             "position_median_m": float(np.median(distance)),
             "position_p95_m": float(np.percentile(distance, 95)),
-            "nees_mean": mean_or_none(nees(error, np.array([f.covariance[:2, :2] for f in fixes]))),  # type: ignore[union-attr]
+            "nees_mean": mean_or_none(values),
+            "nees_band": None if band is None else list(band),
         })
     return out
 

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.scoring import WRONG_RESET_M, mean_or_none, nees
+from companion.scoring import WRONG_RESET_M, mean_or_none, nees, nees_band
 
 SCHEMA = 1
 ORIGIN_MATCH_M = 0.5
@@ -47,7 +47,8 @@ def score_estimate(log: dict) -> dict[str, float | None]:
     """Position/yaw/height error of the received vision estimates against truth."""
     vp = log["vision_position"]
     empty = dict.fromkeys(("position_rms_m", "position_max_m", "yaw_rms_deg", "height_rms_m",
-                           "fix_rate_hz", "lost_seconds", "nees_mean", "wrong_resets"))
+                           "fix_rate_hz", "lost_seconds", "nees_mean", "nees_band", "cross_track_max_m",
+                           "wrong_resets"))
     if not vp["usec"]:
         return empty
     truth = log["truth"]
@@ -62,6 +63,9 @@ def score_estimate(log: dict) -> dict[str, float | None]:
     horizontal = np.linalg.norm(est[:, :2] - true_pos[:, :2], axis=1)
     rx = np.asarray(vp["t_rx"])
     gaps = np.diff(np.concatenate([rx, [log["sim_seconds"]]]))
+    triangles = [vp["position_covariance"][i] for i in np.flatnonzero(inside)]
+    nees_values = position_nees(est - true_pos, triangles)
+    band = nees_band(nees_values, 3)
     return {
         "position_rms_m": _rms(np.linalg.norm(est - true_pos, axis=1)),
         "position_max_m": float(np.max(np.linalg.norm(est - true_pos, axis=1))),
@@ -69,22 +73,38 @@ def score_estimate(log: dict) -> dict[str, float | None]:
         "height_rms_m": _rms(est[:, 2] - true_pos[:, 2]),
         "fix_rate_hz": None,  # measured fixes per second, from the daemon's pipeline statistics
         "lost_seconds": float(np.sum(gaps[gaps > LOST_GAP_S])),
-        "nees_mean": nees_mean(est - true_pos, [vp["position_covariance"][i] for i in np.flatnonzero(inside)]),
+        "nees_mean": mean_or_none(nees_values),
+        "nees_band": None if band is None else list(band),
+        "cross_track_max_m": cross_track_max(est[:, :2] - true_pos[:, :2], triangles),
         "wrong_resets": wrong_resets(np.asarray(vp["reset_counter"])[inside], est, true_pos),
         "horizontal_rms_m": _rms(horizontal),
     }
 
 
-def nees_mean(errors: np.ndarray, triangles: list[list[float | None]]) -> float | None:
-    """Mean NEES (companion/scoring.py) of the 3-D position with the covariance each estimate was
-    sent with (rows [xx, xy, xz, yy, yz, zz], m^2): 3 is consistent. None when no estimate carried
-    a usable covariance."""
+def position_nees(errors: np.ndarray, triangles: list[list[float | None]]) -> np.ndarray:
+    """NEES (companion/scoring.py) of each 3-D position error with the covariance its estimate was
+    sent with (rows [xx, xy, xz, yy, yz, zz], m^2): 3 is consistent. Estimates without a usable
+    covariance are left out."""
     rows = [(e, tri) for e, tri in zip(errors, triangles) if tri is not None and not any(v is None for v in tri)]
     if not rows:
-        return None
+        return np.empty(0)
     tri = np.array([t for _, t in rows], dtype=float)
     cov = tri[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
-    return mean_or_none(nees(np.array([e for e, _ in rows]), cov))
+    return nees(np.array([e for e, _ in rows]), cov)
+
+
+def cross_track_max(errors: np.ndarray, triangles: list[list[float | None]]) -> float | None:
+    """Largest horizontal error (m) along the direction each estimate's covariance is most certain
+    of (its minor axis): in a corridor, the cross-track error, which the walls measure while the
+    along-track one grows. None when no estimate carried a covariance."""
+    worst = None
+    for e, tri in zip(errors, triangles):
+        if tri is None or tri[0] is None or tri[1] is None or tri[3] is None:
+            continue
+        _, vectors = np.linalg.eigh(np.array([[tri[0], tri[1]], [tri[1], tri[3]]], dtype=float))
+        value = abs(float(e @ vectors[:, 0]))
+        worst = value if worst is None else max(worst, value)
+    return worst
 
 
 def wrong_resets(reset_counter: np.ndarray, estimate: np.ndarray, truth: np.ndarray, limit_m: float = WRONG_RESET_M) -> int:

@@ -301,6 +301,40 @@ def test_health_ok_degraded_lost_and_back() -> None:
         to_pose_estimate(lost, 0.0, 0.0)
 
 
+def test_a_fix_measuring_one_direction_leaves_the_other_to_grow_until_the_estimate_is_withdrawn() -> None:
+    """Corridor fixes (cross-track east measured, the along-track north axis not): repeating the
+    filter's own north position with a large variance would shrink the north variance at every
+    fix; given through without_direction it grows on the IMU alone, so the estimate goes degraded
+    and then lost (not sent) instead of staying confidently wrong."""
+    from companion.nav.fusion import without_direction
+
+    c = FusionConfig()
+    corridor = np.diag([100.0, 1e-4])
+    runs = {}
+    for name, pseudo in (("repeated", corridor), ("projected", without_direction(corridor, (1.0, 0.0)))):
+        f = _hovering_filter()
+        states = []
+        for k in range(1, 1000):
+            t = 1.0 + k * IMU_DT
+            _imu(f, t)
+            if k % 5 == 0:
+                north = float(f.state(t - 0.01).position_ned[0])
+                f.correct_position(t - 0.01, [north, 0.0], pseudo)
+                f.correct_height(t - 0.01, 1.0, 1e-4)
+                f.correct_yaw(t - 0.01, 0.0, 1e-4)
+            states.append(f.state(t))
+        assert max(math.sqrt(s.position_covariance[1, 1]) for s in states) < 0.02  # east: measured
+        runs[name] = states
+    sigma = {name: np.sqrt([s.position_covariance[0, 0] for s in states]) for name, states in runs.items()}
+    last_5s = int(5.0 / IMU_DT)
+    assert sigma["repeated"][-1] < 1.05 * sigma["repeated"][-last_5s]  # levelled off: looks known for ever
+    assert sigma["projected"][-1] > 2 * sigma["repeated"][-1] and np.all(np.diff(sigma["projected"][::5]) > 0)
+    assert sigma["projected"][-1] > c.lost_position_std_m
+    first_degraded = next(s for s in runs["projected"] if s.status == State.DEGRADED)
+    assert "horizontal position uncertain" in first_degraded.reason
+    assert not runs["projected"][-1].healthy and "uncertain" in runs["projected"][-1].reason
+
+
 def test_imu_stop_is_lost_and_a_long_gap_reinitialises() -> None:
     f = _hovering_filter()
     assert not f.state(1.0 + 0.25).healthy and "IMU" in f.state(1.25).reason

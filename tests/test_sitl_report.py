@@ -18,14 +18,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sitl.report import nees_mean, wrong_resets
+from companion.scoring import effective_samples, nees_band
+from sitl.report import cross_track_max, position_nees, wrong_resets
 from tests.conftest import REPO, free_port
 from tests.sitl_helpers import write_config, write_sitl_config
 
 SCHEMA_1 = {
     "schema": None, "mission": None, "seconds": None, "lockstep": None, "seed": None,
     "estimate": {"position_rms_m", "position_max_m", "yaw_rms_deg", "height_rms_m", "fix_rate_hz", "lost_seconds",
-                 "nees_mean", "wrong_resets"},
+                 "nees_mean", "nees_band", "cross_track_max_m", "wrong_resets"},
     "autopilot": {"origin_confirmed", "external_nav_in_use", "vision_position_estimate_hz",
                   "vision_speed_estimate_hz", "setpoint_hz", "nonfinite_dropped", "firmware", "internal_errors"},
     "control": {"law", "mission_completed", "tracking_rms_m", "tracking_max_m", "failsafes_triggered", "degraded_slowdowns"},
@@ -140,9 +141,22 @@ def test_nees_is_3_for_errors_drawn_from_the_sent_covariance_and_scales_with_it(
     cov = np.array([[4e-4, 1e-4, 0.0], [1e-4, 2e-4, 0.0], [0.0, 0.0, 1e-4]])
     errors = rng.multivariate_normal(np.zeros(3), cov, 20000)
     triangle = [cov[0, 0], cov[0, 1], cov[0, 2], cov[1, 1], cov[1, 2], cov[2, 2]]
-    assert nees_mean(errors, [triangle] * len(errors)) == pytest.approx(3.0, abs=0.1)
-    assert nees_mean(errors, [[4 * v for v in triangle]] * len(errors)) == pytest.approx(0.75, abs=0.03)
-    assert nees_mean(errors[:2], [[None] * 6, [None] * 6]) is None
+    assert np.mean(position_nees(errors, [triangle] * len(errors))) == pytest.approx(3.0, abs=0.1)
+    assert np.mean(position_nees(errors, [[4 * v for v in triangle]] * len(errors))) == pytest.approx(0.75, abs=0.03)
+    assert position_nees(errors[:2], [[None] * 6, [None] * 6]).size == 0
+
+
+def test_the_nees_band_counts_correlated_estimates_as_the_independent_ones_they_are_worth() -> None:
+    """Independent samples count one each; the same samples each repeated 30 times (estimates at
+    30 Hz of a once-a-second error) are worth about the original number, so the band is as wide."""
+    rng = np.random.default_rng(2)
+    independent = rng.chisquare(3, 200)
+    repeated = np.repeat(independent, 30)
+    assert effective_samples(independent) == pytest.approx(200, rel=0.3)
+    assert effective_samples(repeated) == pytest.approx(200, rel=0.5)
+    lo, hi = nees_band(repeated, 3)
+    assert lo < 3 < hi and hi - lo == pytest.approx(2 * 1.96 * np.sqrt(6 / effective_samples(repeated)))
+    assert hi - lo > 4 * (nees_band(np.tile(independent, 30), 3)[1] - 3)  # shuffled repeats: 6000 independent
 
 
 def test_a_reset_far_from_the_truth_is_a_wrong_one() -> None:
@@ -150,3 +164,14 @@ def test_a_reset_far_from_the_truth_is_a_wrong_one() -> None:
     estimate = np.array([[0.0, 0, 0], [0.1, 0, 0], [3.0, 0, 0], [3.0, 0, 0], [0.2, 0.0, 0], [0.0, 0.1, 0]])
     counter = np.array([0, 0, 1, 1, 2, 2])  # reset to 3 m off (wrong), then back within 0.2 m (right)
     assert wrong_resets(counter, estimate, truth) == 1
+
+
+def test_the_cross_track_error_is_taken_along_the_direction_the_estimate_is_sure_of() -> None:
+    """A corridor running north: the covariance is sure of east (cross-track), not of north; a
+    2 m north error and a 3 cm east error give 3 cm. Turned by 90 deg, the same error gives 2 m."""
+    corridor = [100.0, 0.0, 0.0, 1e-4, 0.0, 1e-4]
+    turned = [1e-4, 0.0, 0.0, 100.0, 0.0, 1e-4]
+    errors = np.array([[2.0, 0.03], [-1.0, -0.01]])
+    assert cross_track_max(errors, [corridor, corridor]) == pytest.approx(0.03)
+    assert cross_track_max(errors, [turned, turned]) == pytest.approx(2.0)
+    assert cross_track_max(errors, [[None] * 6, [None] * 6]) is None

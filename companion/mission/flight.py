@@ -41,6 +41,11 @@ from companion.mission.context import MissionContext, MissionFailed
 from companion.mission.timeline import Timeline
 from companion.mission.steps import FlyStep, Waypoint
 
+# A degraded estimate slows the flight until it has been healthy this long (s): an estimate
+# flickering between degraded and healthy (corners coming in and out of view) does not make the
+# speed flicker with it.
+DEGRADED_RECOVERY_S = 1.0
+
 log = logging.getLogger("companion.mission")
 
 SAME_POINT_M = 0.02  # a first waypoint this close to the start is where the vehicle already is
@@ -157,6 +162,7 @@ class TrajectoryFlight:
         log.info("fly: %s setpoints (control.output %s, %s)", mode, ctx.control.output,
                  ctx.state.firmware.label if ctx.state.firmware else "firmware unknown")
         degraded = False
+        healthy_since: float | None = None  # while degraded: when the estimate last became healthy
         period = 1.0 / ctx.control.rate_hz
         previous = next_tick = clock.now()
         while True:
@@ -171,11 +177,15 @@ class TrajectoryFlight:
                 await ctx.ride_out_estimate_loss(status, float(timeline.reference().yaw_rad))
                 self._deadline += clock.now() - started
                 return self._left_to_fly(flight, timeline)
-            if (status.state == State.DEGRADED) != degraded:
-                degraded = not degraded
-                if degraded:
+            if status.state == State.DEGRADED:
+                healthy_since = None
+                if not degraded:
+                    degraded = True
                     ctx.record_failsafe("estimate_degraded", f"{status.reason}: slowing to "
                                         f"{ctx.failsafe.degraded_speed_factor:g} of the speed")
+            elif degraded:
+                healthy_since = now if healthy_since is None else healthy_since
+                degraded = now - healthy_since < DEGRADED_RECOVERY_S
             timeline.advance(dt, ctx.failsafe.degraded_speed_factor if degraded else 1.0)
             reference = timeline.reference()
             yaw = float(reference.yaw_rad)

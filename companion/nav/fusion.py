@@ -71,6 +71,10 @@ CHI2_GATE_999 = {1: 10.828, 2: 13.816, 3: 16.266}
 
 # Variance reported for quantities the filter does not know yet (not initialised): finite, huge.
 UNKNOWN_VARIANCE = 1e6
+# Variance given to a position fix along a direction it does not measure (without_direction):
+# the gain along it is then at most 1e-6 per fix for a filter variance of 100 m^2, nothing over
+# minutes of fixes, while the 2x2 innovation stays well conditioned in double precision.
+UNMEASURED_POSITION_VARIANCE_M2 = 1e8
 
 _POSITION, _HEIGHT, _YAW, _RESET = range(4)
 _KIND_NAMES = ("position", "height", "yaw")
@@ -101,6 +105,11 @@ class FusionConfig:
     buffer_capacity: int = 256  # IMU steps the ring holds (>= buffer_s * IMU rate; 0.5 s at 500 Hz)
     degraded_after_s: float = 0.3  # s without an accepted position or height fix -> degraded
     lost_after_s: float = 1.0  # s without an accepted position or height fix -> lost
+    # Horizontal position standard deviation (largest axis) beyond which the estimate is degraded
+    # (missions slow down) and lost (not sent): a corridor's axis, measured by no fix, grows on
+    # the IMU alone. A flight on corners stays at millimetres to centimetres.
+    degraded_position_std_m: float = 0.25
+    lost_position_std_m: float = 1.0
     yaw_degraded_after_s: float = 1.0  # s without a yaw fix -> degraded (gyro holds heading)
     yaw_lost_after_s: float = 5.0  # s without a yaw fix -> lost
     imu_timeout_s: float = 0.2  # s without an IMU sample -> lost (nothing to extrapolate with)
@@ -373,13 +382,16 @@ class FusionFilter:
             position, velocity = x[0:3].copy(), x[3:6].copy()
             position_cov, velocity_cov = P[0:3, 0:3].copy(), P[3:6, 3:6].copy()
             yaw_var = self._yaw_var
-        status, reason = self._health(t)
+        status, reason = self._health(t, position_cov)
         return FusedState(t, position, velocity, self._yaw, position_cov, velocity_cov, yaw_var,
                           status != State.LOST, reason, status, x[6:9].copy(), self.reset_counter)
 
     # ------------------------------------------------------------------ internals
 
-    def _health(self, t: float) -> tuple[State, str]:
+    def _health(self, t: float, position_cov: np.ndarray) -> tuple[State, str]:
+        """Lost or degraded by the age of the last accepted fix of each kind, and by the horizontal
+        position's standard deviation (its largest axis): fixes that measure one direction only
+        (a corridor's walls) keep coming while the other grows on the IMU alone."""
         c = self.config
         imu_age = t - self._t_imu
         if imu_age > c.imu_timeout_s:
@@ -392,6 +404,11 @@ class FusionFilter:
             state = State.LOST if age > lost else State.DEGRADED if age > degraded else State.OK
             if state > worst:
                 worst, reason = state, f"no {_KIND_NAMES[kind]} fix for {age:.2f} s"
+        sigma = math.sqrt(max(float(np.linalg.eigvalsh(position_cov[0:2, 0:2])[-1]), 0.0))
+        state = (State.LOST if sigma > c.lost_position_std_m
+                 else State.DEGRADED if sigma > c.degraded_position_std_m else State.OK)
+        if state > worst:
+            worst, reason = state, f"horizontal position uncertain: {sigma:.2f} m (1 sigma)"
         if worst == State.OK:
             reason = f"position fix {t - self._last_accepted[_POSITION]:.2f} s old"
         return worst, reason
@@ -699,6 +716,17 @@ class FusionFilter:
         i = self._fixes.index(fix)
         del self._fixes[i]
         del self._fix_times[i]
+
+
+def without_direction(covariance: np.ndarray, direction: tuple[float, float]) -> np.ndarray:
+    """A 2-D position covariance (m^2) whose unit ``direction`` (north, east) is unmeasured, for
+    :meth:`FusionFilter.correct_position`: its variance along it made so large
+    (:data:`UNMEASURED_POSITION_VARIANCE_M2`) that the Kalman update is the one projected on the
+    measured direction. A fix that merely repeats the filter's own prediction along it (a
+    corridor's axis) would otherwise shrink the filter's variance there at every fix."""
+    u = np.asarray(direction, dtype=float)
+    v = np.array([-u[1], u[0]])
+    return np.outer(v, v) * float(v @ covariance @ v) + UNMEASURED_POSITION_VARIANCE_M2 * np.outer(u, u)
 
 
 def _valid(t: float, z: np.ndarray, r: np.ndarray) -> bool:

@@ -22,6 +22,7 @@ and map streams (companion/nav/lidar_streams.py).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from collections.abc import Callable
@@ -35,7 +36,7 @@ from companion.frames import wrap_pi
 from companion.health import Health, State
 from companion.messages import Estimate, ImuSample, PoseEstimate, Scan
 from companion.nav.corners import CornerParams
-from companion.nav.fusion import FusedState, FusionFilter, to_pose_estimate
+from companion.nav.fusion import FusedState, FusionFilter, to_pose_estimate, without_direction
 from companion.nav.heading import HeadingParams
 from companion.nav.height import HeightEstimator
 from companion.nav.lidar_streams import STREAMS, ProcessedScan, map_payload, scan_payloads
@@ -166,6 +167,7 @@ class LidarPipeline:
         self._scan_state: tuple[float, float, float] | None = None  # fused x, y (m), yaw (rad) there, if healthy
         self._coasting = False  # the previous horizontal fix matched no corner: its position is stale
         self._reset_counter = 0
+        self._map_features = 1  # corners (or walls) the newest measured fix matched
         self.last_horizontal: ProcessedScan | None = None  # read-only, for telemetry
         health.report("nav:lidar", State.LOST, "waiting for scans")
 
@@ -249,9 +251,13 @@ class LidarPipeline:
             self.stats.relocalizations += 1
             self.fusion.reset(np.array([fix.x, fix.y, state.position_ned[2]]), fix.yaw, scan.t_capture)
         elif fix.measured:
-            self.fusion.correct_pose(scan.t_capture, np.array([fix.x, fix.y]), fix.covariance[:2, :2], fix.yaw,
+            position_cov = fix.covariance[:2, :2]
+            if fix.unmeasured is not None:  # a corridor: only the cross-track position is a measurement
+                position_cov = without_direction(position_cov, fix.unmeasured)
+            self.fusion.correct_pose(scan.t_capture, np.array([fix.x, fix.y]), position_cov, fix.yaw,
                                      float(fix.covariance[2, 2]))
         if fix.measured:
+            self._map_features = max(fix.matched, fix.walls_matched, 1)
             self.stats.planar_fixes += 1
             self.stats.first_fix_t = self.stats.first_fix_t if self.stats.first_fix_t is not None else scan.t_capture
             self.stats.last_fix_t = scan.t_capture
@@ -290,7 +296,19 @@ class LidarPipeline:
         reset = state.reset_counter != self._reset_counter
         self._reset_counter = state.reset_counter
         roll, pitch, _ = self._attitude()
-        return to_pose_estimate(state, roll, pitch, reset=reset, source=self.name)
+        return to_pose_estimate(self._with_map_error(state), roll, pitch, reset=reset, source=self.name)
+
+    def _with_map_error(self, state: FusedState) -> FusedState:
+        """``state`` with the map's share of the newest fix's error added to its horizontal position
+        covariance: the survey error (m, 1-sigma) over the corners or walls that fix matched.
+        Successive fixes match the same corners, so that error is one bias shared by all of them,
+        not noise that averaging removes: the filter's covariance (of the position in the map)
+        shrinks below it, the error against the building does not."""
+        survey = self.world_map.survey_error_m
+        cov = state.position_covariance.copy()
+        cov[0, 0] += survey * survey / self._map_features
+        cov[1, 1] += survey * survey / self._map_features
+        return dataclasses.replace(state, position_covariance=cov)
 
     def snapshot(self) -> dict:
         """Telemetry: counters, the fix rate and the relocalization candidate waiting for confirmation."""

@@ -164,6 +164,7 @@ class PlanarFix:
     heading_status: str  # HeadingResult.status of this scan
     timing_ms: dict[str, float] = field(default_factory=dict)  # per stage, wall clock
     walls_matched: int = 0  # map walls used (point-to-line) when no corner was matched
+    unmeasured: tuple[float, float] | None = None  # unit (north, east) direction no wall measures: a corridor's axis
 
     @property
     def measured(self) -> bool:
@@ -468,10 +469,12 @@ class PlanarLocalizer:
             delta = (u @ b) / eigval[1] * u
             cov2 = np.outer(u, u) / eigval[1] + p.lost_variance_m2 * np.outer(eigvec[:, 0], eigvec[:, 0])
             reason = f"{why}: {k.size} walls constrain the cross-track position only"
+            unmeasured: tuple[float, float] | None = (float(eigvec[0, 0]), float(eigvec[1, 0]))
         else:
             cov2 = np.linalg.inv(info)
             delta = cov2 @ b
             reason = f"{why}: {k.size} walls constrain the position"
+            unmeasured = None
         self._pose = (float(xy[0] + delta[0]), float(xy[1] + delta[1]), heading.yaw)
         cov = np.zeros((3, 3))
         cov[:2, :2] = cov2
@@ -480,7 +483,7 @@ class PlanarLocalizer:
         self._misses = 0
         timing["total"] = (time.perf_counter() - t0) * 1e3
         return PlanarFix(self._pose[0], self._pose[1], heading.yaw, cov.copy(), 0, "degraded", reason, False,
-                         heading.status, timing, walls_matched=int(k.size))
+                         heading.status, timing, walls_matched=int(k.size), unmeasured=unmeasured)
 
     def _accept(self, m: Match, yaw: float, heading: HeadingResult, relocalized: bool,
                 timing: dict[str, float], t0: float) -> PlanarFix:
