@@ -432,6 +432,7 @@ def test_a_corridor_without_corners_still_measures_its_cross_track_position() ->
         assert "cross-track" in fix.reason
         assert abs(fix.y - y) < 0.01 and yaw_error(fix.yaw, yaw) < math.radians(0.3)
         assert fix.covariance[0, 0] > 0.99 * loc.params.lost_variance_m2 and fix.covariance[1, 1] < 0.01 ** 2
+        assert fix.unmeasured is not None and abs(fix.unmeasured[0]) == pytest.approx(1.0)  # the corridor's axis
         assert_finite(fix)
 
 
