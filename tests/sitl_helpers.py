@@ -367,16 +367,17 @@ def run_daemon_with_vehicle(daemon: Daemon, vehicle: subprocess.Popen, timeout_s
 
 
 def write_sitl_config(path: Path, *, vehicle_port: int, gcs_port: int, zenoh_port: int,
-                      mission: str | None) -> Path:
-    """config/sitl.yaml with free loopback ports, absolute paths and the given mission file (None: none)."""
-    raw = yaml.safe_load((REPO / "config" / "sitl.yaml").read_text())
+                      mission: str | None, source: str = "sitl.yaml") -> Path:
+    """config/``source`` (default sitl.yaml) with free loopback ports, absolute paths and the given
+    mission file (None: none)."""
+    raw = yaml.safe_load((REPO / "config" / source).read_text())
     raw["mavlink"]["url"] = f"udpout:127.0.0.1:{vehicle_port}"
     raw["telemetry"]["listen"] = [f"tcp/127.0.0.1:{zenoh_port}"]
     raw["mission"]["file"] = mission
     raw["sitl"]["vehicle_url"] = f"udpin:127.0.0.1:{vehicle_port}"
     raw["sitl"]["gcs_urls"] = [f"udpout:127.0.0.1:{gcs_port}"]
-    raw["sitl"]["world"] = str(REPO / "config" / "worlds" / "arena.yaml")
-    raw["pipelines"]["lidar"]["map"] = str(REPO / "config" / "worlds" / "arena.yaml")
+    raw["sitl"]["world"] = str(REPO / "config" / raw["sitl"]["world"])
+    raw["pipelines"]["lidar"]["map"] = str(REPO / "config" / raw["pipelines"]["lidar"]["map"])
     path.write_text(yaml.safe_dump(raw, sort_keys=False))
     return path
 
