@@ -132,6 +132,11 @@ else
     # Group-readable by the service only: the config may hold network keys.
     run install -m 0640 -o root -g "$SERVICE_USER" "$SRC_DIR/$EXAMPLE_CONFIG" "$CONF_FILE"
 fi
+if [[ ! -e "$CONF_DIR/building.yaml" ]]; then
+    note "the example config's lidar pipeline needs your building's map as $CONF_DIR/building.yaml"
+    note "(companion map build LOG --format carmen|ros --out $CONF_DIR/building.yaml); until then"
+    note "the service stops at once with exit 2 and the missing file named in the journal"
+fi
 
 note "systemd unit $UNIT_DIR/$UNIT_NAME"
 run install -m 0644 "$SRC_DIR/systemd/$UNIT_NAME" "$UNIT_DIR/$UNIT_NAME"

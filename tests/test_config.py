@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -27,6 +28,22 @@ def test_shipped_configs_are_valid(name: str) -> None:
     cfg = load_config(REPO / "config" / name)
     if cfg.mission.file:
         load_mission(cfg.resolve(cfg.mission.file))
+
+
+def test_the_example_vehicle_config_runs_the_lidar_pipeline_on_the_map_beside_it(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """What systemd/install.sh installs flies on the lidar pipeline; without the building's map
+    beside it the config is refused (exit 2, the key and the missing file named), with it accepted."""
+    from companion.cli import main
+
+    config = tmp_path / "companion.yaml"
+    shutil.copy(REPO / "config" / "example-ardupilot-hokuyo.yaml", config)
+    assert "lidar" in load_config(config).pipelines.enabled
+    assert main(["check-config", str(config)]) == 2
+    err = capsys.readouterr().err
+    assert "pipelines.lidar.map" in err and "building.yaml" in err
+    shutil.copy(REPO / "config" / "worlds" / "arena.yaml", tmp_path / "building.yaml")
+    assert main(["check-config", str(config)]) == 0
 
 
 def test_defaults_fill_everything_but_the_origin(tmp_path: Path) -> None:
