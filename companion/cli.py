@@ -129,7 +129,8 @@ def _cmd_map_build(args: argparse.Namespace) -> int:
     from companion.schema import SchemaError
 
     try:
-        built = build_map_file(args.log, args.format, args.out, args.wall_angle, args.laser)
+        built = build_map_file(args.log, args.format, args.out, args.wall_angle, args.laser, args.scan_topic,
+                               args.pose_topic)
     except (OSError, ValueError, SchemaError) as exc:
         print(f"companion map build: {exc}", file=sys.stderr)
         return EXIT_CONFIG_ERROR
@@ -148,6 +149,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     try:
         world_map = load_world(args.map)
         report = replay_report(args.log, args.format, world_map, args.map, laser=args.laser,
+                               scan_topic=args.scan_topic, pose_topic=args.pose_topic,
                                odometry=args.odometry, start=args.start, seed=args.seed)
     except (OSError, ValueError, SchemaError) as exc:
         print(f"companion replay: {exc}", file=sys.stderr)
@@ -178,6 +180,13 @@ def _cmd_config_reference(args: argparse.Namespace) -> int:
 
     print(render(), end="")
     return 0
+
+
+def _add_topic_arguments(parser: argparse.ArgumentParser) -> None:
+    """--scan-topic and --pose-topic: which topics of a ROS bag (drivers.lidar_replay.read_ros_bag)."""
+    parser.add_argument("--scan-topic", help="ros: the sensor_msgs/LaserScan topic (default: the bag's only one)")
+    parser.add_argument("--pose-topic", help="ros: the reference poses, a nav_msgs/Odometry or geometry_msgs/"
+                                             "PoseStamped topic (default: the bag's only one; none if several)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -239,22 +248,24 @@ def build_parser() -> argparse.ArgumentParser:
     mapping = sub.add_parser("map", help="lidar maps of a user's own building")
     maps = mapping.add_subparsers(dest="map", required=True)
     build = maps.add_parser("build", help="build a map (world YAML for pipelines.lidar.map) from a log with poses")
-    build.add_argument("log", help="the log (e.g. a CARMEN log, plain or .gz)")
+    build.add_argument("log", help="the log (e.g. a CARMEN log, plain or .gz; a ROS 1 .bag, a ROS 2 bag directory)")
     build.add_argument("--format", required=True, choices=["carmen", "ros", "breezyslam", "npz"],
-                       help="the log's format (only carmen carries the poses the builder needs today)")
+                       help="the log's format (carmen and ros, with a pose topic, carry the poses the builder needs)")
     build.add_argument("--out", required=True, help="write the map (world YAML) here")
     build.add_argument("--wall-angle", type=int, choices=[90, 45, 30], default=90,
                        help="the building's walls run at multiples of this angle (default 90)")
     build.add_argument("--laser", choices=["front", "rear"], default="front", help="carmen: which laser's messages")
+    _add_topic_arguments(build)
     build.set_defaults(func=_cmd_map_build)
 
     replay = sub.add_parser("replay", help="replay a scanner log through the lidar localizer, scored against the "
                                            "log's own poses (companion/replay.py)")
-    replay.add_argument("log", help="the log (e.g. a CARMEN log, plain or .gz)")
+    replay.add_argument("log", help="the log (e.g. a CARMEN log, plain or .gz; a ROS 1 .bag, a ROS 2 bag directory)")
     replay.add_argument("--format", required=True, choices=["carmen", "ros", "breezyslam", "npz"], help="the log's format")
     replay.add_argument("--map", required=True, help="the map (world YAML, e.g. from `companion map build`)")
     replay.add_argument("--report", help="also write the report (JSON) here")
     replay.add_argument("--laser", choices=["front", "rear"], default="front", help="carmen: which laser's messages")
+    _add_topic_arguments(replay)
     replay.add_argument("--odometry", choices=["auto", "log", "noisy", "none"], default="auto",
                         help="motion between scans: the log's odometry, with simulated wheel errors, or none "
                              "(default auto: noisy when the log's odometry is its reference)")

@@ -16,25 +16,28 @@ import yaml
 from companion.nav.map_build import BuiltMap, MapBuildParams, build_map
 from companion.world import load_world
 
-FORMATS_WITH_POSES = ("carmen",)
+FORMATS_WITH_POSES = ("carmen", "ros")
 BOUNDS_MARGIN_M = 1.0
 
 
 def build_map_file(log: str | Path, log_format: str, out: str | Path, wall_angle_deg: int = 90,
-                   laser: str = "front") -> BuiltMap:
-    """Build the map of ``log`` and write it to ``out``; ValueError for a log it cannot use."""
+                   laser: str = "front", scan_topic: str | None = None, pose_topic: str | None = None) -> BuiltMap:
+    """Build the map of ``log`` from its scans with a reference pose and write it to ``out``;
+    ValueError for a log it cannot use (``laser``, ``scan_topic``, ``pose_topic``:
+    :func:`companion.replay.read_log`)."""
     if log_format not in FORMATS_WITH_POSES:
         raise ValueError(f"--format {log_format}: the log holds no reference poses; building a map from such a "
-                         "log (mapping it without poses) is not implemented yet, use a log with poses (carmen)")
-    from drivers.lidar_replay import carmen_valid, read_carmen
+                         "log (mapping it without poses) is not implemented yet, use a log with poses (carmen, ros)")
+    from companion.replay import read_log
 
-    scans = read_carmen(log, laser)
-    if not scans:
-        raise ValueError(f"{log}: no {laser} laser message")
-    log_max = max(float(s.ranges_m.max()) for s in scans)
-    built = build_map(((np.column_stack((s.ranges_m * np.cos(s.angles_rad), s.ranges_m * np.sin(s.angles_rad))),
-                        carmen_valid(s, log_max), s.pose_ned) for s in scans), MapBuildParams(wall_angle_deg=wall_angle_deg))
-    x, y, yaw = scans[0].pose_ned
+    posed = [(s.points(), s.valid, s.reference) for s in read_log(log, log_format, laser, scan_topic, pose_topic)
+             if s.reference is not None]
+    if not posed:
+        why = (f"no {laser} laser message" if log_format == "carmen" else
+               "no pose topic (Odometry or PoseStamped, --pose-topic) covering a scan")
+        raise ValueError(f"{log}: no reference poses: {why}")
+    built = build_map(posed, MapBuildParams(wall_angle_deg=wall_angle_deg))
+    x, y, yaw = posed[0][2]
     out = Path(out)
     draft = out.with_name(f".{out.name}.draft")
     try:

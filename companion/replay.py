@@ -17,7 +17,8 @@ Motion between scans (``--odometry``), standing in for the fused IMU of a vehicl
 - ``none``: no motion: each scan is predicted at the pose held;
 - ``auto`` (default): ``log`` when the log's odometry is its own (raw) odometry, ``noisy``
   when it equals the reference (the Radish "corrected" logs: the SLAM pose written into both
-  fields, so the raw increments would hand the localizer the answer), ``none`` without odometry.
+  fields, so the raw increments would hand the localizer the answer; a ROS bag's pose topic,
+  both its reference and its odometry), ``none`` without odometry.
 
 Scores (the report, :func:`score`), over the scans with a reference pose; a field is null when
 the log has none:
@@ -85,12 +86,19 @@ class ReplayStep:
     ms: float
 
 
-def read_log(path: str | Path, log_format: str, laser: str = "front") -> list[LogScan]:
+def read_log(path: str | Path, log_format: str, laser: str = "front", scan_topic: str | None = None,
+             pose_topic: str | None = None) -> list[LogScan]:
     """The scans of ``path``; ValueError for a format not readable here or a malformed log,
-    OSError when it cannot be read."""
+    OSError when it cannot be read. ``laser``: carmen's; ``scan_topic``, ``pose_topic``: ros's
+    (:func:`drivers.lidar_replay.read_ros_bag`, None: the bag's only one). A bag's pose topic is
+    both its reference and its odometry, like the CARMEN "corrected" logs (so ``auto`` adds
+    simulated wheel-odometry errors to it); a scan outside the pose topic's time span has neither."""
     from drivers.lidar_replay import (breezyslam_angles, breezyslam_valid, carmen_valid, read_breezyslam,
-                                      read_carmen, read_npz)
+                                      read_carmen, read_npz, read_ros_bag)
 
+    if log_format == "ros":
+        return [LogScan(s.t_s, s.angles_rad, s.ranges_m, s.valid, s.pose_ned, s.pose_ned)
+                for s in read_ros_bag(path, scan_topic, pose_topic)]
     if log_format == "carmen":
         scans = read_carmen(path, laser)
         log_max = max((float(s.ranges_m.max()) for s in scans), default=0.0)
@@ -103,7 +111,7 @@ def read_log(path: str | Path, log_format: str, laser: str = "front") -> list[Lo
     if log_format == "npz":
         angles, stamps, ranges, valid, _ = read_npz(path)
         return [LogScan(float(t), angles, r, v, None, None) for t, r, v in zip(stamps, ranges, valid)]
-    raise ValueError(f"--format {log_format}: replaying it is not implemented yet (carmen, breezyslam and npz are)")
+    raise ValueError(f"--format {log_format}: not a log format (those: {', '.join(FORMATS)})")
 
 
 def resolve_odometry(scans: list[LogScan], odometry: Odometry) -> tuple[Odometry, str]:
@@ -207,10 +215,11 @@ def score(steps: list[ReplayStep]) -> dict[str, float | int | None]:
 
 
 def replay_report(log: str | Path, log_format: str, world_map: World, map_path: str | Path, *,
-                  laser: str = "front", odometry: Odometry = "auto", start: Literal["reference", "relocalize"] = "reference",
+                  laser: str = "front", scan_topic: str | None = None, pose_topic: str | None = None,
+                  odometry: Odometry = "auto", start: Literal["reference", "relocalize"] = "reference",
                   seed: int = 0) -> dict:
     """The replay report of ``log`` on ``world_map``: the contract's fields and what the replay used."""
-    scans = read_log(log, log_format, laser)
+    scans = read_log(log, log_format, laser, scan_topic, pose_topic)
     if not scans:
         raise ValueError(f"{log}: no scan to replay")
     mode, why = resolve_odometry(scans, odometry)

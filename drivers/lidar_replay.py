@@ -33,6 +33,15 @@ Formats:
   by 180 deg); readings at the log's largest value (the scanner's maximum: 81.9, 50 or 32.7 m)
   or 0 are no return. ROBOTLASER lines give start angle, resolution and maximum range.
 
+- ``ros``: ROS 1 bags (a ``.bag`` file) and ROS 2 bags (a directory with ``metadata.yaml``, or
+  one of its ``.db3`` / ``.mcap`` files), read with the ``rosbags`` library (pure Python, no ROS
+  install; :func:`read_ros_bag`). The scans are a ``sensor_msgs/msg/LaserScan`` topic: the header
+  stamp is the capture time of the first beam, beam i at ``angle_min + i * angle_increment``,
+  a reading valid when finite and within ``[range_min, range_max]``. The reference pose is a
+  ``nav_msgs/msg/Odometry`` or ``geometry_msgs/msg/PoseStamped`` topic, interpolated to each
+  scan's stamp. ROS frames (REP-103: x forward, y left, angles counter-clockwise) are mirrored
+  like CARMEN's, with the same conversion (:func:`mirrored_angles`, :func:`mirrored_pose`).
+
 - ``npz``: our own recordings (:func:`record_npz`): arrays ``t_capture`` (S,) s,
   ``angles_rad`` (N,), ``ranges_m`` (S, N), ``valid`` (S, N), ``sweep_s`` (S,), ``sequence`` (S,)
   and the scalar ``sensor_id``.
@@ -53,13 +62,15 @@ import asyncio
 import gzip
 import io
 import math
-from collections.abc import Iterator, Sequence
+import stat
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 
+from companion.frames import euler_from_quat, wrap_pi
 from companion.plugins import register_backend
 from companion.schema import meta, read_regular_file
 from drivers.base import Backend, CorruptFrame, EndOfData
@@ -121,6 +132,18 @@ def breezyslam_valid(ranges_m: np.ndarray) -> np.ndarray:
     return (ranges_m >= URG_04LX.min_range_m) & (ranges_m <= URG_04LX.max_range_m)
 
 
+def mirrored_angles(angles_rad: np.ndarray) -> np.ndarray:
+    """Beam angles (rad) of a frame mirrored to ours (x forward, y left, counter-clockwise: CARMEN's,
+    ROS REP-103's) in our scanner frame (positive to the right), wrapped to (-pi, pi]."""
+    return np.angle(np.exp(-1j * np.asarray(angles_rad, dtype=float)))
+
+
+def mirrored_pose(x: float, y: float, theta: float) -> tuple[float, float, float]:
+    """A pose (x, y m, theta rad counter-clockwise) in a mirrored map frame (CARMEN's, ROS REP-103's)
+    as NED (x north, y east m, yaw rad) in a map frame whose north is that frame's x axis."""
+    return x, -y, -theta
+
+
 CARMEN_LASERS = {"FLASER": "front", "RLASER": "rear", "ROBOTLASER1": "front", "ROBOTLASER2": "rear"}
 _CARMEN_OLD_TAIL = 9  # x y theta odom_x odom_y odom_theta timestamp hostname logger_timestamp
 _CARMEN_ROBOT_TAIL = 14  # laser pose (3), robot pose (3), tv rv, 3 distances, timestamp host logger_timestamp
@@ -167,7 +190,7 @@ def parse_carmen_line(line: str) -> CarmenScan | None:
                 raise ValueError(f"{len(tail)} values after the readings, expected {_CARMEN_OLD_TAIL}")
             x, y, theta = (float(v) for v in tail[0:3])
             ox, oy, otheta = (float(v) for v in tail[3:6])
-            stamp, maximum, odometry = float(tail[6]), None, (ox, -oy, -otheta)
+            stamp, maximum, odometry = float(tail[6]), None, mirrored_pose(ox, oy, otheta)
             carmen_angles = -math.pi / 2 + math.pi / n * np.arange(n) + (math.pi if laser == "rear" else 0.0)
     except (IndexError, ValueError) as exc:
         raise ValueError(f"malformed {tokens[0]} line: {exc}") from None
@@ -175,8 +198,8 @@ def parse_carmen_line(line: str) -> CarmenScan | None:
         raise ValueError(f"malformed {tokens[0]} line: {ranges.size} of {n} readings")
     if not np.isfinite(ranges).all() or not all(map(math.isfinite, (x, y, theta, stamp, *(odometry or ())))):
         raise ValueError(f"malformed {tokens[0]} line: a reading, a pose or the time is not a finite number")
-    angles = np.angle(np.exp(-1j * carmen_angles))  # mirrored into our frame, wrapped to (-pi, pi]
-    return CarmenScan(laser, stamp, angles, ranges, maximum, (x, -y, -theta), odometry)
+    return CarmenScan(laser, stamp, mirrored_angles(carmen_angles), ranges, maximum, mirrored_pose(x, y, theta),
+                      odometry)
 
 
 def carmen_valid(scan: CarmenScan, log_max_m: float) -> np.ndarray:
@@ -201,6 +224,127 @@ def read_carmen(path: str | Path, laser: str = "front") -> list[CarmenScan]:
         if scan is not None and scan.laser == laser:
             scans.append(scan)
     return scans
+
+
+ROS_SCAN_TYPE = "sensor_msgs/msg/LaserScan"
+ROS_ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
+ROS_POSE_TYPES = (ROS_ODOMETRY_TYPE, "geometry_msgs/msg/PoseStamped")
+_T = TypeVar("_T")
+
+
+@dataclass(frozen=True)
+class BagScan:
+    """One ``sensor_msgs/msg/LaserScan`` message of a ROS bag, in our frames (module docstring)."""
+
+    t_s: float  # header stamp: the capture time of the first beam, s (the bag's clock)
+    angles_rad: np.ndarray  # (n,) scanner frame, positive to the right (the ROS angles negated)
+    ranges_m: np.ndarray  # (n,) metres as recorded
+    valid: np.ndarray  # (n,) bool: finite and within [range_min, range_max]
+    pose_ned: tuple[float, float, float] | None  # the pose topic's at t_s: x, y (m, NED map frame), yaw (rad)
+
+
+def read_ros_bag(path: str | Path, scan_topic: str | None = None, pose_topic: str | None = None) -> list[BagScan]:
+    """The LaserScan messages of ``scan_topic`` in a ROS 1 bag (``.bag`` file) or a ROS 2 bag (its
+    directory, ``.db3`` or ``.mcap`` file), in bag order, each with the pose of ``pose_topic`` (an
+    Odometry or PoseStamped topic) at its stamp: positions linear in time between the two nearest
+    pose messages, yaw along the shorter arc, None outside the pose messages' time span.
+
+    Default topics: the bag's only LaserScan topic (ValueError naming the candidates when it has
+    several or none) and its only Odometry / PoseStamped topic (no pose when it has several or
+    none). The pose is taken as the scanner's: a mounting offset in /tf is not applied. ValueError
+    for a bag that cannot be decoded, OSError when it cannot be read; both name ``path``."""
+    path = Path(path)
+    topics = _with_bag(path, lambda reader: {name: info.msgtype for name, info in reader.topics.items()})
+    scan_topics = sorted(name for name, kind in topics.items() if kind == ROS_SCAN_TYPE)
+    chosen = _chosen_topic(path, scan_topics, scan_topic, "--scan-topic")
+    if chosen is None:
+        listing = ", ".join(f"{name} ({kind})" for name, kind in sorted(topics.items())) or "none"
+        raise ValueError(f"{path}: several LaserScan topics ({', '.join(scan_topics)}): choose one with --scan-topic"
+                         if scan_topics else f"{path}: no LaserScan topic; the bag's topics: {listing}")
+    pose_chosen = _chosen_topic(path, sorted(name for name, kind in topics.items() if kind in ROS_POSE_TYPES),
+                                pose_topic, "--pose-topic")
+    messages = _with_bag(path, lambda reader: _decoded(reader, {chosen, pose_chosen}))
+    times, poses = _pose_track(path, [message for topic, message in messages if topic == pose_chosen])
+    scans = [message for topic, message in messages if topic == chosen]
+    return [_bag_scan(path, k, message, times, poses) for k, message in enumerate(scans)]
+
+
+def _with_bag(path: Path, use: Callable[[Any], _T]) -> _T:
+    """``use`` applied to the bag at ``path`` opened with rosbags' ``AnyReader``; what goes wrong
+    inside rosbags as OSError (cannot be read) or ValueError (cannot be decoded), naming ``path``."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    mode = path.stat().st_mode
+    if not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):  # a FIFO would block the reader
+        raise OSError(f"{path}: not a bag file or directory")
+    try:  # ROS 2 bags before Iron hold no message definitions: the standard ones (these types never changed)
+        with AnyReader([path], default_typestore=get_typestore(Stores.LATEST)) as reader:
+            return use(reader)
+    except OSError as exc:
+        raise OSError(f"{path}: cannot read the bag: {exc}") from exc
+    except Exception as exc:  # a damaged bag raises many kinds in rosbags (its own, sqlite's, KeyError, ...)
+        raise ValueError(f"{path}: not a readable ROS 1 or ROS 2 bag (rosbags: {exc})") from exc
+
+
+def _decoded(reader: Any, topics: set[str | None]) -> list[tuple[str, Any]]:
+    """(topic, deserialized message) of the messages of ``topics`` in an open ``AnyReader``, in bag order."""
+    connections = [c for c in reader.connections if c.topic in topics]
+    return [(c.topic, reader.deserialize(raw, c.msgtype)) for c, _, raw in reader.messages(connections)]
+
+
+def _chosen_topic(path: Path, candidates: list[str], asked: str | None, option: str) -> str | None:
+    """``asked`` when it is one of ``candidates`` (ValueError if not), else the only candidate, else None."""
+    if asked is None:
+        return candidates[0] if len(candidates) == 1 else None
+    if asked not in candidates:
+        raise ValueError(f"{path}: {option} {asked}: not a topic of that type in the bag "
+                         f"(those: {', '.join(candidates) or 'none'})")
+    return asked
+
+
+def _stamp_s(message: Any) -> float:
+    """The header stamp of a ROS message, s."""
+    return message.header.stamp.sec + message.header.stamp.nanosec * 1e-9
+
+
+def _pose_track(path: Path, messages: list[Any]) -> tuple[np.ndarray, np.ndarray]:
+    """(times s (P,), poses (P, 3): x, y m, yaw rad, NED) of Odometry / PoseStamped messages, by time."""
+    rows = []
+    for m in messages:
+        pose = m.pose.pose if m.__msgtype__ == ROS_ODOMETRY_TYPE else m.pose
+        q = pose.orientation
+        yaw = euler_from_quat(np.array([q.w, q.x, q.y, q.z]))[2]  # about z up: counter-clockwise
+        rows.append((_stamp_s(m), *mirrored_pose(pose.position.x, pose.position.y, yaw)))
+    track = np.array(rows, dtype=float).reshape(-1, 4)
+    if not np.isfinite(track).all():
+        raise ValueError(f"{path}: a pose message whose position or orientation is not a finite number")
+    track = track[np.argsort(track[:, 0], kind="stable")]
+    return track[:, 0], track[:, 1:]
+
+
+def _pose_at(times: np.ndarray, poses: np.ndarray, t: float) -> tuple[float, float, float] | None:
+    """The pose (x, y m, yaw rad) at ``t`` s between the two nearest of ``poses`` at sorted ``times``:
+    position linear in time, yaw along the shorter arc; None outside [times[0], times[-1]]."""
+    if not len(times) or not times[0] <= t <= times[-1]:
+        return None
+    i = int(np.searchsorted(times, t, side="right")) - 1  # times[i] <= t < times[i + 1]
+    j = min(i + 1, len(times) - 1)
+    a, b = poses[i], poses[j]
+    f = (t - times[i]) / (times[j] - times[i]) if times[j] > times[i] else 0.0
+    return (float(a[0] + f * (b[0] - a[0])), float(a[1] + f * (b[1] - a[1])),
+            wrap_pi(float(a[2] + f * wrap_pi(float(b[2] - a[2])))))
+
+
+def _bag_scan(path: Path, k: int, message: Any, times: np.ndarray, poses: np.ndarray) -> BagScan:
+    """LaserScan message ``k`` (0-based) in our frames, with its pose; ValueError for non-finite angles."""
+    if not (math.isfinite(message.angle_min) and math.isfinite(message.angle_increment)):
+        raise ValueError(f"{path}: LaserScan message {k + 1}: angle_min or angle_increment is not a finite number")
+    ranges = np.asarray(message.ranges, dtype=float)
+    valid = np.isfinite(ranges) & (ranges >= message.range_min) & (ranges <= message.range_max)
+    t = _stamp_s(message)
+    angles = mirrored_angles(message.angle_min + message.angle_increment * np.arange(ranges.size))
+    return BagScan(t, angles, ranges, valid, _pose_at(times, poses, t))
 
 
 def read_npz(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
