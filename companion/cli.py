@@ -129,13 +129,14 @@ def _cmd_map_build(args: argparse.Namespace) -> int:
     from companion.schema import SchemaError
 
     try:
-        built = build_map_file(args.log, args.format, args.out, args.wall_angle, args.laser, args.scan_topic,
-                               args.pose_topic)
+        built, poses = build_map_file(args.log, args.format, args.out, args.wall_angle, args.laser, args.scan_topic,
+                                      args.pose_topic)
     except (OSError, ValueError, SchemaError) as exc:
         print(f"companion map build: {exc}", file=sys.stderr)
         return EXIT_CONFIG_ERROR
     print(f"{args.out}: {len(built.walls)} walls, {len(built.corners)} corners, walls at "
-          f"{built.wall_offset_deg:+.2f} deg + n x {built.wall_angle_deg} deg, survey error {built.survey_error_m * 100:.1f} cm")
+          f"{built.wall_offset_deg:+.2f} deg + n x {built.wall_angle_deg} deg, survey error {built.survey_error_m * 100:.1f} cm; "
+          f"scans placed by {poses}")
     return 0
 
 
@@ -247,10 +248,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     mapping = sub.add_parser("map", help="lidar maps of a user's own building")
     maps = mapping.add_subparsers(dest="map", required=True)
-    build = maps.add_parser("build", help="build a map (world YAML for pipelines.lidar.map) from a log with poses")
+    build = maps.add_parser("build", help="build a map (world YAML for pipelines.lidar.map) from a log: placed with "
+                                          "its poses, or by scan matching when it has none")
     build.add_argument("log", help="the log (e.g. a CARMEN log, plain or .gz; a ROS 1 .bag, a ROS 2 bag directory)")
     build.add_argument("--format", required=True, choices=["carmen", "ros", "breezyslam", "npz"],
-                       help="the log's format (carmen and ros, with a pose topic, carry the poses the builder needs)")
+                       help="the log's format (carmen, and ros with a pose topic, carry poses; the others are placed by "
+                            "scan matching)")
     build.add_argument("--out", required=True, help="write the map (world YAML) here")
     build.add_argument("--wall-angle", type=int, choices=[90, 45, 30], default=90,
                        help="the building's walls run at multiples of this angle (default 90)")

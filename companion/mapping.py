@@ -1,4 +1,4 @@
-"""`companion map build`: a lidar map from a log with reference poses, written as a world YAML.
+"""`companion map build`: a lidar map from a log, written as a world YAML.
 
 Reads the log (drivers/lidar_replay.py), builds the map (companion/nav/map_build.py) and writes
 it in the world format (companion/world.py) that ``pipelines.lidar.map`` names, then loads it
@@ -14,43 +14,51 @@ import numpy as np
 import yaml
 
 from companion.nav.map_build import BuiltMap, MapBuildParams, build_map
+from companion.nav.scan_poses import scan_poses
 from companion.world import load_world
 
-FORMATS_WITH_POSES = ("carmen", "ros")
 BOUNDS_MARGIN_M = 1.0
+LOG_POSES = "the log's own poses"
+MATCHED_POSES = "scan matching (companion/nav/scan_poses.py; the map frame at the first scan, no loop closure)"
 
 
 def build_map_file(log: str | Path, log_format: str, out: str | Path, wall_angle_deg: int = 90,
-                   laser: str = "front", scan_topic: str | None = None, pose_topic: str | None = None) -> BuiltMap:
-    """Build the map of ``log`` from its scans with a reference pose and write it to ``out``;
-    ValueError for a log it cannot use (``laser``, ``scan_topic``, ``pose_topic``:
-    :func:`companion.replay.read_log`)."""
-    if log_format not in FORMATS_WITH_POSES:
-        raise ValueError(f"--format {log_format}: the log holds no reference poses; building a map from such a "
-                         "log (mapping it without poses) is not implemented yet, use a log with poses (carmen, ros)")
+                   laser: str = "front", scan_topic: str | None = None,
+                   pose_topic: str | None = None) -> tuple[BuiltMap, str]:
+    """Build the map of ``log`` and write it to ``out``; (the map, where its poses came from).
+
+    The scans are placed with the log's reference poses where it has them (a CARMEN log, a ROS
+    bag with a pose topic); a log without any (a BreezySLAM or npz recording, a bag without a pose
+    topic: a scanner carried through the building) is placed by scan matching. ValueError for a
+    log it cannot use (``laser``, ``scan_topic``, ``pose_topic``: :func:`companion.replay.read_log`)."""
     from companion.replay import read_log
 
-    posed = [(s.points(), s.valid, s.reference) for s in read_log(log, log_format, laser, scan_topic, pose_topic)
-             if s.reference is not None]
+    scans = read_log(log, log_format, laser, scan_topic, pose_topic)
+    if not scans:
+        raise ValueError(f"{log}: no scan")
+    posed = [(s.points(), s.valid, s.reference) for s in scans if s.reference is not None]
+    source = LOG_POSES
     if not posed:
-        why = (f"no {laser} laser message" if log_format == "carmen" else
-               "no pose topic (Odometry or PoseStamped, --pose-topic) covering a scan")
-        raise ValueError(f"{log}: no reference poses: {why}")
+        poses = scan_poses((s.points(), s.valid) for s in scans)
+        posed = [(s.points(), s.valid, (float(x), float(y), float(yaw))) for s, (x, y, yaw) in zip(scans, poses)]
+        source = MATCHED_POSES
     built = build_map(posed, MapBuildParams(wall_angle_deg=wall_angle_deg))
     x, y, yaw = posed[0][2]
     out = Path(out)
     draft = out.with_name(f".{out.name}.draft")
     try:
-        write_world(built, draft, Path(log).name, (x, y, math.degrees(yaw)))
+        write_world(built, draft, Path(log).name, (x, y, math.degrees(yaw)), source)
         load_world(draft)  # the daemon's own checks: a map it would refuse raises here (SchemaError names the key)
         draft.replace(out)
     finally:
         draft.unlink(missing_ok=True)
-    return built
+    return built, source
 
 
-def write_world(built: BuiltMap, path: str | Path, source: str, start: tuple[float, float, float]) -> None:
-    """``built`` as a world YAML at ``path`` (``start``: take-off pose x m, y m, yaw deg)."""
+def write_world(built: BuiltMap, path: str | Path, source: str, start: tuple[float, float, float],
+                poses: str = LOG_POSES) -> None:
+    """``built`` as a world YAML at ``path`` (``start``: take-off pose x m, y m, yaw deg; ``poses``:
+    where the scans' poses came from, for the header)."""
     lo = np.minimum(built.walls[:, 0:2], built.walls[:, 2:4]).min(axis=0) - BOUNDS_MARGIN_M
     hi = np.maximum(built.walls[:, 0:2], built.walls[:, 2:4]).max(axis=0) + BOUNDS_MARGIN_M
 
@@ -68,7 +76,7 @@ def write_world(built: BuiltMap, path: str | Path, source: str, start: tuple[flo
         "corners": [point(c) for c in built.corners],
     }
     header = (f"# Built by `companion map build` from {source}: {len(built.walls)} walls (each seen in at least "
-              f"{int(built.observations.min())} scan lines), {len(built.corners)} corners.\n"
+              f"{int(built.observations.min())} scan lines), {len(built.corners)} corners; scans placed by {poses}.\n"
               "# Frame: the log's map frame as NED (x north, y east, metres; directions from north towards east).\n"
               "# survey_error_m is the spread of the scan lines about their walls (scan noise and pose error\n"
               "# included). Check the map on the dashboard before flying on it.\n")

@@ -92,9 +92,10 @@ def test_a_map_built_from_a_real_log_loads_and_locates_its_scans(log: str, tmp_p
     assert len(errors) >= 0.7 * len(scans) and np.median(errors) < 0.06
 
 
-def test_a_log_without_poses_is_refused_with_a_clear_error(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+def test_an_empty_log_is_refused_with_a_clear_error_and_nothing_written(tmp_path: Path,
+                                                                        capsys: pytest.CaptureFixture) -> None:
     log = tmp_path / "walk.dat"
     log.write_text("")
     assert main(["map", "build", str(log), "--format", "breezyslam", "--out", str(tmp_path / "m.yaml")]) == 2
-    assert "no reference poses" in capsys.readouterr().err
+    assert "walk.dat: no scan" in capsys.readouterr().err
     assert not (tmp_path / "m.yaml").exists()

@@ -196,13 +196,15 @@ def test_the_pose_topic_is_interpolated_in_time_on_the_circle_and_none_outside_i
 def test_a_map_is_built_from_the_bag_pose_topic_it_is_told(arena: dict[str, np.ndarray], tmp_path: Path,
                                                            capsys: pytest.CaptureFixture) -> None:
     """Two pose topics (the truth on Odometry, one 1 m off on PoseStamped): none is taken unless
-    named; with ``--pose-topic`` the map loads and its walls are the arena's."""
+    named (the scans are then placed by scan matching, and the output says so); with
+    ``--pose-topic`` the map loads and its walls are the arena's."""
     bag = write_bag(tmp_path, "ros2", _arena_messages(arena, (("/odom", ODOMETRY, 0.0), ("/slam", POSE, 1.0))))
     out = tmp_path / "m.yaml"
-    assert main(["map", "build", str(bag), "--format", "ros", "--out", str(out), "--wall-angle", "45"]) == 2
-    assert "no reference poses" in capsys.readouterr().err and not out.exists()
+    assert main(["map", "build", str(bag), "--format", "ros", "--out", str(out), "--wall-angle", "45"]) == 0
+    assert "scans placed by scan matching" in capsys.readouterr().out
     assert main(["map", "build", str(bag), "--format", "ros", "--out", str(out), "--wall-angle", "45",
                  "--pose-topic", "/odom"]) == 0
+    assert "scans placed by the log's own poses" in capsys.readouterr().out
     built = load_world(out)
     ends = np.vstack([[w.start, w.end] for w in built.walls])
     assert len(built.walls) >= 10 and built.wall_offset_deg == pytest.approx(0.0, abs=0.1)
@@ -223,7 +225,7 @@ def test_a_bag_with_two_scan_topics_is_refused_naming_both(tmp_path: Path, capsy
     assert json.loads(report_path.read_text())["scans"] == 2
 
 
-def test_a_bag_without_a_pose_topic_replays_unscored_and_is_not_mapped(
+def test_a_bag_without_a_pose_topic_replays_unscored_and_is_mapped_by_scan_matching(
         arena: dict[str, np.ndarray], tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     bag = write_bag(tmp_path, "ros2", _arena_messages(arena, ())[:20])
     report_path = tmp_path / "r.json"
@@ -233,8 +235,8 @@ def test_a_bag_without_a_pose_topic_replays_unscored_and_is_not_mapped(
     assert report["scans"] == 20 and report["reference"] is None and report["odometry"]["mode"] == "none"
     assert report["position_median_m"] is None and report["heading_rms_deg"] is None and report["wrong_resets"] is None
     out = tmp_path / "m.yaml"
-    assert main(["map", "build", str(bag), "--format", "ros", "--out", str(out)]) == 2
-    assert "no reference poses" in capsys.readouterr().err and not out.exists()
+    assert main(["map", "build", str(bag), "--format", "ros", "--out", str(out), "--wall-angle", "45"]) == 0
+    assert "scans placed by scan matching" in capsys.readouterr().out and load_world(out).walls
 
 
 @pytest.mark.parametrize("content", [b"", b"#ROSBAG V2.0\n" + bytes(range(256)) * 4])
