@@ -66,6 +66,22 @@ def wrap_pi(angle: float) -> float:
     return (angle + math.pi) % (2 * math.pi) - math.pi
 
 
+def planar_increment(a: tuple[float, float, float], b: tuple[float, float, float]) -> tuple[float, float, float]:
+    """The motion from planar pose ``a`` to ``b`` (x north, y east m, yaw rad) in ``a``'s body
+    frame: (forward m, right m, turn rad)."""
+    c, s = math.cos(a[2]), math.sin(a[2])
+    dx, dy = b[0] - a[0], b[1] - a[1]
+    return c * dx + s * dy, -s * dx + c * dy, wrap_pi(b[2] - a[2])
+
+
+def planar_moved(pose: tuple[float, float, float], forward: float, right: float,
+                 turn: float = 0.0) -> tuple[float, float, float]:
+    """Planar ``pose`` (x north, y east m, yaw rad) moved by ``forward``, ``right`` (m, its body
+    frame) and turned by ``turn`` (rad): the inverse of :func:`planar_increment`."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    return pose[0] + c * forward - s * right, pose[1] + s * forward + c * right, wrap_pi(pose[2] + turn)
+
+
 def ned_from_geodetic(
     lat_deg: float, lon_deg: float, alt_m: float, origin: tuple[float, float, float]
 ) -> np.ndarray:

@@ -44,7 +44,7 @@ from typing import Literal
 
 import numpy as np
 
-from companion.frames import wrap_pi
+from companion.frames import planar_increment, planar_moved, wrap_pi
 from companion.nav.lidar_pipeline import LidarPipelineConfig, planar_localizer, planar_params
 from companion.nav.planar import Mount2D, PlanarFix, PlanarParams
 from companion.scoring import WRONG_RESET_M, mean_or_none, nees, nees_band
@@ -130,13 +130,6 @@ def resolve_odometry(scans: list[LogScan], odometry: Odometry) -> tuple[Odometry
     return "log", "the log's own odometry"
 
 
-def increment(a: Pose, b: Pose) -> Pose:
-    """The motion from pose ``a`` to pose ``b`` in ``a``'s body frame (forward, right m; turn rad)."""
-    c, s = math.cos(a[2]), math.sin(a[2])
-    dx, dy = b[0] - a[0], b[1] - a[1]
-    return (c * dx + s * dy, -s * dx + c * dy, wrap_pi(b[2] - a[2]))
-
-
 def with_wheel_error(step: Pose, rng: np.random.Generator) -> Pose:
     """``step`` (forward, right m; turn rad) with simulated wheel-odometry errors."""
     forward, right, turn = step
@@ -167,13 +160,12 @@ def replay(scans: list[LogScan], world_map: World, odometry: Odometry, start: Po
         prior, turn, moved = None, 0.0, (0.0, 0.0)
         if odometry != "none" and previous is not None:
             assert scan.odometry is not None and previous.odometry is not None
-            step = increment(previous.odometry, scan.odometry)
+            step = planar_increment(previous.odometry, scan.odometry)
             forward, right, turn = with_wheel_error(step, rng) if odometry == "noisy" else step
             moved = (forward, right)
             held = localizer.pose
             if held is not None:  # dead reckoning from the pose held; the turn goes in as yaw_delta
-                c, s = math.cos(held[2]), math.sin(held[2])
-                prior = (held[0] + c * forward - s * right, held[1] + s * forward + c * right, held[2])
+                prior = planar_moved(held, forward, right)
         started = time.perf_counter()
         fix = localizer.update(scan.points(), prior, yaw_delta=turn, moved_m=moved, valid=scan.valid)
         steps.append(ReplayStep(scan, fix, (time.perf_counter() - started) * 1e3))
@@ -192,8 +184,8 @@ def score(steps: list[ReplayStep]) -> dict[str, float | int | None]:
         "heading_rms_deg": None, "position_median_m": None, "position_p95_m": None, "nees_mean": None, "nees_band": None,
         "lost_fraction": 1.0 - len(measured) / len(steps) if steps else None,
         "relocalizations": len(resets),
-        "wrong_resets": sum(math.dist((s.fix.x, s.fix.y), s.scan.reference[:2]) > WRONG_RESET_M  # type: ignore[union-attr,index]
-                            for s in resets) if referenced else None,
+        "wrong_resets": sum(math.dist((s.fix.x, s.fix.y), s.scan.reference[:2]) > WRONG_RESET_M  # type: ignore[union-attr]
+                            for s in resets if s.scan.reference is not None) if referenced else None,
         "ms_per_scan_p50": float(np.median([s.ms for s in steps])) if steps else None,
     }
     if scored:

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from companion.config import MountConfig
-from companion.frames import wrap_pi
+from companion.frames import planar_increment, wrap_pi
 from companion.health import Health, State
 from companion.messages import Estimate, ImuSample, PoseEstimate, Scan
 from companion.nav.corners import CornerParams
@@ -270,9 +270,8 @@ class LidarPipeline:
         self._scan_state = (float(state.position_ned[0]), float(state.position_ned[1]), state.yaw) if state.healthy else None
         if before is None or self._scan_state is None:
             return (0.0, 0.0)
-        dx, dy = self._scan_state[0] - before[0], self._scan_state[1] - before[1]
-        c, s = math.cos(before[2]), math.sin(before[2])
-        return (c * dx + s * dy, -s * dx + c * dy)
+        forward, right, _ = planar_increment(before, self._scan_state)
+        return (forward, right)
 
     def _process_vertical(self, scan: Scan) -> float:
         roll, pitch, _ = self._attitude()

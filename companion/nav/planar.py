@@ -88,7 +88,7 @@ from typing import Literal
 
 import numpy as np
 
-from companion.frames import rotation_from_euler, wrap_pi
+from companion.frames import planar_moved, rotation_from_euler, wrap_pi
 from companion.nav.corners import CornerParams, Corners, find_corners
 from companion.nav.heading import (UNMEASURED_VARIANCE_RAD2, HeadingParams, HeadingResult,
                                    heading_hypotheses, track_heading)
@@ -560,9 +560,11 @@ class PlanarLocalizer:
         a row."""
         if c is None or c.idle >= self.params.reloc_confirm_frames:
             return None
-        x, y = np.array([c.x, c.y]) + rotation(c.yaw) @ np.asarray(self._moved, dtype=float)
-        return RelocCandidate(float(x), float(y), wrap_pi(c.yaw + self._yaw_delta), c.frames, c.matched, c.local,
-                              c.idle + 1)
+        return RelocCandidate(*self._moved_candidate(c), c.frames, c.matched, c.local, c.idle + 1)
+
+    def _moved_candidate(self, c: RelocCandidate) -> tuple[float, float, float]:
+        """Where the candidate pose (x, y m, yaw rad) is after the motion given with this scan."""
+        return planar_moved((c.x, c.y, c.yaw), *self._moved, self._yaw_delta)
 
     def _confirmed(self, match: Match, yaw: float, local: bool) -> bool:
         """Count this scan for the candidate jump it found (a new candidate unless it agrees with the
@@ -570,11 +572,13 @@ class PlanarLocalizer:
         enough scans found it, none finding another pose in between."""
         p, c = self.params, self.candidate
         x, y = float(match.xy[0]), float(match.xy[1])
+        frames = 1
         if c is not None:
-            cx, cy = np.array([c.x, c.y]) + rotation(c.yaw) @ np.asarray(self._moved, dtype=float)
-        same = (c is not None and math.hypot(x - cx, y - cy) <= p.reloc_confirm_gate_m
-                and abs(wrap_pi(yaw - c.yaw - self._yaw_delta)) <= p.reloc_confirm_gate_rad)
-        self.candidate = RelocCandidate(x, y, yaw, c.frames + 1 if same and c else 1, match.matched, local)
+            cx, cy, cyaw = self._moved_candidate(c)
+            if (math.hypot(x - cx, y - cy) <= p.reloc_confirm_gate_m
+                    and abs(wrap_pi(yaw - cyaw)) <= p.reloc_confirm_gate_rad):
+                frames = c.frames + 1
+        self.candidate = RelocCandidate(x, y, yaw, frames, match.matched, local)
         return self.candidate.frames >= p.reloc_confirm_frames
 
     def _search(self, lines: LineSet, corners: Corners,

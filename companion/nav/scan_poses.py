@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from companion.frames import wrap_pi
+from companion.frames import planar_increment, planar_moved, wrap_pi
 from companion.nav.planar import rotation
 
 Pose = tuple[float, float, float]
@@ -101,15 +101,9 @@ class _Tracker:
 
     def _predicted(self) -> Pose:
         """The newest pose moved again by the newest step (constant velocity in its body frame)."""
-        x, y, yaw = self.poses[-1]
         if len(self.poses) < 2:
-            return x, y, yaw
-        px, py, pyaw = self.poses[-2]
-        c, s = math.cos(pyaw), math.sin(pyaw)
-        fwd, right = c * (x - px) + s * (y - py), -s * (x - px) + c * (y - py)
-        turn = wrap_pi(yaw - pyaw)
-        c, s = math.cos(yaw), math.sin(yaw)
-        return x + c * fwd - s * right, y + s * fwd + c * right, wrap_pi(yaw + turn)
+            return self.poses[-1]
+        return planar_moved(self.poses[-1], *planar_increment(self.poses[-2], self.poses[-1]))
 
     def _match(self, local: np.ndarray, guess: Pose) -> Pose:
         p = self.p
