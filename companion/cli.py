@@ -15,6 +15,9 @@ from companion.config import Config, ConfigError, load_config
 from companion.logsetup import setup_logging
 
 EXIT_CONFIG_ERROR = 2
+# The log formats of `map build` and `replay` (companion.replay.FORMATS, written out here so that
+# building the parser imports no numpy; a test keeps the two equal).
+LOG_FORMATS = ("carmen", "ros", "breezyslam", "npz")
 
 
 def repo_config_dir() -> Path:
@@ -251,7 +254,7 @@ def build_parser() -> argparse.ArgumentParser:
     build = maps.add_parser("build", help="build a map (world YAML for pipelines.lidar.map) from a log: placed with "
                                           "its poses, or by scan matching when it has none")
     build.add_argument("log", help="the log (e.g. a CARMEN log, plain or .gz; a ROS 1 .bag, a ROS 2 bag directory)")
-    build.add_argument("--format", required=True, choices=["carmen", "ros", "breezyslam", "npz"],
+    build.add_argument("--format", required=True, choices=LOG_FORMATS,
                        help="the log's format (carmen, and ros with a pose topic, carry poses; the others are placed by "
                             "scan matching)")
     build.add_argument("--out", required=True, help="write the map (world YAML) here")
@@ -264,7 +267,7 @@ def build_parser() -> argparse.ArgumentParser:
     replay = sub.add_parser("replay", help="replay a scanner log through the lidar localizer, scored against the "
                                            "log's own poses (companion/replay.py)")
     replay.add_argument("log", help="the log (e.g. a CARMEN log, plain or .gz; a ROS 1 .bag, a ROS 2 bag directory)")
-    replay.add_argument("--format", required=True, choices=["carmen", "ros", "breezyslam", "npz"], help="the log's format")
+    replay.add_argument("--format", required=True, choices=LOG_FORMATS, help="the log's format")
     replay.add_argument("--map", required=True, help="the map (world YAML, e.g. from `companion map build`)")
     replay.add_argument("--report", help="also write the report (JSON) here")
     replay.add_argument("--laser", choices=["front", "rear"], default="front", help="carmen: which laser's messages")

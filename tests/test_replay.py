@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -112,6 +113,15 @@ def test_a_relocalization_far_from_the_reference_is_a_wrong_reset() -> None:
     assert report["position_median_m"] == pytest.approx(0.2)
 
 
+def test_a_relocalization_on_a_scan_without_reference_is_not_scored() -> None:
+    """A bag's pose topic may not cover every scan: a reset on such a scan cannot be called right
+    or wrong, and must not stop the report."""
+    steps = [_step((0.0, 0.0), (0.0, 0.0, 0.0), False), _step((5.0, 0.0), (0.2, 0.0, 0.0), True)]
+    unreferenced = ReplayStep(replace(steps[1].scan, reference=None), steps[1].fix, 1.0)
+    report = score([steps[0], unreferenced, steps[1]])
+    assert report["relocalizations"] == 2 and report["wrong_resets"] == 1
+
+
 def test_nees_is_the_dimension_for_errors_drawn_from_the_covariance() -> None:
     rng = np.random.default_rng(5)
     cov = np.array([[0.04, 0.01], [0.01, 0.02]])
@@ -130,6 +140,13 @@ def test_a_log_without_reference_scores_nothing_it_cannot(tmp_path: Path) -> Non
     report = score([ReplayStep(s, None, 1.0) for s in read_log(tmp_path / "s.npz", "npz")])
     assert report["scans"] == 3 and report["lost_fraction"] == 1.0
     assert report["position_median_m"] is None and report["nees_mean"] is None and report["wrong_resets"] is None
+
+
+def test_the_command_line_offers_every_log_format_replay_reads() -> None:
+    from companion.cli import LOG_FORMATS
+    from companion.replay import FORMATS
+
+    assert LOG_FORMATS == FORMATS
 
 
 def test_an_unreadable_log_is_refused_with_exit_2_naming_it(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
