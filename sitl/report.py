@@ -99,8 +99,8 @@ def cross_track_max(errors: np.ndarray, triangles: list[list[float | None]]) -> 
     along-track one grows. None when no estimate carried a covariance."""
     worst = None
     for e, tri in zip(errors, triangles):
-        if tri is None or tri[0] is None or tri[1] is None or tri[3] is None:
-            continue
+        if tri is None or any(v is None or not math.isfinite(v) for v in (tri[0], tri[1], tri[3])):
+            continue  # no covariance sent (NaN: unknown, MAVLink's convention)
         _, vectors = np.linalg.eigh(np.array([[tri[0], tri[1]], [tri[1], tri[3]]], dtype=float))
         value = abs(float(e @ vectors[:, 0]))
         worst = value if worst is None else max(worst, value)

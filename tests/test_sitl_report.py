@@ -174,4 +174,4 @@ def test_the_cross_track_error_is_taken_along_the_direction_the_estimate_is_sure
     errors = np.array([[2.0, 0.03], [-1.0, -0.01]])
     assert cross_track_max(errors, [corridor, corridor]) == pytest.approx(0.03)
     assert cross_track_max(errors, [turned, turned]) == pytest.approx(2.0)
-    assert cross_track_max(errors, [[None] * 6, [None] * 6]) is None
+    assert cross_track_max(errors, [[None] * 6, [float("nan")] * 6]) is None
