@@ -10,13 +10,16 @@ float32 arrays north, east, down, any length; a zero ray meets nothing). :meth:`
   (noise with a 1/f amplitude spectrum from 5 mm to 2.56 m, so optic flow finds texture at any
   height), repeating every 10.24 m; texels of 5 mm, mip-mapped so that a far or grazing floor
   does not alias;
-- floor markers: real ArUco markers of :data:`ARUCO_DICTIONARY`, black (20) on white paper (235)
-  with a quiet zone of one cell around the black square. ``size_m`` is the black square's side;
-  the marker's top edge faces ``yaw_deg`` (from north towards east), so seen from above with its
-  top edge up, its right side faces ``yaw_deg + 90``;
+- floor markers: real ArUco markers of companion.world's ``ARUCO_DICTIONARY``, black (20) on white
+  paper (235) with a quiet zone of one cell around the black square. ``size_m`` is the black
+  square's side; the marker lies as :meth:`companion.world.FloorMarker.corners` places it (its
+  top edge faces ``yaw_deg``, from north towards east);
 - walls (their doors and windows cut out) and obstacle boxes: flat grey, from 110 for a wall
   running east-west to 160 for one running north-south, so that corners show; obstacle tops 175;
 - nothing within :data:`MAX_RANGE_M` (above the walls: no ceiling is modelled): :data:`SKY_GREY`.
+
+:meth:`Scene.trace` finds what rays meet (the renderer's pixels, the simulated laser beams) and
+:meth:`Scene.cast` what one ray meets, with the surface's normal.
 """
 
 from __future__ import annotations
@@ -29,11 +32,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from companion.world import FloorMarker, Obstacle, World
+from companion.world import ARUCO_DICTIONARY, FloorMarker, Obstacle, World
 
-ARUCO_DICTIONARY = cv2.aruco.DICT_4X4_50  # the dictionary of the floor markers
 MARKER_CELLS = 4 + 2  # bits per side plus the black border, cells
 QUIET_ZONE_CELLS = 1  # white paper around the black square, cells
+PAPER_CELLS = MARKER_CELLS + 2 * QUIET_ZONE_CELLS  # side of the paper, cells
 MARKER_TEXELS_PER_CELL = 64  # finest marker mip level
 MARKER_BLACK, PAPER_WHITE = 20.0, 235.0
 
@@ -47,9 +50,15 @@ MAX_RANGE_M = 100.0  # nothing further away is drawn
 SKY_GREY = 90.0
 WALL_GREYS = (110.0, 160.0)  # a wall running east-west, north-south (in between: by |cos direction|)
 TOP_GREY = 175.0  # obstacle tops
+UP = (0.0, 0.0, -1.0)  # the normal of the floor and of the obstacle tops, NED
 
 Rays = tuple[np.ndarray, np.ndarray, np.ndarray]  # north, east, down components, each (H, W) float32
 Window = Callable[[np.ndarray], "tuple[slice, slice] | None"]  # see Scene.shade
+
+
+def everywhere(corners: np.ndarray) -> tuple[slice, slice]:
+    """A :data:`Window` that traces every ray, whatever the polygon's ``corners``."""
+    return slice(None), slice(None)
 
 
 @functools.lru_cache(maxsize=4)
@@ -76,24 +85,34 @@ def _halve(image: np.ndarray) -> np.ndarray:
     return image.reshape(h // 2, 2, w // 2, 2, *image.shape[2:]).mean(axis=(1, 3), dtype=np.float32)
 
 
+def dictionary_name() -> str:
+    """OpenCV's name of companion.world's ``ARUCO_DICTIONARY``, e.g. DICT_4X4_250."""
+    return next(name for name in dir(cv2.aruco) if name.startswith("DICT_")
+                and getattr(cv2.aruco, name) == ARUCO_DICTIONARY)
+
+
 def check_marker_ids(world: World) -> World:
-    """``world``, if every floor marker's id is in :data:`ARUCO_DICTIONARY`; else ValueError naming it."""
+    """``world``, if every floor marker's id is in companion.world's ``ARUCO_DICTIONARY``; else
+    ValueError naming the marker and the dictionary."""
     count = cv2.aruco.getPredefinedDictionary(ARUCO_DICTIONARY).bytesList.shape[0]
     for i, marker in enumerate(world.floor_markers):
         if not 0 <= marker.id < count:
             raise ValueError(f"floor_markers[{i}]: id {marker.id} is not in the simulated camera's ArUco dictionary "
-                             f"DICT_4X4_50 (ids 0-{count - 1})")
+                             f"{dictionary_name()} (ids 0-{count - 1})")
     return world
 
 
 @dataclass(frozen=True)
 class MarkerTexture:
     """One floor marker on its paper: mip levels of (premultiplied grey, coverage), float32
-    (n, n, 2), level l with ``texel_m * 2**l`` metres per texel, rows towards the marker's bottom."""
+    (n, n, 2), level l with ``texel_m * 2**l`` metres per texel, columns towards the marker's
+    ``right`` and rows towards its ``down`` ([north, east] unit vectors from FloorMarker.corners)."""
 
     marker: FloorMarker
     levels: tuple[np.ndarray, ...]
     texel_m: float  # finest level, metres per texel
+    right: tuple[float, float]
+    down: tuple[float, float]
 
     @classmethod
     def make(cls, marker: FloorMarker) -> MarkerTexture:
@@ -103,17 +122,18 @@ class MarkerTexture:
         paper = cv2.copyMakeBorder(bits, *[QUIET_ZONE_CELLS * k] * 4, cv2.BORDER_CONSTANT, value=255)
         grey = np.where(paper > 127, PAPER_WHITE, MARKER_BLACK).astype(np.float32)
         levels = [np.dstack((grey, np.ones_like(grey)))]
-        while levels[-1].shape[0] > MARKER_CELLS + 2 * QUIET_ZONE_CELLS:
+        while levels[-1].shape[0] > PAPER_CELLS:
             levels.append(_halve(levels[-1]))
-        return cls(marker, tuple(levels), marker.size_m / (MARKER_CELLS * k))
+        top_left, top_right, _, bottom_left = marker.corners()
+        right, down = ((end - top_left) / marker.size_m for end in (top_right, bottom_left))
+        return cls(marker, tuple(levels), marker.size_m / (MARKER_CELLS * k),
+                   (float(right[0]), float(right[1])), (float(down[0]), float(down[1])))
 
     def corners(self) -> np.ndarray:
-        """(4, 3) corners (NED, m) of the paper on the floor."""
-        half = self.levels[0].shape[0] * self.texel_m / 2
-        yaw = math.radians(self.marker.yaw_deg)
-        (x, y), c, s = self.marker.position, math.cos(yaw), math.sin(yaw)
-        return np.array([[x + half * (a * c - b * s), y + half * (a * s + b * c), 0.0]
-                         for a, b in ((1, -1), (1, 1), (-1, 1), (-1, -1))])
+        """(4, 3) corners (NED, m) of the paper on the floor: the black square's, grown by the quiet zone."""
+        centre = np.array(self.marker.position)
+        paper = centre + (self.marker.corners() - centre) * (PAPER_CELLS / MARKER_CELLS)
+        return np.column_stack((paper, np.zeros(len(paper))))
 
     def sample(self, north: np.ndarray, east: np.ndarray, footprint_m: float) -> np.ndarray:
         """(grey premultiplied, coverage) (…, 2) at floor offsets north, east (m) from the
@@ -121,11 +141,9 @@ class MarkerTexture:
         level = int(np.clip(round(math.log2(max(footprint_m, 1e-9) / self.texel_m)), 0, len(self.levels) - 1))
         texture = self.levels[level]
         texel = self.texel_m * 2 ** level
-        yaw = math.radians(self.marker.yaw_deg)
-        c, s = math.cos(yaw), math.sin(yaw)
         half = texture.shape[0] / 2.0 - 0.5  # remap samples at texel centres
-        col = (-s * north + c * east) * (1.0 / texel) + half
-        row = (-c * north - s * east) * (1.0 / texel) + half
+        col = (self.right[0] * north + self.right[1] * east) * (1.0 / texel) + half
+        row = (self.down[0] * north + self.down[1] * east) * (1.0 / texel) + half
         return cv2.remap(texture, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(0, 0))
 
 
@@ -155,6 +173,12 @@ class WallFace:
         direction = math.atan2(end[1] - start[1], end[0] - start[0])
         east_west, north_south = WALL_GREYS
         return cls(start, end, tuple(pieces), east_west + (north_south - east_west) * abs(math.cos(direction)))
+
+    @property
+    def normal(self) -> tuple[float, float, float]:
+        """A horizontal unit normal (NED) of the face (towards its left seen from ``start``)."""
+        length = math.dist(self.start, self.end)
+        return (-(self.end[1] - self.start[1]) / length, (self.end[0] - self.start[0]) / length, 0.0)
 
     @property
     def top_m(self) -> float:
@@ -200,9 +224,10 @@ class Scene:
         self.markers = [MarkerTexture.make(m) for m in check_marker_ids(world).floor_markers]
         self.faces = wall_faces(world)
         self.obstacles = world.obstacles
-        # grey by surface label: 0 nothing, 1 floor (textured instead), then the faces, then the obstacle tops
+        # by surface label: 0 nothing, 1 floor (textured instead), then the faces, then the obstacle tops
         self.greys = np.array([SKY_GREY, FLOOR_MEAN, *(f.grey for f in self.faces), *[TOP_GREY] * len(self.obstacles)],
                               np.float32)
+        self.normals = np.array([[math.nan] * 3, UP, *(f.normal for f in self.faces), *[UP] * len(self.obstacles)])
 
     def nearest_distance(self, origin: np.ndarray) -> float:
         """A lower bound of the distance (m) from ``origin`` (NED, m) to anything drawn."""
@@ -220,6 +245,37 @@ class Scene:
 
         ``footprint_k`` (H, W) is |ray|^2 times the pixel's angular size (rad): a surface at
         distance D seen at incidence angle i covers about D * angle / cos i metres per pixel.
+        ``window``: see :meth:`trace`.
+        """
+        o = tuple(float(v) for v in origin)
+        dx, dy, dz = rays
+        t_best, surface = self.trace(origin, rays, window)
+        image = self.greys[surface]
+        floor = surface == 1
+        if floor.any():
+            tf = np.where(floor, t_best, np.float32(0.0))
+            north, east = tf * dx, tf * dy  # floor points relative to the camera, m
+            footprint = np.full(dz.shape, np.float32(FLOOR_TEXEL_M))  # metres per pixel (meaningless off the floor)
+            np.divide(tf * footprint_k, dz, out=footprint, where=floor)
+            self._shade_floor(o, north, east, footprint, floor, image)
+            for marker in self.markers:
+                if (win := window(marker.corners())) is not None:
+                    self._shade_marker(marker, o, north[win], east[win], footprint[win], floor[win], image[win])
+        return image
+
+    def cast(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """((N,) distances m, (N, 3) unit normals NED of the surfaces) where the rays from ``origin``
+        (NED, m) along the (N, 3) unit ``directions`` (NED) first meet something; NaN where nothing
+        within :data:`MAX_RANGE_M`. Float32 distances, as the renderer's: 1e-7 relative."""
+        d = np.asarray(directions, dtype=float).reshape(1, -1, 3)  # a one-row image of rays
+        t, surface = self.trace(origin, (d[..., 0], d[..., 1], d[..., 2]), everywhere)
+        return np.where(surface[0] > 0, t[0], np.nan), self.normals[surface[0]]
+
+    def trace(self, origin: np.ndarray, rays: Rays, window: Window) -> tuple[np.ndarray, np.ndarray]:
+        """(distance in ray lengths (H, W) float32, label (H, W) int16) of what each ray from
+        ``origin`` (NED, m) meets first: 0 nothing (at :data:`MAX_RANGE_M` / |ray|), 1 the floor,
+        then the faces (:func:`wall_faces`), then the obstacle tops (see ``greys``, ``normals``).
+
         ``window(corners)`` gives the image rows and columns (slices) that may show a flat convex
         polygon with (N, 3) corners (NED, m), None if it is out of view: only those are traced.
         """
@@ -241,18 +297,7 @@ class Scene:
             (xa, ya), (xb, yb), z = box.min, box.max, -box.height_m
             if (win := window(np.array([[xa, ya, z], [xb, ya, z], [xb, yb, z], [xa, yb, z]]))) is not None:
                 self._hit_top(box, k, o, tuple(r[win] for r in rays), t_best[win], surface[win])
-        image = self.greys[surface]
-        floor = surface == 1
-        if floor.any():
-            tf = np.where(floor, t_best, np.float32(0.0))
-            north, east = tf * dx, tf * dy  # floor points relative to the camera, m
-            footprint = np.full(dz.shape, np.float32(FLOOR_TEXEL_M))  # metres per pixel (meaningless off the floor)
-            np.divide(tf * footprint_k, dz, out=footprint, where=floor)
-            self._shade_floor(o, north, east, footprint, floor, image)
-            for marker in self.markers:
-                if (win := window(marker.corners())) is not None:
-                    self._shade_marker(marker, o, north[win], east[win], footprint[win], floor[win], image[win])
-        return image
+        return t_best, surface
 
     @staticmethod
     def _hit_face(face: WallFace, label: int, o: tuple[float, ...], rays: Rays,

@@ -1,4 +1,4 @@
-"""Simulated camera: grey images rendered from simulator ground truth (``kind: camera, backend: sim``).
+"""Simulated camera: images rendered from simulator ground truth (``kind: camera, backend: sim``).
 
 Intrinsics: a :class:`~companion.calibration.CameraCalibration`, from the settings (pinhole ``fx``,
 ``fy`` or ``hfov_deg``, ``cx``, ``cy``, OpenCV plumb_bob ``distortion``) or from a calibration file
@@ -13,6 +13,11 @@ y towards the image's right, z towards the image's bottom. Mount rpy [0, 0, 0] l
 with the image upright; [0, -90, 0] looks down with the image's top towards the body's front.
 
 Scene: the floor, floor markers (ArUco), walls and obstacles of the world (sitl/camera_scene.py).
+Without ``laser_beams`` the image is grey, (H, W) uint8. With them, it is BGR (H, W, 3) uint8: the
+grey scene in all three channels plus the dots of the vehicle's laser beams (the true rig, body
+FRD), mostly in red, wherever they meet the world and the camera sees them (sitl/laser_spots.py:
+their size, brightness, speckle and blur; a dot hidden by an obstacle or a wall is not drawn);
+``laser_hits`` gives the points the renderer used.
 
 Timing: capture times ``t`` (mid-exposure, the Frame's ``t_capture``, daemon clock s) lie on a
 grid ``t0 + k / fps`` from :meth:`SimulatedCamera.open`; the frame arrives at ``t + exposure_s / 2
@@ -25,8 +30,10 @@ Motion blur (``motion_blur: true``): the image is the mean of K renders at poses
 the exposure, positions linear and attitude along the shortest rotation between the truth at its
 start and at its end; K is the largest image motion in pixels (from the rotation, and from the
 translation over the nearest surface), 1 to :data:`MAX_BLUR_SAMPLES`. Noise: Gaussian, independent
-per pixel, ``noise_sigma`` grey levels, added after the blur, from a generator seeded with
-(``seed``, k); the image is then rounded and clipped to 0..255.
+per pixel (and channel), ``noise_sigma`` grey levels, added after the blur, from a generator seeded with
+(``seed``, k); the image is then rounded and clipped to 0..255. Before the noise, the image
+(scene and dots) is multiplied by ``gain``: from 1.09 the markers' white paper (235) saturates,
+from 2 half the floor (mean 128).
 """
 
 from __future__ import annotations
@@ -40,7 +47,9 @@ import numpy as np
 
 from companion import clock
 from companion.calibration import CameraCalibration
+from companion.frames import rotation_from_quat
 from companion.messages import Frame
+from companion.nav.laser_dots.beams import BeamRigConfig
 from companion.schema import meta
 from companion.world import World
 from drivers.base import Backend
@@ -48,6 +57,7 @@ from drivers.mount import OPTICAL_TO_SENSOR, Mount
 from sitl.camera_lens import PixelRays
 from sitl.camera_scene import Scene
 from sitl.capture_grid import CaptureGrid
+from sitl.laser_spots import LaserSpots
 from sitl.truth import TruthLike, TruthPose
 
 MAX_BLUR_SAMPLES = 16
@@ -87,6 +97,24 @@ class SimCameraSettings:
     floor_seed: int = field(default=0, metadata=meta(
         "Seed of the floor texture: give every camera of one simulation the same, so they see one floor.",
         (0, 999999)))
+    gain: float = field(default=1.0, metadata=meta(
+        "Multiplies the image (scene and laser dots) before the noise: from 1.09 the markers' white paper (235) "
+        "saturates, from 2 half the floor.", (0.01, 100)))
+    laser_beams: BeamRigConfig | None = field(default=None, metadata=meta(
+        "The TRUE laser beam rig on the vehicle, body FRD (keys angle_deg, azimuth_deg, origin_m, origins_m, "
+        "directions, as the laser-dot pipeline's beam rig); its dots are drawn and the image becomes BGR. Give it "
+        "other values than the pipeline's rig to simulate a mounting error. null = no lasers, grey images."))
+    laser_spot_m: float = field(default=0.01, metadata=meta(
+        "1/e^2 diameter of a laser beam where it meets a surface, metres (stretched on a surface hit obliquely).",
+        (1e-4, 1)))
+    laser_peak: float = field(default=400.0, metadata=meta(
+        "Red level added at the centre of a laser dot, grey levels before saturation (the default saturates the "
+        "dot's core).", (0, 10000)))
+    laser_speckle_px: float = field(default=0.5, metadata=meta(
+        "Laser speckle: 1-sigma random displacement of each dot's apparent centre per frame and axis, pixels "
+        "(seeded with seed and the frame number).", (0, 50)))
+    laser_bloom_px: float = field(default=1.0, metadata=meta(
+        "Optical blur of the laser dots (lens point spread), 1-sigma, pixels.", (0, 20)))
 
     def validate(self) -> tuple[str, str] | None:
         given = [k for k in _INTRINSICS if getattr(self, k) is not None]
@@ -128,6 +156,9 @@ class SimulatedCamera(Backend[Frame]):
         self.truth = truth
         self.scene = Scene(world, settings.floor_seed)
         self.rays = PixelRays.make(calibration)
+        self.lasers = None if settings.laser_beams is None else LaserSpots(
+            settings.laser_beams.rig(), self.scene, calibration, self.rays.reached, mount, settings.laser_spot_m,
+            settings.laser_peak, settings.laser_speckle_px, settings.laser_bloom_px, settings.seed)
         self.grid = CaptureGrid(1.0 / settings.fps)
         self.description = f"simulated camera {calibration.width}x{calibration.height}"
 
@@ -154,6 +185,15 @@ class SimulatedCamera(Backend[Frame]):
         rotation, origin = self.mount.sensor_to_world(pose.position_ned, pose.quat)
         return rotation @ OPTICAL_TO_SENSOR, origin
 
+    def laser_hits(self, pose: TruthPose) -> tuple[np.ndarray, np.ndarray]:
+        """Where the true laser beams of the vehicle at ``pose`` meet the world, as the renderer
+        draws their dots: ((3, 3) NED points m, (3,) beam lengths m), row i = beam i, NaN for a beam
+        that meets nothing. ValueError if the settings give no ``laser_beams``."""
+        if self.lasers is None:
+            raise ValueError(f"camera {self.camera_id}: no laser_beams in its settings")
+        points, lengths, _ = self.lasers.hits(rotation_from_quat(pose.quat), np.asarray(pose.position_ned, float))
+        return points, lengths
+
     def render(self, t_capture: float, start: TruthPose, end: TruthPose | None = None, sequence: int = 0) -> Frame:
         """The frame exposed while the vehicle moved from ``start`` to ``end`` (None: stood still at
         ``start``), stamped ``t_capture`` (daemon clock, s, mid-exposure)."""
@@ -161,7 +201,11 @@ class SimulatedCamera(Backend[Frame]):
         image = self.view(*views[0])
         for rotation, origin in views[1:]:
             image += self.view(rotation, origin)
-        image *= np.float32(1.0 / len(views))
+        weight = self.settings.gain / len(views)
+        image *= np.float32(weight)  # the mean over the exposure, times the gain
+        if self.lasers is not None:
+            image = cv2.merge((image, image, image))
+            self.lasers.draw(image, views, sequence, weight)
         if self.settings.noise_sigma > 0:
             noise = np.random.default_rng((self.settings.seed, sequence)).standard_normal(image.shape, np.float32)
             image = cv2.scaleAdd(noise, self.settings.noise_sigma, image)

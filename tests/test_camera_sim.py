@@ -20,9 +20,9 @@ from companion.frames import quat_from_euler, rotation_from_euler, rotation_from
 from companion.health import Health
 from companion.schema import SchemaError, load_text
 from companion.sensors import SensorContext, build_driver, check_sensor_files
-from companion.world import Bounds, FloorMarker, Opening, Wall, World
+from companion.world import ARUCO_DICTIONARY, Bounds, FloorMarker, Opening, Wall, World
 from drivers.mount import OPTICAL_TO_SENSOR, Mount
-from sitl.camera_scene import MARKER_BLACK, PAPER_WHITE, SKY_GREY
+from sitl.camera_scene import MARKER_BLACK, PAPER_WHITE, SKY_GREY, check_marker_ids
 from sitl.camera_sim import SimCameraSettings, SimulatedCamera
 
 DISTORTION = (-0.25, 0.07, 0.001, -0.0015, -0.01)  # plumb_bob k1 k2 p1 p2 k3: a cheap wide-angle lens
@@ -81,7 +81,7 @@ def corner_errors(image: np.ndarray, world_from_optical: np.ndarray, centre: np.
     world corners through the camera pose (rotation optical -> NED, centre NED m)."""
     params = cv2.aruco.DetectorParameters()
     params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
-    detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), params)
+    detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(ARUCO_DICTIONARY), params)
     corners, ids, _ = detector.detectMarkers(image)
     rvec = cv2.Rodrigues(world_from_optical.T)[0]
     tvec = -world_from_optical.T @ centre
@@ -210,6 +210,20 @@ def test_a_seed_gives_identical_images_and_another_seed_other_noise() -> None:
     assert not np.array_equal(first, camera(seed=5, **kwargs).render(0.0, view, sequence=10).image)  # fresh noise
     other_floor = camera(seed=5, floor_seed=1, **kwargs).render(0.0, view, sequence=9).image
     assert np.abs(other_floor.astype(int) - first).mean() > 10
+
+
+def test_markers_come_from_the_worlds_dictionary_and_an_id_beyond_it_is_refused() -> None:
+    last = FloorMarker(249, (0.0, 0.0), 0.3, 40.0)  # DICT_4X4_250's last marker
+    world = World(name="last", wall_angle_deg=90, bounds=Bounds((-5.0, -5.0), (5.0, 5.0)), start=(1.0, 1.0, 0.0),
+                  walls=(), floor_markers=(last,))
+    image = camera(world, width=320, height=240).render(0.0, pose((0.0, 0.0, -1.0))).image
+    detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(ARUCO_DICTIONARY))
+    _, ids, _ = detector.detectMarkers(image)
+    assert ids is not None and ids.ravel().tolist() == [249]
+    beyond = World(name="beyond", wall_angle_deg=90, bounds=world.bounds, start=world.start, walls=(),
+                   floor_markers=(FloorMarker(250, (0.0, 0.0), 0.3),))
+    with pytest.raises(ValueError, match=r"floor_markers\[0\]: id 250 .* DICT_4X4_250 \(ids 0-249\)"):
+        check_marker_ids(beyond)
 
 
 def test_markers_are_black_on_white_paper() -> None:
