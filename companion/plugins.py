@@ -6,8 +6,8 @@ walk these registries; none of them has code for a particular sensor or pipeline
 
 Where registrations come from (:func:`load`):
 
-- every module of the ``drivers`` package and of ``companion.nav`` (a new file there is found
-  without editing any list; modules named ``bench*`` are skipped: they are tools, not parts);
+- every module of the ``drivers`` package and of ``companion.nav``, subpackages included (a new
+  file there is found without editing any list; modules named ``bench*`` are skipped: they are tools, not parts);
 - the modules a config lists under ``plugins`` (e.g. ``sitl.sim_backends``, which registers
   the simulated backends, or a user's own package). This is how the simulator plugs in: the
   service never imports ``sitl`` itself.
@@ -48,8 +48,10 @@ class BackendEntry:
 class PipelineEntry:
     """One pipeline: its config section type (``pipelines.<name>``) and its factory
     ``build(section, ctx) -> Pipeline`` (ctx: :class:`companion.pipeline.PipelineContext`).
-    ``check_files(cfg, section)``, if given, loads the files the section names. ``poses``: the
-    pipeline produces poses (False for one that only gives attitude or range estimates)."""
+    ``check_files(cfg, section)``, if given, loads the files the section names. ``advise(cfg,
+    section)``, if given, returns warnings about settings that load but may fail in flight (e.g. a
+    camera too narrow for its beams): ``check-config`` prints them, the daemon logs them at start.
+    ``poses``: the pipeline produces poses (False for one that only gives attitude or range estimates)."""
 
     name: str
     config: type
@@ -57,6 +59,7 @@ class PipelineEntry:
     check_files: Callable[[Any, Any], None] | None = None
     poses: bool = True  # it produces pose estimates (a candidate source for the autopilot)
     module: str = ""
+    advise: Callable[[Any, Any], list[str]] | None = None
 
 
 _BACKENDS: dict[tuple[str, str], BackendEntry] = {}
@@ -74,10 +77,10 @@ def register_backend(kind: str, backend: str, settings: type,
 
 
 def register_pipeline(name: str, config: type, check_files: Callable[[Any, Any], None] | None = None,
-                      poses: bool = True) -> Callable[[Any], Any]:
+                      poses: bool = True, advise: Callable[[Any, Any], list[str]] | None = None) -> Callable[[Any], Any]:
     """Class or function decorator: ``build(section, ctx)`` makes the pipeline ``name``."""
     def decorate(build: Any) -> Any:
-        _add(_PIPELINES, name, PipelineEntry(name, config, build, check_files, poses, build.__module__))
+        _add(_PIPELINES, name, PipelineEntry(name, config, build, check_files, poses, build.__module__, advise))
         return build
     return decorate
 
@@ -98,9 +101,9 @@ def load(plugins: Iterable[str] = ()) -> None:
         if package in _LOADED:
             continue
         pkg = importlib.import_module(package)
-        for info in pkgutil.iter_modules(pkg.__path__):
-            if not info.name.startswith("bench"):
-                importlib.import_module(f"{package}.{info.name}")
+        for info in pkgutil.walk_packages(pkg.__path__, prefix=f"{package}."):
+            if not info.name.rpartition(".")[2].startswith("bench"):
+                importlib.import_module(info.name)
         _LOADED.add(package)
     for name in plugins:
         if name not in _LOADED:

@@ -33,9 +33,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+import cv2
 import numpy as np
 
 from companion.schema import load_file, meta
+
+ARUCO_DICTIONARY = cv2.aruco.DICT_4X4_250
+"""The ArUco dictionary of the floor markers (OpenCV's named constant; its first 50 markers are
+DICT_4X4_50's). The simulated camera draws them from it and the laser-dot pipeline detects them."""
 
 TOLERANCE_M = 0.01  # how close points must be to count as coinciding / lying on a wall
 ANGLE_TOLERANCE_DEG = 0.1  # how far a wall direction may be from a multiple of wall_angle_deg
@@ -103,6 +108,15 @@ class FloorMarker:
     size_m: float = field(metadata=meta("Side length of the black square, metres.", (0.01, 5)))
     yaw_deg: float = field(default=0.0, metadata=meta(
         "Direction of the marker's top edge, degrees from north towards east.", (-360, 360)))
+
+    def corners(self) -> np.ndarray:
+        """(4, 2) [x north, y east] floor corners (m) of the black square in ArUco's order: top
+        left, top right, bottom right, bottom left, seen from above with the top edge up."""
+        yaw = math.radians(self.yaw_deg)
+        top, right = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
+        half = self.size_m / 2.0
+        signs = ((1, -1), (1, 1), (-1, 1), (-1, -1))  # (along top, along right)
+        return np.array(self.position) + np.array([half * (a * top + b * right) for a, b in signs])
 
 
 @dataclass(frozen=True)
