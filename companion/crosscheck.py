@@ -1,8 +1,9 @@
 """Attitude cross-check: a pipeline's attitude-only estimate against the autopilot's ATTITUDE.
 
 An attitude estimate is never sent to the autopilot as a pose; it checks the autopilot's own
-attitude. When they differ by more than ``threshold_deg`` (largest of roll, pitch, yaw
-differences, wrapped) for ``hold_s`` without a break, the check reports
+attitude. When they differ by more than ``threshold_deg`` (largest of the roll, pitch, yaw
+differences, wrapped, over the angles the estimate measures: NaN is an angle it cannot see, e.g.
+the yaw of a level floor's tilt) for ``hold_s`` without a break, the check reports
 ``crosscheck:<source>`` degraded (health announces it by STATUSTEXT and telemetry), and OK again
 once they agree.
 """
@@ -31,9 +32,12 @@ class AttitudeCrossCheck:
 
     def submit(self, estimate: AttitudeEstimate) -> None:
         reference = self.autopilot_euler()
-        if reference is None or not all(math.isfinite(a) for a in estimate.euler_rad):
+        if reference is None:
             return
-        diff = max(abs(wrap_pi(a - b)) for a, b in zip(estimate.euler_rad, reference))
+        measured = [(a, b) for a, b in zip(estimate.euler_rad, reference) if math.isfinite(a)]
+        if not measured:
+            return
+        diff = max(abs(wrap_pi(a - b)) for a, b in measured)
         component = f"crosscheck:{estimate.source}"
         since = self._since.get(estimate.source)
         if diff <= self.threshold_rad:

@@ -161,7 +161,8 @@ class PoseEstimate:
 @dataclass(frozen=True)
 class AttitudeEstimate:
     """An attitude-only estimate (roll, pitch, yaw of body FRD in NED, rad) with its 3x3
-    covariance (rad^2). A cross-check of the autopilot's attitude: never sent as a pose."""
+    covariance (rad^2). A cross-check of the autopilot's attitude: never sent as a pose. An angle
+    the source cannot observe is NaN (e.g. yaw from the tilt of the floor), its variance inf."""
 
     t_capture: float
     euler_rad: tuple[float, float, float]

@@ -76,6 +76,16 @@ def test_the_attitude_check_raises_only_after_a_lasting_divergence_and_clears() 
     assert published[-1]["difference_deg"] == pytest.approx(2.0)
 
 
+def test_the_attitude_check_compares_only_the_angles_an_estimate_measures() -> None:
+    health = Health(lambda: 0.0)
+    check = AttitudeCrossCheck(lambda: (0.0, 0.0, 2.0), health, lambda stream, p: None, threshold_deg=5.0, hold_s=0.0)
+    check.submit(AttitudeEstimate(0.0, (math.radians(1.0), 0.0, math.nan), np.diag([1e-4, 1e-4, math.inf]), source="dots"))
+    assert health.snapshot()["components"]["crosscheck:dots"]["state"] == "ok"  # yaw unmeasured, not 115 deg off
+    check.submit(AttitudeEstimate(0.1, (math.radians(8.0), 0.0, math.nan), np.diag([1e-4, 1e-4, math.inf]), source="dots"))
+    check.submit(AttitudeEstimate(0.2, (math.radians(8.0), 0.0, math.nan), np.diag([1e-4, 1e-4, math.inf]), source="dots"))
+    assert health.snapshot()["components"]["crosscheck:dots"]["state"] == "degraded"
+
+
 class Emits:
     """A pipeline that emits a fixed list each step."""
 
