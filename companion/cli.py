@@ -68,7 +68,7 @@ def exit_now(code: int) -> NoReturn:
 
 
 def _cmd_check_config(args: argparse.Namespace) -> int:
-    from companion.daemon import load_named_files
+    from companion.daemon import config_warnings, load_named_files
 
     try:
         cfg = load_config(args.config)
@@ -80,6 +80,8 @@ def _cmd_check_config(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         print(f"companion: {exc}", file=sys.stderr)
         return EXIT_CONFIG_ERROR
+    for text in config_warnings(cfg):
+        print(f"companion: warning: {args.config}: {text}", file=sys.stderr)
     print(f"{args.config}: OK")
     return 0
 

@@ -82,6 +82,17 @@ def load_named_files(cfg: Config) -> NamedFiles:
         signing_key=cfg.load_referenced("mavlink.signing_key_file", key, load_signing_key) if key else None)
 
 
+def config_warnings(cfg: Config) -> list[str]:
+    """Warnings about settings that load but may fail in flight, from each enabled pipeline's
+    ``advise`` hook (companion/plugins.py), each prefixed with its config key."""
+    out = []
+    for name, section in cfg.pipelines.enabled.items():
+        entry = plugins.pipeline(name)
+        if entry is not None and entry.advise is not None:
+            out += [f"pipelines.{name}: {text}" for text in entry.advise(cfg, section)]
+    return out
+
+
 def _mission_for(cfg: Config, path: Path) -> Mission:
     """The mission at ``path``; ValueError if a ``pose_source`` step names no pose source of ``cfg``."""
     mission = load_mission(path)
@@ -124,6 +135,8 @@ class Daemon:
             loop.add_signal_handler(sig, self.request_stop)
 
         files = self.files = load_named_files(cfg)  # before anything starts: a bad file stops here
+        for text in config_warnings(cfg):
+            log.warning("config: %s", text)
         self.link = link = MavlinkLink(cfg.mavlink, cfg.vehicle, self.url, self.health, files.signing_key)
         self.state = state = AutopilotState(link)
         self.commander = commander = Commander(link, state, cfg.mavlink)
