@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from companion.frames import quat_from_euler
 from companion.scoring import WRONG_RESET_M, mean_or_none, nees, nees_band
 
 SCHEMA = 1
@@ -46,7 +47,7 @@ def _rate(times: list[float]) -> float | None:
 def score_estimate(log: dict) -> dict[str, float | None]:
     """Position/yaw/height error of the received vision estimates against truth."""
     vp = log["vision_position"]
-    empty = dict.fromkeys(("position_rms_m", "position_max_m", "yaw_rms_deg", "height_rms_m",
+    empty = dict.fromkeys(("position_rms_m", "position_max_m", "yaw_rms_deg", "attitude_rms_deg", "height_rms_m",
                            "fix_rate_hz", "lost_seconds", "nees_mean", "nees_band", "cross_track_max_m",
                            "wrong_resets"))
     if not vp["usec"]:
@@ -59,7 +60,8 @@ def score_estimate(log: dict) -> dict[str, float | None]:
     est = np.asarray(vp["pos_ned"])[inside]
     true_pos = _interp_rows(tc, tt, np.asarray(truth["pos_ned"]))
     true_yaw = np.unwrap(np.asarray(truth["euler_rad"])[:, 2])
-    yaw_err = np.angle(np.exp(1j * (np.asarray(vp["euler_rad"])[inside][:, 2] - np.interp(tc, tt, true_yaw))))
+    est_euler = np.asarray(vp["euler_rad"])[inside]
+    yaw_err = np.angle(np.exp(1j * (est_euler[:, 2] - np.interp(tc, tt, true_yaw))))
     horizontal = np.linalg.norm(est[:, :2] - true_pos[:, :2], axis=1)
     rx = np.asarray(vp["t_rx"])
     gaps = np.diff(np.concatenate([rx, [log["sim_seconds"]]]))
@@ -70,6 +72,7 @@ def score_estimate(log: dict) -> dict[str, float | None]:
         "position_rms_m": _rms(np.linalg.norm(est - true_pos, axis=1)),
         "position_max_m": float(np.max(np.linalg.norm(est - true_pos, axis=1))),
         "yaw_rms_deg": math.degrees(_rms(yaw_err)),
+        "attitude_rms_deg": math.degrees(_rms(attitude_errors(est_euler, tc, tt, np.asarray(truth["euler_rad"])))),
         "height_rms_m": _rms(est[:, 2] - true_pos[:, 2]),
         "fix_rate_hz": None,  # measured fixes per second, from the daemon's pipeline statistics
         "lost_seconds": float(np.sum(gaps[gaps > LOST_GAP_S])),
@@ -79,6 +82,17 @@ def score_estimate(log: dict) -> dict[str, float | None]:
         "wrong_resets": wrong_resets(np.asarray(vp["reset_counter"])[inside], est, true_pos),
         "horizontal_rms_m": _rms(horizontal),
     }
+
+
+def attitude_errors(estimate_euler: np.ndarray, t: np.ndarray, truth_t: np.ndarray,
+                    truth_euler: np.ndarray) -> np.ndarray:
+    """Angle (rad) of the rotation between each estimated attitude (roll, pitch, yaw rad, (N, 3))
+    and the true one at its capture time ``t`` (s): roll, pitch and yaw errors combined."""
+    true = _interp_rows(t, truth_t, np.column_stack([np.unwrap(truth_euler[:, k]) for k in range(3)]))
+    est_q = np.array([quat_from_euler(*e) for e in estimate_euler]).reshape(-1, 4)
+    true_q = np.array([quat_from_euler(*e) for e in true]).reshape(-1, 4)
+    dot = np.abs(np.sum(est_q * true_q, axis=1))
+    return 2.0 * np.arccos(np.clip(dot, 0.0, 1.0))
 
 
 def position_nees(errors: np.ndarray, triangles: list[list[float | None]]) -> np.ndarray:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import json
+import math
 import shutil
 import socket
 import subprocess
@@ -19,13 +20,13 @@ import numpy as np
 import pytest
 
 from companion.scoring import effective_samples, nees_band
-from sitl.report import cross_track_max, position_nees, wrong_resets
+from sitl.report import attitude_errors, cross_track_max, position_nees, wrong_resets
 from tests.conftest import REPO, free_port
 from tests.sitl_helpers import write_config, write_sitl_config
 
 SCHEMA_1 = {
     "schema": None, "mission": None, "seconds": None, "lockstep": None, "seed": None,
-    "estimate": {"position_rms_m", "position_max_m", "yaw_rms_deg", "height_rms_m", "fix_rate_hz", "lost_seconds",
+    "estimate": {"position_rms_m", "position_max_m", "yaw_rms_deg", "attitude_rms_deg", "height_rms_m", "fix_rate_hz", "lost_seconds",
                  "nees_mean", "nees_band", "cross_track_max_m", "wrong_resets"},
     "autopilot": {"origin_confirmed", "external_nav_in_use", "vision_position_estimate_hz",
                   "vision_speed_estimate_hz", "setpoint_hz", "nonfinite_dropped", "firmware", "internal_errors"},
@@ -175,3 +176,12 @@ def test_the_cross_track_error_is_taken_along_the_direction_the_estimate_is_sure
     assert cross_track_max(errors, [corridor, corridor]) == pytest.approx(0.03)
     assert cross_track_max(errors, [turned, turned]) == pytest.approx(2.0)
     assert cross_track_max(errors, [[None] * 6, [float("nan")] * 6]) is None
+
+
+def test_attitude_error_combines_roll_pitch_and_yaw_as_one_rotation_angle() -> None:
+    t = np.array([0.0, 1.0])
+    truth = np.array([[0.0, 0.0, math.radians(179.9)], [0.0, 0.0, math.radians(179.9)]])
+    estimate = np.array([[math.radians(0.3), math.radians(0.4), math.radians(179.9)],  # 0.5 deg tilt error
+                         [0.0, 0.0, math.radians(-179.9)]])  # 0.2 deg of yaw across the wrap
+    errors = np.degrees(attitude_errors(estimate, t, t, truth))
+    assert errors == pytest.approx([0.5, 0.2], abs=2e-3)
