@@ -61,6 +61,16 @@ def rotation_from_euler(roll: float, pitch: float, yaw: float) -> np.ndarray:
     return rotation_from_quat(quat_from_euler(roll, pitch, yaw))
 
 
+def euler_from_rotation(rotation: np.ndarray) -> tuple[float, float, float]:
+    """ZYX Euler angles (roll, pitch, yaw) in radians of a rotation matrix body FRD -> NED: the
+    inverse of :func:`rotation_from_euler` (pitch within [-pi/2, pi/2])."""
+    r = np.asarray(rotation, dtype=float)
+    roll = math.atan2(r[2, 1], r[2, 2])
+    pitch = math.asin(max(-1.0, min(1.0, -r[2, 0])))
+    yaw = math.atan2(r[1, 0], r[0, 0])
+    return roll, pitch, yaw
+
+
 def wrap_pi(angle: float) -> float:
     """Angle wrapped to [-pi, pi)."""
     return (angle + math.pi) % (2 * math.pi) - math.pi
