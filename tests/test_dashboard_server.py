@@ -90,6 +90,7 @@ def test_a_new_browser_gets_the_current_state_at_once(dashboard: Dashboard) -> N
     record, localizer = arena_scan()
     session = open_session("peer", [dashboard.endpoint], [], False, False)
     telemetry = TelemetryPublisher(session, sysid=3)
+    telemetry.add_streams(("laser_dots",))  # a pipeline's own stream: the hub knows no list of them
     first = EventStream(dashboard)
     try:
         def publish_all() -> None:
@@ -99,6 +100,8 @@ def test_a_new_browser_gets_the_current_state_at_once(dashboard: Dashboard) -> N
             for stream, payload in scan_payloads(record, localizer).items():
                 telemetry.publish(stream, payload)
             telemetry.publish("map", map_payload(localizer))
+            telemetry.publish("laser_dots", {"kind": "tilt", "status": "no floor marker in view", "tilt": [1.2, 0.0, 0.0]})
+            session.put("uav/3/Not-A-Stream", b"{}")  # not a stream name: ignored
 
         deadline = time.monotonic() + 15
         while "map" not in streams_of(first.events_until(lambda e: len(e) >= 1, 5)):
@@ -108,7 +111,7 @@ def test_a_new_browser_gets_the_current_state_at_once(dashboard: Dashboard) -> N
         time.sleep(0.5)  # nothing is published from here on
 
         second = EventStream(dashboard)
-        wanted = {"pose", "health", "alerts", "scan", "lines", "corners", "map"}
+        wanted = {"pose", "health", "alerts", "scan", "lines", "corners", "map", "laser_dots"}
         events = second.events_until(lambda e: wanted <= streams_of(e), 3.0)
         second.close()
     finally:
@@ -121,8 +124,10 @@ def test_a_new_browser_gets_the_current_state_at_once(dashboard: Dashboard) -> N
     scan = samples["scan"]["data"]
     assert len(scan["ranges_mm"]) == 1081 and scan["sequence"] == samples["lines"]["data"]["sequence"]
     assert samples["alerts"]["data"]["text"] == "companion: nav:lidar degraded"
+    assert samples["laser_dots"]["key"] == "uav/3/laser_dots" and samples["laser_dots"]["data"]["tilt"] == [1.2, 0.0, 0.0]
     streams = events[0]["vehicles"]["3"]["streams"]
     assert streams["pose"]["count"] >= 1 and streams["pose"]["bad"] == 0
+    assert streams["laser_dots"]["count"] >= 1 and "Not-A-Stream" not in streams
 
 
 def _request(dashboard: Dashboard, method: str, path: str, host: str | None = None) -> http.client.HTTPResponse:

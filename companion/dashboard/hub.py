@@ -4,9 +4,11 @@ zenoh delivers samples on its own threads; :meth:`TelemetryHub.on_sample` only a
 a bounded inbox (the oldest dropped and counted when full) and wakes the asyncio loop once per
 batch. On the loop every sample becomes one event, a JSON text (JSON payloads are parsed and
 re-serialised, binary scans decoded), which replaces the cached event of its key and is
-offered to every browser. A browser that joins gets the cache at once: the newest status, the
-last sample of every key and the recent alerts. Each browser has a bounded outbox holding the
-newest event per key, so a slow browser sees fewer updates but never holds the hub back.
+offered to every browser. Every stream name of the key space passes, a pipeline's own streams
+(``telemetry_streams``) too, so a new pipeline needs no change here. A browser that joins gets
+the cache at once: the newest status, the last sample of every key and the recent alerts. Each
+browser has a bounded outbox holding the newest event per key, so a slow browser sees fewer
+updates but never holds the hub back.
 
 Events (the page's input, docs/dashboard.md):
 
@@ -32,7 +34,7 @@ from typing import Any
 
 import zenoh
 
-from companion.telemetry.keys import KEY_PREFIX, STREAMS
+from companion.telemetry.keys import KEY_PREFIX, is_stream_name
 from companion.telemetry.rate import RateWindow
 from companion.telemetry.scan_codec import SCAN_ENCODING, decode_scan
 
@@ -42,7 +44,6 @@ INBOX_SIZE = 1024  # samples waiting for the loop, all keys together
 OUTBOX_SIZE = 256  # events waiting for one browser (one per key; each recent alert is one)
 ALERT_HISTORY = 50  # alerts a joining browser gets (the alerts stream is a list, not a state)
 SUBSCRIPTION = f"{KEY_PREFIX}/*/*"
-KNOWN_STREAMS = frozenset(STREAMS)
 
 
 class Browser:
@@ -134,8 +135,8 @@ class TelemetryHub:
 
     def _receive(self, key: str, encoding: str, payload: bytes, rx: float) -> None:
         parts = key.split("/")
-        if len(parts) != 3 or not (parts[1].isascii() and parts[1].isdigit()) or parts[2] not in KNOWN_STREAMS:
-            return  # not a vehicle stream of this schema: neither cached nor counted
+        if len(parts) != 3 or not (parts[1].isascii() and parts[1].isdigit()) or not is_stream_name(parts[2]):
+            return  # not a vehicle stream: neither cached nor counted
         sysid, stream = int(parts[1]), parts[2]
         stats = self._stats.setdefault((sysid, stream), StreamStats())
         stats.count += 1

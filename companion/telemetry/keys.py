@@ -37,7 +37,13 @@ STREAMS: tuple[str, ...] = (
 )
 
 _STREAM_SET = frozenset(STREAMS)
-_EXTRA_NAME = re.compile(r"[a-z][a-z0-9_]{0,40}")
+_STREAM_NAME = re.compile(r"[a-z][a-z0-9_]{0,40}")
+
+
+def is_stream_name(name: str) -> bool:
+    """Whether ``name`` is spelled as a stream (a lower-case word: letters, digits, ``_``), as
+    every one of :data:`STREAMS` is and a pipeline's own streams must be."""
+    return _STREAM_NAME.fullmatch(name) is not None
 
 
 def key(sysid: int, stream: str, extra: tuple[str, ...] = ()) -> str:
@@ -50,6 +56,6 @@ def key(sysid: int, stream: str, extra: tuple[str, ...] = ()) -> str:
     """
     if isinstance(sysid, bool) or not isinstance(sysid, int) or not 1 <= sysid <= 255:
         raise ValueError(f"sysid must be an int in 1..255, got {sysid!r}")
-    if stream not in _STREAM_SET and not (stream in extra and _EXTRA_NAME.fullmatch(stream)):
+    if stream not in _STREAM_SET and not (stream in extra and is_stream_name(stream)):
         raise ValueError(f"unknown telemetry stream {stream!r}; known: {', '.join(STREAMS)}")
     return f"{KEY_PREFIX}/{sysid}/{stream}"

@@ -1,6 +1,7 @@
 // The dashboard page: one server-sent event stream in, the selected vehicle's state drawn out.
 // Event formats: companion/dashboard/hub.py. Times ("rx", "now") are the hub's clock, seconds.
 
+import { CameraView } from "./camera.js";
 import { setBadge } from "./dom.js";
 import { MapView, ScanView } from "./map.js";
 import { TimePlot } from "./plots.js";
@@ -14,7 +15,7 @@ const ALERTS_KEPT = 100;
 const RENDER_PERIOD_MS = 100;
 const DEG = 180 / Math.PI;
 const MAP_STREAMS = ["map", "trajectory", "pose", "scan", "lines", "corners", "setpoint"];
-const PANEL_STREAMS = ["autopilot", "link", "mission", "health", "system", "rates", "alerts", "sources"];
+const PANEL_STREAMS = ["autopilot", "link", "mission", "health", "system", "rates", "alerts", "sources", "laser_dots"];
 
 /** Append a time row and drop the rows older than the plot window. */
 function pushRow(rows, row) {
@@ -74,6 +75,7 @@ const $ = (id) => document.getElementById(id);
 const page = {
   map: new MapView($("map")),
   scan: new ScanView($("scan")),
+  camera: new CameraView($("camera"), $("camera-legend"), $("camera-status")),
   positionPlots: ["north", "east", "down"].map((axis) => new TimePlot($("position-plots"), axis, "m")),
   sigmaPlots: [new TimePlot($("sigma-plots"), "position σ (north, east, down)", "m"),
     new TimePlot($("sigma-plots"), "yaw σ", "°")],
@@ -162,6 +164,12 @@ function renderScan(v) {
     + `${lines} lines, ${corners ? `${corners.observed_m.length} corners, ${corners.matched.length} matched (${corners.state ?? "no pose"})` : "corners ?"}`;
 }
 
+function renderCamera(v) {
+  const dots = v.data("laser_dots");
+  $("camera-panel").hidden = !dots; // only a vehicle running the laser-dot pipeline has the view
+  if (dots) page.camera.render(dots);
+}
+
 function renderPlots(v, now) {
   page.positionPlots.forEach((plot, axis) => plot.render([
     { rows: v.position, column: axis + 1, color: "#0d47a1" },
@@ -193,6 +201,7 @@ function render() {
   if (any("sources")) panels.sources($("sources-table").tBodies[0], v.data("sources"));
   if (any("rates", "health")) panels.streams($("streams-table").tBodies[0], status?.vehicles?.[String(selected)]?.streams, v.data("rates"));
   if (any("alerts", "health")) panels.alerts($("alerts"), v.alerts, now);
+  if (any("laser_dots")) renderCamera(v);
 }
 
 $("vehicle-select").addEventListener("change", (e) => choose(Number(e.target.value)));

@@ -23,6 +23,11 @@ export function fmt(value, digits = 2) {
   return typeof value === "number" && Number.isFinite(value) ? value.toFixed(digits) : "–";
 }
 
+/** A vector's numbers with `digits` decimals, comma-separated, or "–" when it is missing. */
+export function vector(values, digits = 2) {
+  return Array.isArray(values) ? values.map((x) => fmt(x, digits)).join(", ") : "–";
+}
+
 /** Replace the rows of a table body: each row is a list of cells, a cell text or [text, class]. */
 export function setRows(tbody, rows) {
   tbody.replaceChildren(...rows.map((cells) => el("tr", {}, ...cells.map((cell) => {

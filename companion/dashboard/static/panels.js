@@ -1,10 +1,9 @@
 // The tables of the page: autopilot, mission, health, streams, system, alerts.
 
-import { el, fmt, setRows } from "./dom.js";
+import { el, fmt, setRows, vector } from "./dom.js";
 
 const SEVERITY = ["EMERG", "ALERT", "CRIT", "ERROR", "WARN", "NOTICE", "INFO", "DEBUG"];
 const yesNo = (value) => (value === undefined || value === null ? ["–"] : [value ? "yes" : "no", value ? "" : "warn"]);
-const vector = (v, digits = 2) => (Array.isArray(v) ? v.map((x) => fmt(x, digits)).join(", ") : "–");
 
 /** Autopilot state and the MAVLink link to it. */
 export function autopilot(tbody, ap, link) {
