@@ -77,6 +77,16 @@ def detector() -> DotDetector:
     return DotDetector(CALIBRATION, OPTICAL_TO_BODY, MOUNT.offset_m, RIG)
 
 
+def test_a_dot_washed_out_to_white_on_white_paper_is_still_found_at_its_centre() -> None:
+    truth = dot_truth(*POSES[0])
+    paper = np.full((480, 640), 235.0)  # white paper: the core saturates red and green, dominance ~0 there
+    image = draw_dots(truth.pixels, paper)
+    assert np.count_nonzero(np.all(image[..., 1:] == 255, axis=2)) > 10, "the test needs washed-out cores"
+    dots = detector().detect(image)
+    assert dots.found.all()
+    assert np.max(np.linalg.norm(dots.pixels - truth.pixels, axis=1)) < 0.2
+
+
 @pytest.mark.parametrize("position, rpy_deg", POSES)
 def test_dot_centroids_are_within_a_seventh_of_a_pixel_with_the_right_beam(
         position: tuple[float, float, float], rpy_deg: tuple[float, float, float]) -> None:
@@ -118,11 +128,19 @@ def test_triangulate_finds_the_beam_length_of_an_exact_ray_and_reports_the_miss(
 
 def test_a_fourth_red_spot_off_the_curves_is_counted_extra_and_ignored() -> None:
     truth = dot_truth(*POSES[0])
-    stray = np.array([[100.0, 400.0]])
-    assert detector().curve_distances(stray).min() > 20.0
+    stray = truth.pixels[:1] + [25.0, 0.0]  # in beam 0's search window, off every curve
+    assert detector().curve_distances(stray).min() > 8.0
     dots = detector().detect(draw_dots(np.vstack((truth.pixels, stray))))
     assert dots.extra == 1 and dots.found.all()
     assert np.abs(dots.pixels - truth.pixels).max() < 0.15
+
+
+def test_a_red_spot_outside_every_search_window_is_not_even_seen() -> None:
+    truth = dot_truth(*POSES[0])
+    far = np.array([[5.0, 5.0]])
+    assert not any(rows.start <= 5 < rows.stop and cols.start <= 5 < cols.stop for rows, cols in detector().windows)
+    dots = detector().detect(draw_dots(np.vstack((truth.pixels, far))))
+    assert dots.extra == 0 and dots.found.all()
 
 
 def test_a_second_spot_on_a_beams_curve_loses_to_the_one_nearer_the_previous_dot() -> None:

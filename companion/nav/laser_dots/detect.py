@@ -19,7 +19,8 @@ Steps:
    nearest its curve, all three chosen together (brute force over the few candidates): most
    beams assigned first, then the least summed cost, where the cost is the distance from the
    curve plus ``prior_weight`` times the distance from the beam's dot in the previous frame.
-   Blobs left over are counted as ``extra``;
+   Blobs left over are counted as ``extra``. Only each beam's search window is looked at (its
+   curve's bounding box grown by ``search_margin_px``): a red spot farther away is not seen at all;
 5. the beam length of each dot: closest approach between the beam and the camera ray through the
    dot (:func:`triangulate`).
 """
@@ -37,6 +38,7 @@ from companion.nav.laser_dots.beams import BEAMS, BeamRig
 
 GREY_REASON = "grey image: the laser dots need a colour (BGR) camera"
 SATURATED_REASON = "image saturated"
+SAME_BLOB_PX = 0.5  # two windows' blobs closer than this are one, pixels
 ROUND_TRIP_TOLERANCE = 1e-6  # a curve sample counts if the lens model maps it back to its ray, normalised units
 
 
@@ -45,6 +47,8 @@ class DotParams:
     """Thresholds of the dot detector."""
 
     min_dominance: int = 40  # R - max(G, B) above this is laser red, grey levels
+    min_red_px: int = 2  # a blob needs this many pixels redder than min_fringe_dominance ...
+    min_fringe_dominance: int = 10  # ... R - max(G, B), grey levels: a dot washed out to white keeps a pink fringe
     min_area_px: int = 3  # smaller blobs are noise, pixels
     max_area_px: int = 2000  # larger ones are red objects, not dots, pixels
     max_curve_distance_px: float = 4.0  # a beam's dot lies within this of the beam's image curve, pixels
@@ -53,6 +57,11 @@ class DotParams:
     saturation_level: int = 250  # a pixel with all channels at or above this is saturated, grey levels
     max_saturated_fraction: float = 0.25  # a larger share of saturated pixels: no dots
     curve_samples: int = 256  # samples of each beam's image curve, evenly spaced in 1 / length
+    # Dots are looked for only in each beam's search window: its image curve's bounding box grown by
+    # this (pixels; a blob farther from the curve is refused anyway, and one this wide is no dot):
+    # about a sixth of a 640x480 image instead of all of it.
+    search_margin_px: int = 30
+    saturation_stride_px: int = 4  # the saturated share is estimated on every n-th pixel of every n-th row
 
 
 @dataclass(frozen=True)
@@ -63,7 +72,7 @@ class Dots:
     found: np.ndarray  # (3,) bool
     lengths_m: np.ndarray  # (3,) beam length from its origin to the dot (triangulated), m; NaN where not found
     miss_m: np.ndarray  # (3,) closest distance between the beam and the camera ray through the dot, m; NaN
-    extra: int  # red blobs not taken by any beam
+    extra: int  # red blobs in the search windows not taken by any beam
     reason: str | None = None  # why the image gave no dots at all (grey, saturated, wrong size); None otherwise
 
 
@@ -101,33 +110,67 @@ def red_dominance(image_bgr: np.ndarray) -> np.ndarray:
     return cv2.subtract(red, cv2.max(green, blue))
 
 
-def saturated_fraction(image_bgr: np.ndarray, level: int) -> float:
-    """Share (0..1) of the pixels of a BGR image with all three channels at or above ``level``."""
-    darkest = cv2.min(cv2.min(image_bgr[..., 0], image_bgr[..., 1]), image_bgr[..., 2])
+def darkest_channel(image_bgr: np.ndarray) -> np.ndarray:
+    """(H, W) uint8 min(B, G, R) of a BGR image."""
+    return cv2.min(cv2.min(image_bgr[..., 0], image_bgr[..., 1]), image_bgr[..., 2])
+
+
+def saturated_fraction(image_bgr: np.ndarray, level: int, stride: int = 1) -> float:
+    """Share (0..1) of the pixels of a BGR image with all three channels at or above ``level``,
+    over every ``stride``-th pixel of every ``stride``-th row."""
+    darkest = darkest_channel(np.ascontiguousarray(image_bgr[::stride, ::stride]))
     return cv2.countNonZero(cv2.compare(darkest, level, cv2.CMP_GE)) / darkest.size
 
 
-def find_blobs(dominance: np.ndarray, params: DotParams) -> Blobs:
-    """The blobs of pixels with ``dominance`` above ``params.min_dominance`` (8-connected) whose area
-    is within the params' limits, with their dominance-weighted centroids (pixels)."""
-    mask = cv2.compare(dominance, params.min_dominance, cv2.CMP_GT)
+def laser_weight(image_bgr: np.ndarray, saturation_level: int, min_dominance: int) -> tuple[np.ndarray, np.ndarray]:
+    """((H, W) uint8 weight, (H, W) uint8 red dominance) of an (H, W, 3) BGR image: the weight is
+    the red dominance R - max(G, B), except 255 where the red channel is saturated (at or above
+    ``saturation_level``) while the dominance is at most ``min_dominance``. A laser dot on a bright
+    surface (white paper) saturates green too at its core, where the dominance drops to about 0
+    and leaves a ring: the weight fills that hole. (White paper itself stays below saturation in
+    red; a lamp that does not is no dot: see find_blobs.)"""
+    dominance = red_dominance(image_bgr)
+    red_saturated = cv2.compare(image_bgr[..., 2], saturation_level, cv2.CMP_GE)
+    washed_out = cv2.bitwise_and(red_saturated, cv2.compare(dominance, min_dominance, cv2.CMP_LE))
+    return cv2.max(dominance, washed_out), dominance
+
+
+def find_blobs(weight: np.ndarray, dominance: np.ndarray, params: DotParams,
+               offset: tuple[int, int] = (0, 0)) -> Blobs:
+    """The blobs of pixels with ``weight`` above ``params.min_dominance`` (8-connected) whose area is
+    within the params' limits and that hold at least ``min_red_px`` reddish pixels (``dominance``
+    above ``min_fringe_dominance``: a neutral saturated lamp or reflection is no dot), with their
+    weight-weighted centroids (pixels, plus ``offset`` (u, v): where the arrays sit in the image)."""
+    mask = cv2.compare(weight, params.min_dominance, cv2.CMP_GT)
     count, labels, stats, _ = cv2.connectedComponentsWithStats(mask, connectivity=8, ltype=cv2.CV_32S)
     areas = stats[1:, cv2.CC_STAT_AREA]
     keep = np.flatnonzero((areas >= params.min_area_px) & (areas <= params.max_area_px)) + 1
-    found = [weighted_centroid(dominance, labels, stats[k], k) for k in keep]
-    return Blobs(np.array([c for c, _ in found], dtype=float).reshape(-1, 2),
+    found = [weighted_centroid(weight, labels, stats[k], k) for k in keep
+             if red_pixels(dominance, labels, stats[k], k, params.min_fringe_dominance) >= params.min_red_px]
+    return Blobs(np.array([c for c, _ in found], dtype=float).reshape(-1, 2) + np.array(offset, dtype=float),
                  np.array([s for _, s in found], dtype=float))
 
 
-def weighted_centroid(dominance: np.ndarray, labels: np.ndarray, stat: np.ndarray,
-                      label: int) -> tuple[np.ndarray, float]:
-    """((2,) pixel centroid of component ``label`` weighted by ``dominance``, summed weight)."""
+def _box(stat: np.ndarray) -> tuple[slice, slice]:
+    """The (rows, columns) slices of a connected component's bounding box."""
     x, y = stat[cv2.CC_STAT_LEFT], stat[cv2.CC_STAT_TOP]
-    w, h = stat[cv2.CC_STAT_WIDTH], stat[cv2.CC_STAT_HEIGHT]
-    weights = np.where(labels[y:y + h, x:x + w] == label, dominance[y:y + h, x:x + w], 0).astype(float)
+    return slice(y, y + stat[cv2.CC_STAT_HEIGHT]), slice(x, x + stat[cv2.CC_STAT_WIDTH])
+
+
+def red_pixels(dominance: np.ndarray, labels: np.ndarray, stat: np.ndarray, label: int, threshold: int) -> int:
+    """How many pixels of component ``label`` have ``dominance`` above ``threshold``."""
+    rows, cols = _box(stat)
+    return int(np.count_nonzero((labels[rows, cols] == label) & (dominance[rows, cols] > threshold)))
+
+
+def weighted_centroid(weight: np.ndarray, labels: np.ndarray, stat: np.ndarray,
+                      label: int) -> tuple[np.ndarray, float]:
+    """((2,) pixel centroid of component ``label`` weighted by ``weight``, summed weight)."""
+    rows, cols = _box(stat)
+    weights = np.where(labels[rows, cols] == label, weight[rows, cols], 0).astype(float)
     total = weights.sum()
-    u = x + (weights.sum(axis=0) @ np.arange(w)) / total
-    v = y + (weights.sum(axis=1) @ np.arange(h)) / total
+    u = cols.start + (weights.sum(axis=0) @ np.arange(weights.shape[1])) / total
+    v = rows.start + (weights.sum(axis=1) @ np.arange(weights.shape[0])) / total
     return np.array([u, v]), float(total)
 
 
@@ -160,6 +203,19 @@ def distance_to_segments(points: np.ndarray, segments: np.ndarray) -> np.ndarray
     offset = points[:, None, :] - start[None]
     t = np.clip(np.sum(offset * step, axis=2) / np.maximum(np.sum(step * step, axis=1), 1e-12), 0.0, 1.0)
     return np.linalg.norm(offset - t[..., None] * step, axis=2).min(axis=1)
+
+
+def search_window(segments: np.ndarray, margin_px: int, width: int, height: int) -> tuple[slice, slice] | None:
+    """(rows, columns) of the image (``width`` x ``height`` px) within ``margin_px`` of the bounding
+    box of a curve's (K, 2, 2) segments (pixels), None for a curve outside the image."""
+    if len(segments) == 0:
+        return None
+    points = segments.reshape(-1, 2)
+    low = np.floor(points.min(axis=0)).astype(int) - margin_px
+    high = np.ceil(points.max(axis=0)).astype(int) + margin_px + 1
+    cols = slice(max(int(low[0]), 0), min(int(high[0]), width))
+    rows = slice(max(int(low[1]), 0), min(int(high[1]), height))
+    return (rows, cols) if rows.start < rows.stop and cols.start < cols.stop else None
 
 
 def best_assignment(cost: np.ndarray) -> tuple[int, ...]:
@@ -204,6 +260,19 @@ class DotDetector:
         self.curves = [curve_segments(calibration, self.optical_to_body, self.camera_origin_body, o, d,
                                       length_range_m, params.curve_samples)
                        for o, d in zip(rig.origins, rig.directions)]
+        self.windows = [w for w in (search_window(c, params.search_margin_px, calibration.width, calibration.height)
+                                    for c in self.curves) if w is not None]
+
+    def blobs(self, image_bgr: np.ndarray) -> Blobs:
+        """The red blobs of the search windows (one blob seen by two overlapping windows counts once)."""
+        p = self.params
+        found = [find_blobs(*laser_weight(image_bgr[rows, cols], p.saturation_level, p.min_dominance), p,
+                            (cols.start, rows.start)) for rows, cols in self.windows]
+        centroids = np.concatenate([b.centroids for b in found]).reshape(-1, 2)
+        strengths = np.concatenate([b.strengths for b in found])
+        keep = [i for i in range(len(centroids))
+                if not np.any(np.linalg.norm(centroids[:i] - centroids[i], axis=1) < SAME_BLOB_PX)]
+        return Blobs(centroids[keep], strengths[keep])
 
     def detect(self, image_bgr: np.ndarray, previous: np.ndarray | None = None) -> Dots:
         """The dots in ``image_bgr`` ((H, W, 3) uint8 BGR at the calibration's size); ``previous``:
@@ -211,7 +280,7 @@ class DotDetector:
         reason = self.unusable(image_bgr)
         if reason is not None:
             return no_dots(reason)
-        blobs = find_blobs(red_dominance(image_bgr), self.params)
+        blobs = self.blobs(image_bgr)
         if len(blobs.strengths) == 0:
             return no_dots(None)
         distances = self.curve_distances(blobs.centroids)
@@ -233,7 +302,8 @@ class DotDetector:
         if (width, height) != (self.calibration.width, self.calibration.height):
             return (f"image {width}x{height}, camera calibrated at "
                     f"{self.calibration.width}x{self.calibration.height}")
-        if saturated_fraction(image, self.params.saturation_level) > self.params.max_saturated_fraction:
+        p = self.params
+        if saturated_fraction(image, p.saturation_level, p.saturation_stride_px) > p.max_saturated_fraction:
             return SATURATED_REASON
         return None
 
@@ -266,3 +336,15 @@ class DotDetector:
             lengths[i], miss[i], _ = triangulate(self.rig.origins[i], self.rig.directions[i],
                                                  self.camera_origin_body, rays[i])
         return lengths, miss
+
+    def length_sigma_m(self, pixels: np.ndarray, sigma_px: float) -> np.ndarray:
+        """(3,) 1-sigma (m) of the triangulated beam lengths of the (3, 2) dot ``pixels`` for a
+        centroid error of ``sigma_px`` (px, 1-sigma per axis): the length's gradient over the image
+        (central differences, 0.5 px) times ``sigma_px``. NaN for a missing dot."""
+        step = 0.5
+        grads = []
+        for axis in (np.array([step, 0.0]), np.array([0.0, step])):
+            plus, _ = self.lengths(pixels + axis)
+            minus, _ = self.lengths(pixels - axis)
+            grads.append((plus - minus) / (2.0 * step))
+        return np.hypot(*grads) * sigma_px
