@@ -159,7 +159,7 @@ def test_selection_rejects_upside_down_below_floor_and_backward_candidates() -> 
     assert chosen is true and reason == "the only plausible candidate"
     chosen, reason = g.select_candidate([upside_down, below, backward, tilted])
     assert chosen is None
-    assert "2 tilted beyond 45 deg" in reason and "1 less than 0.05 m above the floor" in reason
+    assert "2 tilted beyond 45 deg" in reason and "1 with a beam starting less than 0.05 m above the floor" in reason
     assert "1 with a beam pointing backwards" in reason
 
 

@@ -378,12 +378,14 @@ def p3p_candidates(rig: BeamRig, dots: np.ndarray) -> list[PoseCandidate]:
 
 # --- selection ---------------------------------------------------------------------------------
 
-def _implausible(candidate: PoseCandidate, max_tilt_deg: float, min_height_m: float) -> str | None:
+def _implausible(candidate: PoseCandidate, origins_body: np.ndarray, max_tilt_deg: float,
+                 min_height_m: float) -> str | None:
     """Why a candidate cannot be the vehicle's pose, or None."""
     if np.any(candidate.lengths <= 0.0):
         return "with a beam pointing backwards"
-    if candidate.position_ned[2] >= -min_height_m:
-        return f"less than {min_height_m:g} m above the floor"
+    origins_ned = candidate.position_ned + origins_body @ candidate.rotation.T
+    if np.any(origins_ned[:, 2] >= -min_height_m):
+        return f"with a beam starting less than {min_height_m:g} m above the floor"
     if tilt_rad(candidate.rotation) > math.radians(max_tilt_deg):
         return f"tilted beyond {max_tilt_deg:g} deg"
     return None
@@ -404,11 +406,12 @@ def _prior_distance(candidate: PoseCandidate, prior_rotation: np.ndarray | None,
 
 def select_candidate(candidates: Sequence[PoseCandidate], prior_rotation: np.ndarray | None = None,
                      previous: tuple[np.ndarray, np.ndarray] | None = None, max_tilt_deg: float = 45.0,
-                     min_height_m: float = 0.05) -> tuple[PoseCandidate | None, str]:
+                     min_height_m: float = 0.05, origins_body: np.ndarray | None = None) -> tuple[PoseCandidate | None, str]:
     """The candidate that is the vehicle's pose, and why (or None and why not).
 
-    Plausible: every length positive, the body origin at least ``min_height_m`` above the floor
-    (NED z < -min_height_m), the tilt (body z vs NED down) within ``max_tilt_deg`` (this also
+    Plausible: every length positive, every beam origin (``origins_body``, (3, 3) body FRD m;
+    default the body origin) at least ``min_height_m`` above the floor (NED z < -min_height_m;
+    the body origin itself may rest on the floor), the tilt (body z vs NED down) within ``max_tilt_deg`` (this also
     rejects upside-down poses). Among the plausible ones: with a prior (``prior_rotation``, e.g.
     the IMU attitude body -> NED, and/or ``previous`` = (rotation, NED position m) of the last
     pose) the closest to it (:func:`_prior_distance`); without one, the smallest residual, unless
@@ -417,7 +420,8 @@ def select_candidate(candidates: Sequence[PoseCandidate], prior_rotation: np.nda
     survivors: list[PoseCandidate] = []
     rejected: Counter[str] = Counter()
     for candidate in candidates:
-        problem = _implausible(candidate, max_tilt_deg, min_height_m)
+        problem = _implausible(candidate, np.zeros((1, 3)) if origins_body is None else origins_body,
+                               max_tilt_deg, min_height_m)
         if problem is None:
             survivors.append(candidate)
         else:
@@ -462,7 +466,7 @@ def solve(rig: BeamRig, dots: np.ndarray, method: Method = "general", prior_rota
         solver_rig, candidates = rig, p3p_candidates(rig, dots)
     else:
         raise ValueError(f"unknown method {method!r}: 'closed_form' or 'general'")
-    best, reason = select_candidate(candidates, prior_rotation, previous, max_tilt_deg)
+    best, reason = select_candidate(candidates, prior_rotation, previous, max_tilt_deg, origins_body=solver_rig.origins)
     if best is None:
         return None
     return PoseSolution(best.rotation, best.position_ned, best.lengths, np.array(euler_from_rotation(best.rotation)),
@@ -523,12 +527,14 @@ def pose_covariance(rig: BeamRig, dots: np.ndarray, dots_cov: np.ndarray, method
 
 # --- structured light: the floor seen from the body ---------------------------------------------
 
-def plane_from_body_points(points_body: np.ndarray) -> tuple[float, float, float]:
+def plane_from_body_points(points_body: np.ndarray, viewpoint_body: np.ndarray | None = None) -> tuple[float, float, float]:
     """Height (m) of the body origin above the floor (along NED down) and roll, pitch (rad, ZYX of
     body FRD -> NED) from three floor points in body FRD (m, rows); yaw is unobservable. The
-    plane's unit normal pointing away from the body is NED down in the body frame, i.e. the
-    third row of R (body -> NED) = (-sin pitch, sin roll cos pitch, cos roll cos pitch).
-    ValueError when the points are collinear."""
+    plane's unit normal pointing away from ``viewpoint_body`` (where the beams start, body FRD m;
+    default the body origin, which must then be off the plane) is NED down in the body frame,
+    i.e. the third row of R (body -> NED) = (-sin pitch, sin roll cos pitch, cos roll cos pitch).
+    The height is negative for a body origin below the floor plane. ValueError when the points
+    are collinear."""
     p = np.asarray(points_body, dtype=float).reshape(BEAMS, 3)
     normal = np.cross(p[1] - p[0], p[2] - p[0])
     norm = float(np.linalg.norm(normal))
@@ -536,7 +542,8 @@ def plane_from_body_points(points_body: np.ndarray) -> tuple[float, float, float
         raise ValueError("the three floor points are collinear: no plane")
     normal /= norm
     height = float(normal @ p[0])
-    if height < 0.0:
+    side = height if viewpoint_body is None else float(normal @ (p[0] - np.asarray(viewpoint_body, dtype=float)))
+    if side < 0.0:
         normal, height = -normal, -height
     return height, math.atan2(normal[1], normal[2]), math.asin(max(-1.0, min(1.0, -normal[0])))
 
@@ -546,7 +553,7 @@ def height_covariance(rig: BeamRig, lengths: np.ndarray, length_var: np.ndarray)
     rig's dots at (3,) ``lengths`` m, given independent length variances (3,) m^2: J diag(var) J^T
     with J the central-difference Jacobian (1 mm steps); all NaN when a length is not finite."""
     def planes(ls: np.ndarray) -> np.ndarray:
-        return np.array([plane_from_body_points(dots_in_body(rig, l)) for l in ls])
+        return np.array([plane_from_body_points(dots_in_body(rig, l), rig.origins.mean(axis=0)) for l in ls])
     jac = _central_jacobian(planes, np.asarray(lengths, dtype=float), slice(1, 3))
     return np.full((3, 3), np.nan) if jac is None else jac @ np.diag(np.asarray(length_var, dtype=float)) @ jac.T
 
