@@ -43,6 +43,11 @@ class FloorParams:
 
     corner_sigma_px: float = 0.2  # 1-sigma of a refined ArUco corner per axis, pixels (the model's lower bound)
     subpix_window_px: int = 5  # half-size of the corner refinement window, pixels
+    # Two adaptive-threshold windows (3 and 23 px) instead of OpenCV's three: 7.2 -> 5.7 ms on 640x480
+    # frames of the fig4 hall here, the same markers found. (OpenCV's ArUco 3 mode, candidates on a
+    # downscaled image, reaches 4.0 ms but its corners are worse: a one-marker camera pose 3.5 deg off
+    # instead of 0.3 deg.)
+    threshold_window_step_px: int = 20
 
 
 @dataclass(frozen=True)
@@ -116,6 +121,7 @@ class FloorMapper:
         detector_params = cv2.aruco.DetectorParameters()
         detector_params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
         detector_params.cornerRefinementWinSize = params.subpix_window_px
+        detector_params.adaptiveThreshWinSizeStep = params.threshold_window_step_px
         self.detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(dictionary), detector_params)
 
     def find(self, image: np.ndarray) -> FloorView | None:
