@@ -1,5 +1,5 @@
-"""`companion` command line: run, check-config, setup-autopilot, sitl, dashboard, bench, map, replay, experiment,
-config-reference."""
+"""`companion` command line: run, check-config, setup-autopilot, sitl, dashboard, bench, map, laser-dots, replay,
+experiment, config-reference."""
 
 from __future__ import annotations
 
@@ -145,6 +145,31 @@ def _cmd_map_build(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_laser_dots_calibrate(args: argparse.Namespace) -> int:
+    from companion.beam_calibration import calibrate_recording
+    from companion.nav.laser_dots.calibrate import rig_to_yaml
+
+    cfg = _config_with_logging(args)
+    if cfg is None:
+        return EXIT_CONFIG_ERROR
+    try:
+        result = calibrate_recording(cfg, Path(args.recording))
+    except (OSError, ValueError, ConfigError) as exc:
+        print(f"companion laser-dots calibrate: {exc}", file=sys.stderr)
+        return EXIT_CONFIG_ERROR
+    c = result.calibration
+    print(f"{args.recording}: {result.used} of {result.frames} frames used; frames per beam "
+          f"{', '.join(str(int(n)) for n in c.count)}; line fit RMS {', '.join(f'{r * 1e3:.1f}' for r in c.rms_m)} mm; "
+          f"angles between beams 0-1, 1-2, 0-2: {', '.join(f'{a:.2f}' for a in c.angles_deg)} deg", file=sys.stderr)
+    text = rig_to_yaml(c.rig)
+    if args.out:
+        Path(args.out).write_text(text)
+        print(f"{args.out}: the beams section for pipelines.laser_dots", file=sys.stderr)
+    else:
+        print(text, end="")
+    return 0
+
+
 def _cmd_replay(args: argparse.Namespace) -> int:
     import json
 
@@ -265,6 +290,16 @@ def build_parser() -> argparse.ArgumentParser:
     build.add_argument("--laser", choices=["front", "rear"], default="front", help="carmen: which laser's messages")
     _add_topic_arguments(build)
     build.set_defaults(func=_cmd_map_build)
+
+    dots = sub.add_parser("laser-dots", help="tools of the three-laser-dot pipeline (pipelines.laser_dots)")
+    dots_tools = dots.add_subparsers(dest="laser_dots", required=True)
+    calibrate = dots_tools.add_parser("calibrate", help="the beams' origins and directions from a recording of the "
+                                                        "downward camera over the floor markers "
+                                                        "(companion/beam_calibration.py)")
+    calibrate.add_argument("-c", "--config", required=True, help="the config with the pipelines.laser_dots section")
+    calibrate.add_argument("recording", help="a folder of .png / .jpg frames (name order) or a video file")
+    calibrate.add_argument("--out", help="write the beams section (YAML) here instead of to stdout")
+    calibrate.set_defaults(func=_cmd_laser_dots_calibrate)
 
     replay = sub.add_parser("replay", help="replay a scanner log through the lidar localizer, scored against the "
                                            "log's own poses (companion/replay.py)")
