@@ -88,12 +88,14 @@ def _row(name: str, median: float, p99: float) -> None:
 
 
 def run_bench(repeat: int) -> int:
-    """Print every stage's median and p99 in ms: link, telemetry, SITL, lidar pipeline, fusion;
+    """Print every stage's median and p99 in ms: link, telemetry, SITL, lidar pipeline, laser-dot
+    pipeline (and its accuracy beside the markers-alone pose), fusion;
     then the dashboard's publish-to-browser latency and CPU."""
     from companion.control.bench_control import control_figures, run_control_bench
     from companion.dashboard.bench import print_dashboard_figures
     from companion.nav.bench_fusion import run_fusion_bench
     from companion.nav.bench_stages import run_stage_bench
+    from companion.nav.laser_dots.bench_dots import run_dots_bench
 
     print(f"companion bench: {repeat} calls per stage, Python {platform.python_version()}, "
           f"numpy {np.__version__}, {platform.machine()}")
@@ -103,6 +105,12 @@ def run_bench(repeat: int) -> int:
     print("lidar pipeline (a 1081-beam UTM-30LX scan / 682-beam URG-04LX scan of the default arena):")
     for name, (median, p99) in run_stage_bench(repeat).items():
         _row(name, median, p99)
+    print("laser-dot pipeline (640x480 frames of the simulated downward camera, config/sitl-laser-dots.yaml):")
+    dot_stages, dot_accuracy = run_dots_bench(repeat)
+    for name, (median, p99) in dot_stages.items():
+        _row(name, median, p99)
+    for name, text in dot_accuracy.items():
+        print(f"  {name}: {text}")
     print("fusion (50 Hz Kalman filter):")
     for name, (median, p99) in run_fusion_bench(repeat).items():
         _row(name, median, p99)
