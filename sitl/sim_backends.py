@@ -46,7 +46,7 @@ def _lidar(name: str, settings: SimLidarSettings, ctx: Any) -> SimulatedLidar:
 
 
 
-def _calibration(cfg: Any, name: str, settings: SimCameraSettings) -> CameraCalibration:
+def camera_calibration(cfg: Any, name: str, settings: SimCameraSettings) -> CameraCalibration:
     """The intrinsics of camera ``name``: its calibration file, or what its settings describe."""
     if settings.calibration is None:
         return settings.intrinsics()
@@ -56,14 +56,14 @@ def _calibration(cfg: Any, name: str, settings: SimCameraSettings) -> CameraCali
 
 def _check_camera(cfg: Any, name: str) -> None:
     cfg.load_referenced("sitl.world", cfg.sitl.world, lambda path: check_marker_ids(load_world(path)))
-    _calibration(cfg, name, typed(cfg.sensors[name].settings, SimCameraSettings))
+    camera_calibration(cfg, name, typed(cfg.sensors[name].settings, SimCameraSettings))
 
 
 @register_backend("camera", "sim", SimCameraSettings, check_files=_check_camera)
 def _camera(name: str, settings: SimCameraSettings, ctx: Any) -> SimulatedCamera:
     """A camera rendering the world's floor, markers and walls from the truth pose."""
     cfg = ctx.config
-    return SimulatedCamera(name, settings, _calibration(cfg, name, settings), Mount.from_config(cfg.sensors[name].mount),
+    return SimulatedCamera(name, settings, camera_calibration(cfg, name, settings), Mount.from_config(cfg.sensors[name].mount),
                            sim_world(ctx), truth(ctx))
 
 

@@ -5,6 +5,7 @@ nominal one."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -13,49 +14,35 @@ import cv2
 import numpy as np
 import pytest
 
-from companion.calibration import load_calibration
 from companion.cli import main
 from companion.config import load_config
-from companion.frames import rotation_from_euler
+from companion.frames import rotation_from_quat
 from companion.nav.laser_dots.beams import BeamRig, BeamRigConfig, nominal_rig
-from companion.nav.laser_dots.frame_pose import FramePoser, FramePoseParams
+from companion.nav.laser_dots.pipeline import frame_poser
 from companion.schema import parse_document
 from companion.world import load_world
-from drivers.mount import OPTICAL_TO_SENSOR, Mount
-from sitl.camera_sim import SimCameraSettings, SimulatedCamera
+from drivers.mount import Mount
+from sitl.calibration_sweep import laser_dots_camera, sweep_poses, write_sweep
+from sitl.camera_sim import SimulatedCamera
+from sitl.truth import TruthSample
 from tests.conftest import REPO
-from tests.test_camera_sim import FakeTruth, pose
 
 CONFIG = REPO / "config" / "sitl-laser-dots.yaml"
 TRUE_RIG = nominal_rig(89.0, 2.0, (0.01, -0.01, -0.17))  # as built: 1 deg narrower, turned, 1-2 cm off
+SWEEP = {"low_m": 0.4, "high_m": 1.8, "north_m": (1.0, 8.0)}
 
 
 def camera(rig: BeamRig) -> SimulatedCamera:
+    """The config's simulated camera with ``rig`` as the true beams."""
     cfg = load_config(CONFIG)
-    section = cfg.sensors["down"]
-    settings = SimCameraSettings(fps=10, exposure_s=0.004, noise_sigma=2.0, laser_speckle_px=0.5, seed=3,
-                                 laser_beams=BeamRigConfig(origins_m=[tuple(o) for o in rig.origins],
-                                                           directions=[tuple(d) for d in rig.directions]))
-    world = cfg.load_referenced("sitl.world", cfg.sitl.world, load_world)
-    calibration = load_calibration(REPO / "config" / "cameras" / "down-wide-640.yaml")
-    return SimulatedCamera("down", settings, calibration, Mount.from_config(section.mount), world,
-                           FakeTruth(pose((0.0, 0.0, -1.0))))
-
-
-def poses(n: int, seed: int) -> list[tuple[tuple[float, float, float], tuple[float, float, float]]]:
-    """Vehicle poses over the first markers of the fig4 hall: heights 0.4-1.8 m, a few degrees of tilt, turned."""
-    rng = np.random.default_rng(seed)
-    return [((float(rng.uniform(1, 8)), float(rng.uniform(-0.3, 1.8)), -float(h)),
-             (float(rng.normal(0, 3)), float(rng.normal(0, 3)), float(rng.uniform(-30, 30))))
-            for h in np.linspace(0.4, 1.8, n)]
+    cfg.sensors["down"].settings["laser_beams"] = {"origins_m": rig.origins.tolist(), "directions": rig.directions.tolist()}
+    return laser_dots_camera(cfg)
 
 
 @pytest.fixture(scope="module")
 def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     folder = tmp_path_factory.mktemp("calibration-frames")
-    cam = camera(TRUE_RIG)
-    for k, (position, rpy) in enumerate(poses(60, seed=1)):
-        cv2.imwrite(str(folder / f"{k:04d}.png"), cam.render(0.0, pose(position, rpy), None, k).image)
+    write_sweep(camera(TRUE_RIG), sweep_poses(60, seed=1, **SWEEP), folder)
     return folder
 
 
@@ -88,17 +75,19 @@ def test_the_calibrated_rig_poses_to_a_centimetre_where_the_nominal_one_is_lost_
     mount = Mount.from_config(cfg.sensors["down"].mount)
     cam = camera(TRUE_RIG)
     markers = load_world(REPO / "config" / "worlds" / "fig4.yaml").floor_markers
+    cfg.pipelines.enabled["laser_dots"].max_tilt_deg = 20.0
 
     def errors(assumed: BeamRig) -> np.ndarray:
         """Position errors (m) of the frames posed; frames the calibration did not see."""
-        poser = FramePoser(assumed, cam.calibration, mount.rotation @ OPTICAL_TO_SENSOR, mount.offset_m, markers,
-                           FramePoseParams(max_tilt_deg=20.0))
+        section = dataclasses.replace(cfg.pipelines.enabled["laser_dots"], beams=BeamRigConfig(
+            origins_m=[tuple(r) for r in assumed.origins], directions=[tuple(r) for r in assumed.directions]))
+        poser = frame_poser(section, cam.calibration, mount, markers)
         out = []
-        for k, (position, rpy) in enumerate(poses(15, seed=2)):
-            image = cam.render(0.0, pose(position, rpy), None, 100 + k).image
-            result = poser.process(image, rotation_from_euler(*np.radians(rpy)))
+        for k, (position, quat) in enumerate(sweep_poses(15, seed=2, **SWEEP)):
+            image = cam.render(0.0, TruthSample(0.0, position, np.zeros(3), quat), None, 100 + k).image
+            result = poser.process(image, rotation_from_quat(quat))
             if result.kind == "pose":
-                out.append(np.linalg.norm(result.solution.position_ned - np.array(position)))
+                out.append(np.linalg.norm(result.solution.position_ned - position))
         return np.array(out)
 
     good, nominal = errors(rig), errors(nominal_rig(90.0, 0.0, (0.0, 0.0, -0.18)))
