@@ -22,17 +22,17 @@ import yaml
 from companion.calibration import load_calibration
 from companion.cli import main
 from companion.config import load_config
-from companion.frames import rotation_from_euler
+from companion.frames import rotation_from_quat
 from companion.health import Health
 from companion.messages import AttitudeEstimate, Frame, ImuSample, PoseEstimate, RangeEstimate
-from companion.nav.laser_dots.beams import BeamRigConfig
-from companion.nav.laser_dots.frame_pose import FramePoser, FramePoseParams, FrameResult
-from companion.nav.laser_dots.pipeline import LaserDotsPipeline
-from companion.world import Obstacle, load_world
-from drivers.mount import OPTICAL_TO_SENSOR, Mount
-from sitl.camera_sim import SimCameraSettings, SimulatedCamera
+from companion.nav.laser_dots.frame_pose import FrameResult
+from companion.nav.laser_dots.pipeline import LaserDotsPipeline, frame_poser
+from companion.world import Obstacle, World, load_world
+from drivers.mount import Mount
+from sitl.calibration_sweep import NO_TRUTH, laser_dots_camera
+from sitl.camera_sim import SimulatedCamera
 from tests.conftest import REPO, free_port
-from tests.test_camera_sim import FakeTruth, Pose, pose
+from tests.test_camera_sim import Pose, pose
 
 CONFIG = REPO / "config" / "sitl-laser-dots.yaml"
 CFG = load_config(CONFIG)
@@ -43,26 +43,17 @@ FIG4 = load_world(REPO / "config" / "worlds" / "fig4.yaml")
 OVER_MARKERS = pose((6.0, 0.8, -1.0), (2.0, -1.5, 10.0))
 
 
-def camera(world=FIG4, **settings: object) -> SimulatedCamera:
-    """The config's simulated camera and rig over ``world``."""
-    base = {k: v for k, v in CFG.sensors["down"].settings.items() if k != "calibration"}
-    base["laser_beams"] = BeamRigConfig(angle_deg=90.0, origin_m=(0.0, 0.0, -0.18))
-    return SimulatedCamera("down", SimCameraSettings(**{**base, **settings}), CALIBRATION, MOUNT, world,
-                           FakeTruth(OVER_MARKERS))
+def camera(world: World = FIG4, **settings: object) -> SimulatedCamera:
+    """The config's simulated camera and rig, over ``world``, with ``settings`` changed."""
+    cfg = load_config(CONFIG)
+    cfg.sensors["down"].settings.update(settings)
+    cam = laser_dots_camera(cfg)
+    return cam if world is FIG4 else SimulatedCamera("down", cam.settings, cam.calibration, cam.mount, world, NO_TRUTH)
 
 
-def poser(world=FIG4) -> FramePoser:
-    return FramePoser(SECTION.beams.rig(), CALIBRATION, MOUNT.rotation @ OPTICAL_TO_SENSOR, MOUNT.offset_m,
-                      world.floor_markers, FramePoseParams(max_tilt_deg=SECTION.max_tilt_deg))
-
-
-def process(image: np.ndarray, truth: Pose = OVER_MARKERS, world=FIG4) -> FrameResult:
-    return poser(world).process(image, rotation_from_euler(*_euler(truth)))
-
-
-def _euler(truth: Pose) -> tuple[float, float, float]:
-    from companion.frames import euler_from_quat
-    return euler_from_quat(truth.quat)
+def process(image: np.ndarray, truth: Pose = OVER_MARKERS, world: World = FIG4) -> FrameResult:
+    poser = frame_poser(SECTION, CALIBRATION, MOUNT, world.floor_markers)
+    return poser.process(image, rotation_from_quat(truth.quat))
 
 
 def assert_no_nan_in_what_it_claims(result: FrameResult) -> None:
@@ -216,3 +207,21 @@ def test_fig4_first_150_s_flown_on_the_dots_alone_meet_a_centimetre_and_half_a_d
     low, high = est["nees_band"]
     assert low <= est["nees_mean"] <= high * 1.2  # honest covariance (3 is ideal)
     assert r["control"]["failsafes_triggered"] == []
+
+
+def test_one_frame_without_a_pose_is_ridden_out_three_in_a_row_degrade_with_the_reason() -> None:
+    health = Health(lambda: 0.0)
+    p = LaserDotsPipeline(SECTION, CALIBRATION, FIG4, MOUNT, health)
+    good = camera().render(0.0, OVER_MARKERS).image
+    blinded = camera(gain=10.0).render(0.0, OVER_MARKERS).image
+
+    def state_after(image: np.ndarray, t: float) -> str:
+        p.on_imu(imu_sample(t))
+        p.on_frame(Frame("down", t, image))
+        p.step(t + 0.01)
+        return health.snapshot()["components"]["nav:laser_dots"]["state"]
+
+    assert state_after(good, 0.0) == "ok"
+    assert state_after(blinded, 0.1) == "ok" and state_after(good, 0.2) == "ok"
+    assert [state_after(blinded, t) for t in (0.3, 0.4, 0.5)] == ["ok", "ok", "degraded"]
+    assert "saturated" in health.snapshot()["components"]["nav:laser_dots"]["reason"]

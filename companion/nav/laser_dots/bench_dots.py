@@ -18,13 +18,13 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.calibration import load_calibration
 from companion.config import load_config
-from companion.frames import rotation_from_euler
+from companion.frames import quat_from_euler, rotation_from_euler
 from companion.nav.laser_dots import geometry
-from companion.nav.laser_dots.frame_pose import FramePoser, FramePoseParams
+from companion.nav.laser_dots.frame_pose import FramePoser
+from companion.nav.laser_dots.pipeline import frame_poser
 from companion.timing import time_stage
-from drivers.mount import OPTICAL_TO_SENSOR, Mount
+from companion.world import load_world
 
 CONFIG = Path(__file__).resolve().parents[3] / "config" / "sitl-laser-dots.yaml"
 HEIGHTS_M = (0.82, 1.63)
@@ -40,23 +40,14 @@ class BenchFrame:
 
 def bench_frames(n: int = FRAMES, seed: int = 0) -> tuple[FramePoser, list[BenchFrame]]:
     """The config's pipeline (as a FramePoser) and ``n`` frames its simulated camera renders."""
-    from sitl.camera_sim import SimCameraSettings, SimulatedCamera
+    from sitl.calibration_sweep import laser_dots_camera
     from sitl.truth import TruthSample
-    from companion.frames import quat_from_euler
-    from companion.world import load_world
 
     cfg = load_config(CONFIG)
     section = cfg.pipelines.enabled["laser_dots"]
-    camera_cfg = cfg.sensors[section.camera]
-    calibration = cfg.load_referenced("pipelines.laser_dots.calibration", section.calibration, load_calibration)
+    camera = laser_dots_camera(cfg)
     world = cfg.load_referenced("pipelines.laser_dots.world", section.world, load_world)
-    mount = Mount.from_config(camera_cfg.mount)
-    settings = {k: v for k, v in camera_cfg.settings.items() if k != "calibration"}
-    settings["laser_beams"] = section.beams
-    camera = SimulatedCamera("down", SimCameraSettings(**settings), calibration, mount, world, None)  # type: ignore[arg-type]
-    poser = FramePoser(section.beams.rig(), calibration, mount.rotation @ OPTICAL_TO_SENSOR, mount.offset_m,
-                       world.floor_markers, FramePoseParams(section.method, section.height_range_m,
-                                                            section.max_tilt_deg, section.dot_sigma_px))
+    poser = frame_poser(section, camera.calibration, camera.mount, world.floor_markers)
     rng = np.random.default_rng(seed)
     frames = []
     for k in range(n):

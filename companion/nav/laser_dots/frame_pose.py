@@ -34,6 +34,9 @@ from companion.nav.laser_dots.floor import FloorMapper, FloorView
 from companion.world import FloorMarker
 
 
+REST_TOLERANCE_M = 0.05  # a height this far below height_range_m's low end still passes (resting on the floor: +/- mm)
+
+
 @dataclass(frozen=True)
 class FramePoseParams:
     """The checks and noise model of :class:`FramePoser` (see the module docstring)."""
@@ -115,7 +118,7 @@ class FramePoser:
         if solution is None:
             return "no plausible pose from the dots (or two equally plausible)"
         height = -float(solution.position_ned[2])
-        if not p.height_range_m[0] <= height <= p.height_range_m[1]:
+        if not _in_range(height, p.height_range_m):
             return f"height {height:.2f} m outside height_range_m"
         if solution.cross_check_deg > p.max_cross_check_deg:
             return f"beam-matrix attitude and P3P differ by {solution.cross_check_deg:.1f} deg"
@@ -132,9 +135,14 @@ class FramePoser:
         p = self.params
         height, roll, pitch = geometry.plane_from_body_points(geometry.dots_in_body(self.rig, dots.lengths_m),
                                                               self.rig.origins.mean(axis=0))
-        if not p.height_range_m[0] <= height <= p.height_range_m[1]:
+        if not _in_range(height, p.height_range_m):
             return FrameResult("none", f"height {height:.2f} m outside height_range_m (no marker in view)", dots)
         sigma = self.detector.length_sigma_m(dots.pixels, p.dot_sigma_px)
         cov = geometry.height_covariance(self.rig, dots.lengths_m, sigma ** 2)
         return FrameResult("tilt", "no floor marker in view: height and tilt only", dots,
                            tilt=(height, roll, pitch), tilt_covariance=cov)
+
+
+def _in_range(height_m: float, height_range_m: tuple[float, float]) -> bool:
+    """``height_m`` within ``height_range_m``, its low end lowered by REST_TOLERANCE_M."""
+    return height_range_m[0] - REST_TOLERANCE_M <= height_m <= height_range_m[1]

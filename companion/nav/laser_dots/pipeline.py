@@ -47,10 +47,13 @@ from companion.pipeline import PipelineContext
 from companion.plugins import register_pipeline
 from companion.schema import meta
 from companion.timing import Timings
-from companion.world import World, load_world
+from companion.world import FloorMarker, World, load_world
 from drivers.mount import OPTICAL_TO_SENSOR, Mount
 
 STREAM = "laser_dots"
+# One frame without a pose (a dot hidden for a moment, a speckle outlier refused) leaves the fusion
+# coasting on the IMU for a frame period: the pipeline reports degraded from this many in a row.
+DEGRADED_AFTER_FRAMES = 3
 
 
 @dataclass
@@ -96,6 +99,16 @@ class LaserDotsConfig:
         return {**raw, "world": move_map(self.world)}
 
 
+def frame_poser(section: LaserDotsConfig, calibration: CameraCalibration, camera_mount: Mount,
+                markers: tuple[FloorMarker, ...]) -> FramePoser:
+    """The per-frame solver a ``pipelines.laser_dots`` section describes, for a camera of
+    ``calibration`` on ``camera_mount`` over a floor with ``markers``."""
+    params = FramePoseParams(section.method, section.height_range_m, section.max_tilt_deg, section.dot_sigma_px,
+                             section.length_gate_sigmas, section.max_cross_check_deg)
+    return FramePoser(section.beams.rig(), calibration, camera_mount.rotation @ OPTICAL_TO_SENSOR,
+                      camera_mount.offset_m, markers, params)
+
+
 @dataclass
 class LaserDotsStats:
     frames: int = 0
@@ -118,10 +131,7 @@ class LaserDotsPipeline:
         self.health = health
         self.rig = cfg.beams.rig()
         self._image_size = (calibration.width, calibration.height)
-        params = FramePoseParams(cfg.method, cfg.height_range_m, cfg.max_tilt_deg, cfg.dot_sigma_px,
-                                 cfg.length_gate_sigmas, cfg.max_cross_check_deg)
-        self.poser = FramePoser(self.rig, calibration, camera_mount.rotation @ OPTICAL_TO_SENSOR, camera_mount.offset_m,
-                                world.floor_markers, params)
+        self.poser = frame_poser(cfg, calibration, camera_mount, world.floor_markers)
         self.fusion = FusionFilter()
         self.stats = LaserDotsStats()
         self.timings = {"laser_dots": Timings(), "fusion": Timings()}
@@ -131,6 +141,7 @@ class LaserDotsPipeline:
         self._measured: tuple[tuple[float, float], tuple[float, float, float]] | None = None  # (roll, pitch), autopilot euler then
         self._previous_pixels: np.ndarray | None = None
         self._previous_pose: tuple[np.ndarray, np.ndarray] | None = None
+        self._frames_without_pose = 0
         self._attitude_cov = np.full((2, 2), np.nan)  # of the newest measured roll, pitch, rad^2
         self._pending: list[Estimate] = []  # range and attitude estimates of this cycle's frame
         self._reset_counter = 0
@@ -185,6 +196,8 @@ class LaserDotsPipeline:
         else:
             key = result.reason.split(":")[0]
             self.stats.refused[key] = self.stats.refused.get(key, 0) + 1
+        self._frames_without_pose = 0 if result.kind == "pose" else self._frames_without_pose + 1
+        if self._frames_without_pose >= DEGRADED_AFTER_FRAMES:
             self.health.report("nav:laser_dots", State.DEGRADED, result.reason)
         self.last_result = (frame.t_capture, result)
 
@@ -216,7 +229,6 @@ class LaserDotsPipeline:
         attitude_cov[:2, :2] = cov[1:, 1:]
         self._pending.append(AttitudeEstimate(t_capture, (roll, pitch, math.nan), attitude_cov, source=self.name))
         self.stats.height_fixes += 1
-        self.health.report("nav:laser_dots", State.DEGRADED, result.reason)
 
     def _output(self, now: float) -> PoseEstimate | None:
         state = self.fusion.state(now)
