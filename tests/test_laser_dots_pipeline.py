@@ -133,7 +133,7 @@ def test_the_pipeline_sends_a_finite_pose_after_a_frame_over_the_markers() -> No
     p, level = pipeline(), pose((6.0, 0.8, -1.0))
     image = camera().render(0.0, level).image
     for k in range(20):
-        p.on_imu(imu_sample(0.02 * k))
+        p.imu.add(imu_sample(0.02 * k))
     p.on_frame(Frame("down", 0.2, image))
     out = p.step(0.4)
     poses = [e for e in out if isinstance(e, PoseEstimate)]
@@ -146,7 +146,7 @@ def test_without_markers_the_pipeline_gives_a_range_and_an_attitude_without_yaw_
     bare = dataclasses.replace(FIG4, floor_markers=())
     p = LaserDotsPipeline(SECTION, CALIBRATION, bare, MOUNT, Health(lambda: 0.0))
     image = camera(bare).render(0.0, pose((6.0, 0.8, -1.0))).image
-    p.on_imu(imu_sample(0.0))
+    p.imu.add(imu_sample(0.0))
     p.on_frame(Frame("down", 0.0, image))
     out = p.step(0.05)
     assert not any(isinstance(e, PoseEstimate) for e in out)  # no x, y, yaw: the fusion is not initialised
@@ -216,7 +216,7 @@ def test_one_frame_without_a_pose_is_ridden_out_three_in_a_row_degrade_with_the_
     blinded = camera(gain=10.0).render(0.0, OVER_MARKERS).image
 
     def state_after(image: np.ndarray, t: float) -> str:
-        p.on_imu(imu_sample(t))
+        p.imu.add(imu_sample(t))
         p.on_frame(Frame("down", t, image))
         p.step(t + 0.01)
         return health.snapshot()["components"]["nav:laser_dots"]["state"]

@@ -58,6 +58,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.frames import GRAVITY_MPS2, wrap_pi
+from companion.messages import ImuSample
 from companion.health import State
 from companion.messages import PoseEstimate
 
@@ -745,6 +746,27 @@ def _unknown_state(t: float, reason: str, reset_counter: int) -> FusedState:
     return FusedState(t, np.zeros(3), np.zeros(3), 0.0, UNKNOWN_VARIANCE * np.eye(3),
                       UNKNOWN_VARIANCE * np.eye(3), UNKNOWN_VARIANCE, False, reason, State.LOST,
                       np.zeros(3), reset_counter)
+
+
+class ImuFeed:
+    """The IMU samples a pipeline received since its previous nav cycle (oldest first), and the
+    autopilot's newest attitude (roll, pitch, yaw rad of body FRD in NED; zeros before any)."""
+
+    def __init__(self) -> None:
+        self.samples: list[ImuSample] = []
+        self.euler: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    def add(self, sample: ImuSample) -> None:
+        """The driver's handler: keep ``sample`` for the next cycle."""
+        self.samples.append(sample)
+        if sample.euler_rad is not None:
+            self.euler = sample.euler_rad
+
+    def predict(self, fusion: FusionFilter) -> None:
+        """Propagate ``fusion`` with every sample kept, in order, and forget them."""
+        for sample in self.samples:
+            fusion.predict(sample.t, sample.accel_body, sample.euler_rad or self.euler, sample.gyro_body)
+        self.samples.clear()
 
 
 def to_pose_estimate(state: FusedState, roll: float, pitch: float, t_capture: float | None = None,

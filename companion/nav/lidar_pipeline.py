@@ -34,9 +34,9 @@ import numpy as np
 from companion.config import MountConfig
 from companion.frames import planar_increment, wrap_pi
 from companion.health import Health, State
-from companion.messages import Estimate, ImuSample, PoseEstimate, Scan
+from companion.messages import Estimate, PoseEstimate, Scan
 from companion.nav.corners import CornerParams
-from companion.nav.fusion import FusedState, FusionFilter, to_pose_estimate, without_direction
+from companion.nav.fusion import FusedState, FusionFilter, ImuFeed, to_pose_estimate, without_direction
 from companion.nav.heading import HeadingParams
 from companion.nav.height import HeightEstimator
 from companion.nav.lidar_streams import STREAMS, ProcessedScan, map_payload, scan_payloads
@@ -160,8 +160,7 @@ class LidarPipeline:
         self.timings = {"lidar": Timings(), "fusion": Timings()}
         self._horizontal: Scan | None = None
         self._vertical: Scan | None = None
-        self._imu: list[ImuSample] = []  # received since the previous cycle, oldest first
-        self._euler: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the autopilot's, newest, rad
+        self.imu = ImuFeed()
         self._published: ProcessedScan | None = None  # the last scan telemetry() returned
         self._scan_yaw: float | None = None  # autopilot yaw at the previous horizontal scan
         self._scan_state: tuple[float, float, float] | None = None  # fused x, y (m), yaw (rad) there, if healthy
@@ -175,12 +174,7 @@ class LidarPipeline:
 
     def subscriptions(self) -> dict[str, Callable[[Any], None]]:
         return {self.cfg.horizontal_sensor: self.on_horizontal_scan, self.cfg.vertical_sensor: self.on_vertical_scan,
-                self.cfg.imu_sensor: self.on_imu}
-
-    def on_imu(self, sample: ImuSample) -> None:
-        self._imu.append(sample)
-        if sample.euler_rad is not None:
-            self._euler = sample.euler_rad
+                self.cfg.imu_sensor: self.imu.add}
 
     def on_horizontal_scan(self, scan: Scan) -> None:
         self.stats.horizontal_scans += 1
@@ -197,7 +191,7 @@ class LidarPipeline:
     def step(self, now: float) -> list[Estimate]:
         """Advance to daemon time ``now`` (s); the fused estimate, or none while not healthy."""
         started = time.perf_counter()
-        self._predict()
+        self.imu.predict(self.fusion)
         predicted = time.perf_counter()
         scan_ms = 0.0
         if self._horizontal is not None:
@@ -214,13 +208,7 @@ class LidarPipeline:
         return [] if estimate is None else [estimate]
 
     def _attitude(self) -> tuple[float, float, float]:
-        return self._euler
-
-    def _predict(self) -> None:
-        """Propagate the fusion with every IMU sample since the previous cycle, in order."""
-        for sample in self._imu:
-            self.fusion.predict(sample.t, sample.accel_body, sample.euler_rad or self._euler, sample.gyro_body)
-        self._imu.clear()
+        return self.imu.euler
 
     def _process_horizontal(self, scan: Scan) -> float:
         roll, pitch, yaw = self._attitude()

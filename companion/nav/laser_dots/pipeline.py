@@ -38,8 +38,8 @@ import numpy as np
 from companion.calibration import CameraCalibration, load_calibration
 from companion.frames import rotation_from_euler, wrap_pi
 from companion.health import Health, State
-from companion.messages import AttitudeEstimate, Estimate, Frame, ImuSample, PoseEstimate, RangeEstimate
-from companion.nav.fusion import FusionFilter, to_pose_estimate
+from companion.messages import AttitudeEstimate, Estimate, Frame, PoseEstimate, RangeEstimate
+from companion.nav.fusion import FusionFilter, ImuFeed, to_pose_estimate
 from companion.nav.laser_dots import geometry
 from companion.nav.laser_dots.beams import BeamRigConfig
 from companion.nav.laser_dots.frame_pose import FramePoseParams, FramePoser, FrameResult
@@ -136,8 +136,7 @@ class LaserDotsPipeline:
         self.stats = LaserDotsStats()
         self.timings = {"laser_dots": Timings(), "fusion": Timings()}
         self._frame: Frame | None = None
-        self._imu: list[ImuSample] = []
-        self._euler: tuple[float, float, float] = (0.0, 0.0, 0.0)  # the autopilot's, newest, rad
+        self.imu = ImuFeed()
         self._measured: tuple[tuple[float, float], tuple[float, float, float]] | None = None  # (roll, pitch), autopilot euler then
         self._previous_pixels: np.ndarray | None = None
         self._previous_pose: tuple[np.ndarray, np.ndarray] | None = None
@@ -152,12 +151,7 @@ class LaserDotsPipeline:
     # -- inputs (driver callbacks) ------------------------------------------------------
 
     def subscriptions(self) -> dict[str, Callable[[Any], None]]:
-        return {self.cfg.camera: self.on_frame, self.cfg.imu_sensor: self.on_imu}
-
-    def on_imu(self, sample: ImuSample) -> None:
-        self._imu.append(sample)
-        if sample.euler_rad is not None:
-            self._euler = sample.euler_rad
+        return {self.cfg.camera: self.on_frame, self.cfg.imu_sensor: self.imu.add}
 
     def on_frame(self, frame: Frame) -> None:
         self.stats.frames += 1
@@ -170,9 +164,7 @@ class LaserDotsPipeline:
         """Advance to daemon time ``now`` (s): this cycle's pose (while the fusion is healthy) and
         the range and attitude estimates of a frame processed now."""
         started = time.perf_counter()
-        for sample in self._imu:
-            self.fusion.predict(sample.t, sample.accel_body, sample.euler_rad or self._euler, sample.gyro_body)
-        self._imu.clear()
+        self.imu.predict(self.fusion)
         predicted = time.perf_counter()
         if self._frame is not None:
             self._process(self._frame)
@@ -185,7 +177,7 @@ class LaserDotsPipeline:
         return out if estimate is None else [estimate, *out]
 
     def _process(self, frame: Frame) -> None:
-        result = self.poser.process(frame.image, rotation_from_euler(*self._euler), self._previous_pose,
+        result = self.poser.process(frame.image, rotation_from_euler(*self.imu.euler), self._previous_pose,
                                     self._previous_pixels)
         found = result.dots.found
         self._previous_pixels = np.where(found[:, None], result.dots.pixels, np.nan) if found.any() else None
@@ -207,7 +199,7 @@ class LaserDotsPipeline:
         roll, pitch, yaw = (float(a) for a in solution.euler_rad)
         self.fusion.correct_position(t_capture, solution.position_ned, cov[:3, :3])
         self.fusion.correct_yaw(t_capture, yaw, float(cov[5, 5]))
-        self._measured = ((roll, pitch), self._euler)
+        self._measured = ((roll, pitch), self.imu.euler)
         self._attitude_cov = cov[3:5, 3:5]
         self._previous_pose = (solution.rotation, solution.position_ned)
         self.stats.pose_fixes += 1
@@ -219,7 +211,7 @@ class LaserDotsPipeline:
         height, roll, pitch = result.tilt
         cov = result.tilt_covariance
         self.fusion.correct_height(t_capture, height, float(cov[0, 0]))
-        self._measured = ((roll, pitch), self._euler)
+        self._measured = ((roll, pitch), self.imu.euler)
         self._attitude_cov = cov[1:, 1:]
         cos_tilt = math.cos(roll) * math.cos(pitch)  # the body's down axis against the floor normal
         low, high = self.cfg.height_range_m
@@ -247,7 +239,7 @@ class LaserDotsPipeline:
         """The newest measured roll and pitch (rad) carried forward by the autopilot's change since."""
         assert self._measured is not None  # the fusion is healthy only after a fix
         (roll, pitch), then = self._measured
-        return wrap_pi(roll + self._euler[0] - then[0]), wrap_pi(pitch + self._euler[1] - then[1])
+        return wrap_pi(roll + self.imu.euler[0] - then[0]), wrap_pi(pitch + self.imu.euler[1] - then[1])
 
     # -- telemetry --------------------------------------------------------------------------
 
