@@ -10,18 +10,13 @@ import re
 import socket
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
-import yaml
-
-from companion.dashboard.app import spawn_dashboard
 from companion.dashboard.bench import measure_dashboard
 from companion.dashboard.headless import HeadlessChromium
-from companion.telemetry.publisher import TelemetryPublisher
-from companion.telemetry.session import open_session
 from sitl.harness import wait_listening
 from tests.conftest import REPO, free_port
+from tests.dashboard_fleet import Publishers, fleet_page
 from tests.sitl_helpers import Processes, vehicle_args, wait_for, write_sitl_config
 from tests.test_mavsdk_interop import SitlRun, note_children, stop_sitl
 
@@ -115,43 +110,21 @@ def _stop_the_daemon_and_start_it_again(tmp_path: Path, procs: Processes) -> Non
 
 def test_each_vehicle_can_be_selected(tmp_path: Path) -> None:
     positions = {1: [1.0, 1.0, -1.0], 2: [4.0, 6.0, -1.5]}  # north, east, down m
-    endpoints = {sysid: f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}" for sysid in positions}
-    sessions = [open_session("peer", [endpoints[sysid]], [], False, False) for sysid in positions]
-    publishers = {sysid: TelemetryPublisher(session, sysid) for sysid, session in zip(positions, sessions)}
-    config = tmp_path / "ground.yaml"
-    config.write_text(yaml.safe_dump({"origin": {"lat": 0.0, "lon": 0.0, "alt": 0.0},
-                                      "telemetry": {"dashboard_connect": list(endpoints.values())}}))
-    stop = threading.Event()
 
-    def fly() -> None:  # two vehicles, each on its own zenoh endpoint, 10 Hz
-        while not stop.wait(0.1):
-            for sysid, publisher in publishers.items():
-                publisher.publish("pose", {"position_ned_m": positions[sysid], "euler_rad": [0.0, 0.0, 0.0]})
+    def tick(publishers: Publishers) -> None:  # two vehicles, each on its own zenoh endpoint, 10 Hz
+        for sysid, publisher in publishers.items():
+            publisher.publish("pose", {"position_ned_m": positions[sysid], "euler_rad": [0.0, 0.0, 0.0]})
 
-    flying = threading.Thread(target=fly, daemon=True)
-    flying.start()
-    dashboard, url = spawn_dashboard(config, 0)
-    try:
-        with HeadlessChromium() as browser:
-            browser.open(url)
-            options = browser.wait_for("(() => { const o = [...document.querySelectorAll('#vehicle-select option')]"
-                                       ".map((o) => o.value); return o.length === 2 && o; })()", 15, "two vehicles")
-            assert options == ["1", "2"]
-            for sysid in (1, 2, 1):  # whichever showed first, each one can be chosen
-                browser.evaluate("(() => { const s = document.getElementById('vehicle-select');"
-                                 f" s.value = '{sysid}'; s.dispatchEvent(new Event('change')); }})()")
-                north = positions[sysid][0]
-                assert browser.wait_for(f"(() => {{ const p = {MARKER}; return p && p[0] === {north} && p; }})()", 10,
-                                        f"vehicle {sysid}'s marker") == positions[sysid][:2]
-    finally:
-        dashboard.terminate()
-        dashboard.wait(10)
-        stop.set()
-        flying.join()
-        for publisher in publishers.values():
-            publisher.close()
-        for session in sessions:
-            session.close()
+    with fleet_page(tmp_path, (1, 2), tick) as browser:
+        options = browser.wait_for("(() => { const o = [...document.querySelectorAll('#vehicle-select option')]"
+                                   ".map((o) => o.value); return o.length === 2 && o; })()", 15, "two vehicles")
+        assert options == ["1", "2"]
+        for sysid in (1, 2, 1):  # whichever showed first, each one can be chosen
+            browser.evaluate("(() => { const s = document.getElementById('vehicle-select');"
+                             f" s.value = '{sysid}'; s.dispatchEvent(new Event('change')); }})()")
+            north = positions[sysid][0]
+            assert browser.wait_for(f"(() => {{ const p = {MARKER}; return p && p[0] === {north} && p; }})()", 10,
+                                    f"vehicle {sysid}'s marker") == positions[sysid][:2]
 
 
 def test_poses_reach_the_browser_at_their_rate_and_the_figures_are_printed() -> None:

@@ -6,19 +6,14 @@ from __future__ import annotations
 
 import json
 import math
-import socket
-import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 
 import pytest
-import yaml
 
-from companion.dashboard.app import spawn_dashboard
 from companion.dashboard.headless import HeadlessChromium
-from companion.telemetry.publisher import TelemetryPublisher
-from companion.telemetry.session import open_session
-from tests.conftest import REPO, free_port
+from tests.conftest import REPO
+from tests.dashboard_fleet import Publishers, fleet_page
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -85,40 +80,16 @@ class CameraPage:
 
 @pytest.fixture(scope="module")
 def camera_page(tmp_path_factory: pytest.TempPathFactory) -> Iterator[CameraPage]:
-    sysids = (1, 2)  # vehicle 1 runs the laser-dot pipeline, vehicle 2 does not
-    endpoints = {sysid: f"tcp/127.0.0.1:{free_port(socket.SOCK_STREAM)}" for sysid in sysids}
-    sessions = [open_session("peer", [endpoints[sysid]], [], False, False) for sysid in sysids]
-    publishers = {sysid: TelemetryPublisher(session, sysid) for sysid, session in zip(sysids, sessions)}
-    publishers[1].add_streams(("laser_dots",))  # as the daemon does for the pipeline's telemetry_streams
-    config = tmp_path_factory.mktemp("camera") / "ground.yaml"
-    config.write_text(yaml.safe_dump({"origin": {"lat": 0.0, "lon": 0.0, "alt": 0.0},
-                                      "telemetry": {"dashboard_connect": list(endpoints.values())}}))
-    payloads: dict[int, dict] = {1: POSE}
-    stop = threading.Event()
+    payloads: dict[int, dict] = {1: POSE}  # vehicle 1 runs the laser-dot pipeline, vehicle 2 does not
 
-    def fly() -> None:  # the pose's north is the sysid, so the page says which vehicle it shows
-        while not stop.wait(0.1):
-            for sysid, publisher in publishers.items():
-                publisher.publish("pose", {"position_ned_m": [float(sysid), 0.0, -1.0], "euler_rad": [0.0, 0.0, 0.0]})
-                if sysid in payloads:
-                    publisher.publish("laser_dots", payloads[sysid])
+    def tick(publishers: Publishers) -> None:  # the pose's north is the sysid, so the page says which vehicle it shows
+        for sysid, publisher in publishers.items():
+            publisher.publish("pose", {"position_ned_m": [float(sysid), 0.0, -1.0], "euler_rad": [0.0, 0.0, 0.0]})
+            if sysid in payloads:
+                publisher.publish("laser_dots", payloads[sysid])
 
-    flying = threading.Thread(target=fly, daemon=True)
-    flying.start()
-    dashboard, url = spawn_dashboard(config, 0)
-    try:
-        with HeadlessChromium() as browser:
-            browser.open(url)
-            yield CameraPage(browser, payloads)
-    finally:
-        dashboard.terminate()
-        dashboard.wait(10)
-        stop.set()
-        flying.join()
-        for publisher in publishers.values():
-            publisher.close()
-        for session in sessions:
-            session.close()
+    with fleet_page(tmp_path_factory.mktemp("camera"), (1, 2), tick, {1: ("laser_dots",)}) as browser:
+        yield CameraPage(browser, payloads)
 
 
 def test_the_camera_view_shows_the_dots_the_marker_quads_and_the_pose(camera_page: CameraPage) -> None:
