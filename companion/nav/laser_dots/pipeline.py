@@ -129,7 +129,6 @@ class LaserDotsPipeline:
         self.cfg = cfg
         self.world = world
         self.health = health
-        self.rig = cfg.beams.rig()
         self._image_size = (calibration.width, calibration.height)
         self.poser = frame_poser(cfg, calibration, camera_mount, world.floor_markers)
         self.fusion = FusionFilter()
