@@ -245,8 +245,18 @@ def test_floor_points_seen_in_a_rendered_frame_map_back_within_5_mm() -> None:
     floor, _ = mapper.to_floor(view, floor_to_pixels(cam, FLOOR_GRID))
     errors = np.linalg.norm(floor - FLOOR_GRID, axis=1)
     assert errors.max() < 0.005, errors
-    sigma = mapper.floor_uncertainty_m(view)
-    assert 0.0002 < sigma < 0.003 and np.sqrt(np.mean(errors ** 2)) < 3 * sigma * math.sqrt(2)
+    cov = mapper.floor_covariance(view, floor_to_pixels(cam, FLOOR_GRID))
+    sigma = np.sqrt(np.trace(cov, axis1=1, axis2=2))  # per point, both axes
+    assert np.all((0.0001 < sigma) & (sigma < 0.003)) and np.sqrt(np.mean((errors / sigma) ** 2)) < 3
+
+
+def test_a_point_far_outside_the_markers_maps_with_a_larger_covariance_than_one_among_them() -> None:
+    one_side = FLOOR_MARKERS[:1]  # marker 7 alone, at north 0.35, east 0.3
+    cam, mapper, view = rendered_view(one_side, one_side)
+    assert view is not None
+    pixels = floor_to_pixels(cam, np.array([[0.35, 0.3], [-0.4, -0.45]]))  # on the marker; 1 m away
+    near, far = np.sqrt(np.trace(mapper.floor_covariance(view, pixels), axis1=1, axis2=2))
+    assert far > 5 * near
 
 
 def test_the_floor_jacobian_carries_a_pixel_step_like_the_true_geometry() -> None:
@@ -297,3 +307,26 @@ def test_a_colour_frame_gives_the_same_floor_as_its_grey_version() -> None:
     colour = mapper.find(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR))
     assert view is not None and colour is not None
     assert np.allclose(colour.homography, view.homography) and colour.marker_ids == view.marker_ids
+
+
+def test_tracked_markers_around_a_predicted_pose_are_the_whole_image_ones_at_a_fraction_of_the_search() -> None:
+    cam, mapper, whole = rendered_view(FLOOR_MARKERS, FLOOR_MARKERS)
+    image = cam.render(0.0, cam.truth.at(0.0)).image
+    rotation, centre = cam.camera_pose(cam.truth.at(0.0))
+    nudge = cv2.Rodrigues(np.radians([1.0, -0.5, 2.0]))[0]  # the previous frame's pose: 2.3 deg and 4 cm off
+    predicted = (nudge @ rotation, centre + [0.03, -0.02, 0.02])
+    boxes = mapper.predicted_boxes(*predicted)
+    assert sorted(boxes) == [3, 7, 11, 42]
+    assert sum((r.stop - r.start) * (c.stop - c.start) for r, c in boxes.values()) < 0.4 * image.size
+    tracked = mapper.find(image, predicted)
+    assert whole is not None and tracked is not None and sorted(tracked.marker_ids) == sorted(whole.marker_ids)
+    order = [tracked.marker_ids.index(i) for i in whole.marker_ids]
+    assert np.abs(tracked.corner_pixels[order] - whole.corner_pixels).max() < 0.05
+
+
+def test_a_wrong_prediction_falls_back_to_searching_the_whole_image() -> None:
+    cam, mapper, whole = rendered_view(FLOOR_MARKERS, FLOOR_MARKERS)
+    rotation, centre = cam.camera_pose(cam.truth.at(0.0))
+    far = (rotation, centre + [3.0, 0.0, 0.0])  # predicts the markers out of view
+    tracked = mapper.find(cam.render(0.0, cam.truth.at(0.0)).image, far)
+    assert whole is not None and tracked is not None and sorted(tracked.marker_ids) == sorted(whole.marker_ids)

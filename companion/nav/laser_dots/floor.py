@@ -12,12 +12,14 @@ The markers' corners are undistorted first, so one homography H maps normalised 
 coordinates to the floor (a plane seen by a pinhole): fitted by least squares (cv2.findHomography
 without RANSAC) to the 4 corners of every visible marker of the world, with distinct ids.
 
-Mapping error model (:meth:`FloorMapper.floor_uncertainty_m`): a corner's floor residual has a
+Mapping error model (:meth:`FloorMapper.floor_covariance`): a corner's floor residual has a
 1-sigma per axis ``s`` = the larger of the fit's residual estimate ``sqrt(SSR / (2n - 8))`` (n
 corners, 8 parameters; none for one marker) and ``corner_sigma_px`` times the floor metres per
-pixel; the mapping of a point among the markers then errs by ``s * sqrt(8 / (2n))`` per axis (the
-mean leverage of a least-squares fit of 8 parameters to 2n values). Points far outside the
-markers' hull err more (extrapolation): the model does not cover that.
+pixel. The homography's 8 parameters then have the covariance ``s^2 (A^T A)^-1`` (A: the
+Jacobian of the 2n corner mappings with respect to them), and a point maps with the covariance
+``J s^2 (A^T A)^-1 J^T`` (J: its mapping's Jacobian with respect to the parameters). This grows
+as a point lies farther outside the markers' hull: a dot mapped through markers all on one side
+of the image (extrapolation) is as uncertain as it is, not as a point among them.
 """
 
 from __future__ import annotations
@@ -35,6 +37,7 @@ from companion.world import ARUCO_DICTIONARY, FloorMarker
 
 HOMOGRAPHY_PARAMETERS = 8
 JACOBIAN_STEP_PX = 0.01  # central differences of the pixel -> floor mapping, pixels
+TRACKED_MIN_PERIMETER_RATE = 0.6  # of a tracking box's larger side: a marker of side >= 15 % of it
 
 
 @dataclass(frozen=True)
@@ -48,6 +51,14 @@ class FloorParams:
     # downscaled image, reaches 4.0 ms but its corners are worse: a one-marker camera pose 3.5 deg off
     # instead of 0.3 deg.)
     threshold_window_step_px: int = 20
+    # Tracking: given the camera pose expected for an image (the previous frame's), each marker is
+    # looked for only in its predicted box grown by the larger of these (px; fraction of the box's
+    # size), at most ``max_tracked_markers`` of them (the nearest the image centre); fewer than
+    # ``min_tracked_markers`` found there: the whole image is searched.
+    track_margin_px: int = 25
+    track_margin_fraction: float = 0.5
+    min_tracked_markers: int = 2
+    max_tracked_markers: int = 6
 
 
 @dataclass(frozen=True)
@@ -69,6 +80,19 @@ def apply_homography(homography: np.ndarray, points: np.ndarray) -> np.ndarray:
     cv2.perspectiveTransform, which gives 0)."""
     mapped = np.column_stack((points, np.ones(len(points)))) @ homography.T
     return mapped[:, :2] / mapped[:, 2:]
+
+
+def homography_jacobian(homography: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(N, 2, 8) derivatives of the images of (N, 2) points under ``homography`` (scaled to
+    h33 = 1) with respect to its other 8 entries, row by row."""
+    h = homography / homography[2, 2]
+    x, y = points[:, 0], points[:, 1]
+    w = h[2, 0] * x + h[2, 1] * y + 1.0
+    mapped = apply_homography(h, points)
+    zero = np.zeros_like(x)
+    row_x = np.column_stack((x / w, y / w, 1.0 / w, zero, zero, zero, -mapped[:, 0] * x / w, -mapped[:, 0] * y / w))
+    row_y = np.column_stack((zero, zero, zero, x / w, y / w, 1.0 / w, -mapped[:, 1] * x / w, -mapped[:, 1] * y / w))
+    return np.stack((row_x, row_y), axis=1)
 
 
 def map_pixels(calibration: CameraCalibration, homography: np.ndarray,
@@ -117,17 +141,30 @@ class FloorMapper:
                  dictionary: int = ARUCO_DICTIONARY, params: FloorParams = FloorParams()) -> None:
         self.calibration = calibration
         self.markers = {m.id: m for m in markers}
+        self._marker_ids = tuple(self.markers)
+        corners = [np.column_stack((m.corners(), np.zeros(4))) for m in self.markers.values()]
+        self._corners_ned = np.concatenate(corners) if corners else np.zeros((0, 3))  # (4M, 3), for tracking
         self.params = params
         detector_params = cv2.aruco.DetectorParameters()
         detector_params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
         detector_params.cornerRefinementWinSize = params.subpix_window_px
         detector_params.adaptiveThreshWinSizeStep = params.threshold_window_step_px
         self.detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(dictionary), detector_params)
+        # In a tracking box the marker is most of the crop: contours smaller than 15 % of the
+        # box's side (the floor's texture) are not candidates, which is most of the search's cost.
+        detector_params.minMarkerPerimeterRate = TRACKED_MIN_PERIMETER_RATE
+        self.box_detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(dictionary), detector_params)
 
-    def find(self, image: np.ndarray) -> FloorView | None:
+    def find(self, image: np.ndarray, predicted: tuple[np.ndarray, np.ndarray] | None = None) -> FloorView | None:
         """The floor view of ``image`` ((H, W) grey or (H, W, 3) BGR uint8), or None if no marker of
-        the world is seen once."""
-        marker_ids, pixels, ignored = self.known_markers(image)
+        the world is seen once. ``predicted``: the camera pose (rotation optical -> NED, centre NED
+        m) expected for this image, e.g. the previous frame's: markers are then looked for around
+        where it puts them (``FloorParams``' tracking), which costs a fraction of a whole-image search."""
+        grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        found = None if predicted is None else self.tracked_markers(grey, *predicted)
+        if found is None or len(found[0]) < self.params.min_tracked_markers:
+            found = self.known_markers(grey)
+        marker_ids, pixels, ignored = found
         if not marker_ids:
             return None
         normalised = self.calibration.undistort_points(pixels.reshape(-1, 2))
@@ -141,10 +178,39 @@ class FloorMapper:
                          float(np.sqrt(np.mean(np.sum(residuals ** 2, axis=1)))),
                          float(np.mean(np.sqrt(np.abs(np.linalg.det(jacobian))))), ignored)
 
-    def known_markers(self, image: np.ndarray) -> tuple[tuple[int, ...], np.ndarray, int]:
+    def predicted_boxes(self, optical_to_ned: np.ndarray, centre_ned: np.ndarray) -> dict[int, tuple[slice, slice]]:
+        """{marker id: (rows, columns)} of the image where a camera at this pose (rotation optical ->
+        NED, centre NED m) sees each world marker whole, each box grown by the tracking margin and
+        clipped to the image; at most ``max_tracked_markers``, the nearest the image centre."""
+        p, cal = self.params, self.calibration
+        pixels = cal.project((self._corners_ned - centre_ned) @ optical_to_ned).reshape(-1, 4, 2)
+        size = np.array([cal.width - 1, cal.height - 1])
+        whole = np.all(np.isfinite(pixels) & (pixels >= 0) & (pixels <= size), axis=(1, 2))
+        low, high = pixels[whole].min(axis=1), pixels[whole].max(axis=1)
+        margin = np.maximum(p.track_margin_px, p.track_margin_fraction * (high - low).max(axis=1))[:, None]
+        lo, hi = np.floor(low - margin).astype(int), np.ceil(high + margin).astype(int) + 1
+        offset = np.linalg.norm((low + high) / 2 - size / 2, axis=1)
+        ids = np.array(self._marker_ids)[whole]
+        return {int(ids[k]): (slice(max(lo[k, 1], 0), min(hi[k, 1], cal.height)),
+                              slice(max(lo[k, 0], 0), min(hi[k, 0], cal.width)))
+                for k in np.argsort(offset, kind="stable")[:p.max_tracked_markers]}
+
+    def tracked_markers(self, grey: np.ndarray, optical_to_ned: np.ndarray,
+                        centre_ned: np.ndarray) -> tuple[tuple[int, ...], np.ndarray, int]:
+        """As :meth:`known_markers`, each marker looked for only in its predicted box
+        (:meth:`predicted_boxes`); a detection of another id in a box is not counted."""
+        ids, pixels = [], []
+        for marker_id, (rows, cols) in self.predicted_boxes(optical_to_ned, centre_ned).items():
+            corners, found, _ = self.box_detector.detectMarkers(np.ascontiguousarray(grey[rows, cols]))
+            hits = [] if found is None else [k for k, i in enumerate(found.ravel()) if int(i) == marker_id]
+            if len(hits) == 1:
+                ids.append(marker_id)
+                pixels.append(corners[hits[0]].reshape(4, 2) + [cols.start, rows.start])
+        return tuple(ids), np.array(pixels, dtype=float).reshape(-1, 4, 2), 0
+
+    def known_markers(self, grey: np.ndarray) -> tuple[tuple[int, ...], np.ndarray, int]:
         """(ids, (M, 4, 2) corner pixels, count of the other detections) of the world's markers
-        detected exactly once in ``image`` (grey or BGR)."""
-        grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        detected exactly once in the whole (H, W) grey image."""
         corners, ids, _ = self.detector.detectMarkers(grey)
         detected = [] if ids is None else [int(i) for i in ids.ravel()]
         seen = Counter(detected)
@@ -158,13 +224,16 @@ class FloorMapper:
         to the floor: ``cov_floor = J cov_px J.T``."""
         return map_pixels(self.calibration, view.homography, pixels)
 
-    def floor_uncertainty_m(self, view: FloorView) -> float:
-        """1-sigma per floor axis (m) of the homography's mapping error for points among the
-        markers (the model of the module docstring)."""
+    def floor_covariance(self, view: FloorView, pixels: np.ndarray) -> np.ndarray:
+        """(N, 2, 2) covariance (m^2, [north, east]) of the homography's mapping of the (N, 2)
+        pixels (the model of the module docstring; NaN rows give NaN)."""
         dof = 2 * view.n_points - HOMOGRAPHY_PARAMETERS
         residual_sigma = math.sqrt(view.n_points * view.rms_m ** 2 / dof) if dof > 0 else 0.0
         corner_sigma = max(residual_sigma, self.params.corner_sigma_px * view.metres_per_px)
-        return corner_sigma * math.sqrt(HOMOGRAPHY_PARAMETERS / (2 * view.n_points))
+        corners = homography_jacobian(view.homography, view.corner_normalised.reshape(-1, 2)).reshape(-1, HOMOGRAPHY_PARAMETERS)
+        parameters = corner_sigma ** 2 * np.linalg.pinv(corners.T @ corners)
+        points = homography_jacobian(view.homography, self.calibration.undistort_points(pixels))
+        return points @ parameters @ points.transpose(0, 2, 1)
 
     def camera_pose(self, view: FloorView) -> tuple[np.ndarray, np.ndarray] | None:
         """(rotation optical -> NED (3x3), camera centre NED (3,) m) from the markers alone, or

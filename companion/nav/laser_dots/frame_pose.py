@@ -27,6 +27,7 @@ from typing import Literal
 import numpy as np
 
 from companion.calibration import CameraCalibration
+from companion.frames import euler_from_rotation, rotation_from_euler
 from companion.nav.laser_dots import geometry
 from companion.nav.laser_dots.beams import BeamRig
 from companion.nav.laser_dots.detect import DotDetector, Dots
@@ -84,22 +85,42 @@ class FramePoser:
                 previous_pixels: np.ndarray | None = None) -> FrameResult:
         """The frame's result; ``prior_rotation`` (body -> NED, e.g. the autopilot's attitude),
         ``previous_pose`` ((rotation, NED position m) of the last pose) and ``previous_pixels``
-        ((3, 2) dot pixels of the last frame, NaN rows unknown) pick among ambiguous answers."""
+        ((3, 2) dot pixels of the last frame, NaN rows unknown) pick among ambiguous answers; the
+        previous pose also says where to look for the floor markers (floor.py, tracking)."""
         dots = self.detector.detect(image, previous_pixels)
         if dots.reason is not None or not dots.found.all():
             return FrameResult("none", dots.reason or f"{int(dots.found.sum())} of 3 dots seen", dots)
-        view = self.mapper.find(image)
+        view = self.mapper.find(image, self._predicted_camera(prior_rotation, previous_pose))
         if view is None:
             return self._tilt(dots)
         return self._pose(dots, view, prior_rotation, previous_pose)
+
+    def _predicted_camera(self, prior_rotation: np.ndarray | None,
+                          previous_pose: tuple[np.ndarray, np.ndarray] | None) -> tuple[np.ndarray, np.ndarray] | None:
+        """Where the camera should be for this frame (to track the markers): the previous pose's
+        position and yaw with the prior's roll and pitch (the autopilot's attitude now; its yaw may
+        be offset from the map's), or None without a previous pose."""
+        if previous_pose is None:
+            return None
+        rotation, position = previous_pose
+        if prior_rotation is not None:
+            roll, pitch, _ = euler_from_rotation(prior_rotation)
+            rotation = rotation_from_euler(roll, pitch, euler_from_rotation(rotation)[2])
+        return self.camera_pose(rotation, position)
+
+    def camera_pose(self, body_to_ned: np.ndarray, position_ned: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(rotation optical -> NED, camera centre NED m) of the camera for a body pose (rotation
+        body FRD -> NED, body origin NED m)."""
+        return (body_to_ned @ self.detector.optical_to_body,
+                position_ned + body_to_ned @ self.detector.camera_origin_body)
 
     def _pose(self, dots: Dots, view: FloorView, prior_rotation: np.ndarray | None,
               previous_pose: tuple[np.ndarray, np.ndarray] | None) -> FrameResult:
         p = self.params
         markers, corners = tuple(view.marker_ids), view.corner_pixels
         floor, jacobian = self.mapper.to_floor(view, dots.pixels)
-        sigma_map = self.mapper.floor_uncertainty_m(view)
-        dots_cov = p.dot_sigma_px ** 2 * jacobian @ jacobian.transpose(0, 2, 1) + sigma_map ** 2 * np.eye(2)
+        dots_cov = (p.dot_sigma_px ** 2 * jacobian @ jacobian.transpose(0, 2, 1)
+                    + self.mapper.floor_covariance(view, dots.pixels))
         solution = geometry.solve(self.rig, floor, p.method, prior_rotation=prior_rotation, previous=previous_pose,
                                   max_tilt_deg=p.max_tilt_deg)
         problem = self._refusal(solution, dots)
