@@ -48,8 +48,8 @@ import numpy as np
 from companion import clock
 from companion.calibration import CameraCalibration
 from companion.frames import rotation_from_quat
+from companion.laser_beams import BeamRigConfig
 from companion.messages import Frame
-from companion.nav.laser_dots.beams import BeamRigConfig
 from companion.schema import meta
 from companion.world import World
 from drivers.base import Backend

@@ -9,7 +9,7 @@ Model of one dot, for each view of the exposure (so that a dot smears with motio
 scene does):
 
 - the vehicle's body pose is the camera's undone through its mount (camera and beams are one
-  rigid body); each beam of the TRUE rig (companion/nav/laser_dots/beams.py) meets the first
+  rigid body); each beam of the TRUE rig (companion/laser_beams.py) meets the first
   thing along it (:meth:`sitl.camera_scene.Scene.cast`): the floor, an obstacle's top or side, a
   wall; nothing within the scene's range (a beam pointing up into the open): no dot;
 - the camera sees the dot unless something lies between them (the ray from the camera meets a
@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.calibration import CameraCalibration
-from companion.nav.laser_dots.beams import BEAMS, BeamRig
+from companion.laser_beams import BEAMS, BeamRig
 from drivers.mount import OPTICAL_TO_SENSOR, Mount
 from sitl.camera_scene import Scene
 

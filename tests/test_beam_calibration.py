@@ -17,7 +17,7 @@ import pytest
 from companion.cli import main
 from companion.config import load_config
 from companion.frames import rotation_from_quat
-from companion.nav.laser_dots.beams import BeamRig, BeamRigConfig, nominal_rig
+from companion.laser_beams import BeamRig, BeamRigConfig, nominal_rig
 from companion.nav.laser_dots.pipeline import frame_poser
 from companion.schema import parse_document
 from companion.world import load_world

@@ -14,7 +14,7 @@ import yaml
 
 from companion.frames import euler_from_rotation, rotation_from_euler, wrap_pi
 from companion.nav.laser_dots import geometry as g
-from companion.nav.laser_dots.beams import BeamRig, BeamRigConfig, nominal_rig
+from companion.laser_beams import BeamRig, BeamRigConfig, nominal_rig
 from companion.nav.laser_dots.calibrate import calibrate_beams, rig_to_yaml
 
 POSES = 300

@@ -15,7 +15,7 @@ import pytest
 from companion.calibration import CameraCalibration
 from companion.config import MountConfig
 from companion.frames import quat_from_euler, rotation_from_euler
-from companion.nav.laser_dots.beams import nominal_rig
+from companion.laser_beams import nominal_rig
 from companion.nav.laser_dots.detect import GREY_REASON, SATURATED_REASON, DotDetector, Dots, triangulate
 from companion.nav.laser_dots.floor import FloorMapper, FloorView
 from companion.world import Bounds, FloorMarker, World

@@ -14,7 +14,7 @@ import yaml
 
 from companion.calibration import CameraCalibration
 from companion.config import MountConfig
-from companion.nav.laser_dots.beams import BeamRigConfig
+from companion.laser_beams import BeamRigConfig
 from companion.schema import SchemaError, load_text
 from companion.world import ARUCO_DICTIONARY, Bounds, Obstacle, Wall, World, load_world
 from drivers.mount import Mount

@@ -4,7 +4,8 @@ laser-dots-indoor-navigation.txt) on a downward camera.
 Three laser pointers fixed to the body shoot at the floor; the downward camera sees their dots
 and the floor's ArUco markers. The parts, each plain numpy/OpenCV with no I/O:
 
-- :mod:`.beams`: the beam rig (origins and directions in body FRD), nominal or calibrated;
+- :mod:`companion.laser_beams` (outside the package: the simulator draws the same rig): the beam
+  rig (origins and directions in body FRD), nominal or calibrated;
 - :mod:`.detect`: the dots in an image (red dominance, blobs, sub-pixel centroids, which beam
   made which dot);
 - :mod:`.floor`: the floor markers in an image, the image-to-floor homography, the dots on the floor;

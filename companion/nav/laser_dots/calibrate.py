@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.nav.laser_dots.beams import BEAMS, BeamRig
+from companion.laser_beams import BEAMS, BeamRig
 
 MIN_OBSERVATIONS = 3  # frames that saw a beam's dot
 MIN_HEIGHT_SPAN_M = 0.3  # between the lowest and the highest of those frames, m
@@ -99,7 +99,7 @@ def calibrate_beams(observations: Sequence[Observation], nominal: BeamRig) -> Be
 
 
 def rig_to_yaml(rig: BeamRig) -> str:
-    """The ``beams:`` section of a config (:class:`~companion.nav.laser_dots.beams.BeamRigConfig`)
+    """The ``beams:`` section of a config (:class:`~companion.laser_beams.BeamRigConfig`)
     for a calibrated rig: ``origins_m`` (body FRD, m) and ``directions`` rows, 6 decimals."""
     def rows(values: np.ndarray) -> list[str]:
         return ["    - [" + ", ".join(f"{round(float(v), 6) + 0.0:.6f}" for v in row) + "]" for row in values]

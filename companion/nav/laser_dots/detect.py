@@ -3,7 +3,7 @@ beam made it.
 
 Frames and units: pixels (u, v) = (column, row), integer values at pixel centres (OpenCV);
 OpenCV's optical frame (x right, y down, z along the axis, companion/calibration.py); body FRD,
-metres (the beams, companion/nav/laser_dots/beams.py, and the camera centre).
+metres (the beams, companion/laser_beams.py, and the camera centre).
 
 Steps:
 
@@ -34,7 +34,7 @@ import cv2
 import numpy as np
 
 from companion.calibration import CameraCalibration
-from companion.nav.laser_dots.beams import BEAMS, BeamRig
+from companion.laser_beams import BEAMS, BeamRig
 
 GREY_REASON = "grey image: the laser dots need a colour (BGR) camera"
 SATURATED_REASON = "image saturated"

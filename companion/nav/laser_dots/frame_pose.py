@@ -28,8 +28,8 @@ import numpy as np
 
 from companion.calibration import CameraCalibration
 from companion.frames import euler_from_rotation, rotation_from_euler
+from companion.laser_beams import BeamRig
 from companion.nav.laser_dots import geometry
-from companion.nav.laser_dots.beams import BeamRig
 from companion.nav.laser_dots.detect import DotDetector, Dots
 from companion.nav.laser_dots.floor import FloorMapper, FloorView
 from companion.world import FloorMarker

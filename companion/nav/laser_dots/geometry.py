@@ -4,7 +4,7 @@ Frames and units: world LOCAL_NED (x north, y east, z down, metres; the floor is
 z = 0), body FRD (x forward, y right, z down, metres); a rotation is body FRD -> NED
 (``v_ned = R @ v_body``); Euler angles are ZYX (roll, pitch, yaw) radians (companion/frames.py).
 Floor dots are (3, 2) arrays of [north, east] metres, row i = the dot of beam i of the
-:class:`~companion.nav.laser_dots.beams.BeamRig`; a beam's length is metres from its own origin.
+:class:`~companion.laser_beams.BeamRig`; a beam's length is metres from its own origin.
 
 Two solvers:
 
@@ -38,7 +38,7 @@ from typing import Literal
 import numpy as np
 
 from companion.frames import euler_from_rotation
-from companion.nav.laser_dots.beams import BEAMS, BeamRig
+from companion.laser_beams import BEAMS, BeamRig
 
 Method = Literal["closed_form", "general"]
 

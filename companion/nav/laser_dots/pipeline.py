@@ -38,10 +38,10 @@ import numpy as np
 from companion.calibration import CameraCalibration, load_calibration
 from companion.frames import rotation_from_euler, wrap_pi
 from companion.health import Health, State
+from companion.laser_beams import BeamRigConfig
 from companion.messages import AttitudeEstimate, Estimate, Frame, PoseEstimate, RangeEstimate
 from companion.nav.fusion import FusionFilter, ImuFeed, to_pose_estimate
 from companion.nav.laser_dots import geometry
-from companion.nav.laser_dots.beams import BeamRigConfig
 from companion.nav.laser_dots.frame_pose import FramePoseParams, FramePoser, FrameResult
 from companion.pipeline import PipelineContext
 from companion.plugins import register_pipeline
