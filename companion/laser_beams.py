@@ -41,15 +41,14 @@ class BeamRig:
         object.__setattr__(self, "origins", origins)
         object.__setattr__(self, "directions", directions / norms[:, None])
 
-    @property
-    def common_origin(self) -> bool:
-        """All beams start at one point (the seed's assumption, needed by the closed form)."""
-        return bool(np.ptp(self.origins, axis=0).max() < 1e-9)
-
     def angle_deg(self, i: int, j: int) -> float:
         """Angle between beams i and j, degrees."""
         c = float(np.clip(self.directions[i] @ self.directions[j], -1.0, 1.0))
         return math.degrees(math.acos(c))
+
+    def mean_angle_deg(self) -> float:
+        """The mean angle between the three pairs of beams, degrees (the seed's alpha)."""
+        return (self.angle_deg(0, 1) + self.angle_deg(1, 2) + self.angle_deg(0, 2)) / 3.0
 
     def floor_hits(self, rotation: np.ndarray, position_ned: np.ndarray,
                    floor_z: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

@@ -176,6 +176,7 @@ def test_check_config_warns_when_the_camera_cannot_see_all_three_dots(tmp_path: 
     assert main(["check-config", str(cfg)]) == 0
     err = capsys.readouterr().err
     assert "warning" in err and "loses a laser dot" in err and "outside the image" in err
+    assert "eq. 41 asks a sensor size over focal length of at least 2.83" in err and "this camera has 1.50" in err
 
 
 def fly_fig4(tmp_path: Path, seconds: float, **pipeline_changes: object) -> dict:

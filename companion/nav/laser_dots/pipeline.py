@@ -295,15 +295,20 @@ def _advise(cfg: Any, section: LaserDotsConfig) -> list[str]:
     def project(points_body: np.ndarray) -> np.ndarray:
         return calibration.project((points_body - mount.offset_m) @ optical_to_body)
 
+    rig = section.beams.rig()
     heights = np.linspace(*section.height_range_m, FOV_HEIGHT_SAMPLES)
-    problems = geometry.fov_problems(section.beams.rig(), project, calibration.width, calibration.height,
-                                     heights, section.max_tilt_deg)
+    problems = geometry.fov_problems(rig, project, calibration.width, calibration.height, heights,
+                                     section.max_tilt_deg)
     if not problems:
         return []
     shown = "; ".join(problems[:FOV_PROBLEMS_SHOWN])
     more = f" (and {len(problems) - FOV_PROBLEMS_SHOWN} more)" if len(problems) > FOV_PROBLEMS_SHOWN else ""
+    short_side = min(calibration.width / calibration.K[0, 0], calibration.height / calibration.K[1, 1])
     return [f"the camera {section.camera!r} loses a laser dot within height_range_m and max_tilt_deg: {shown}{more}; "
-            f"a wider lens, a smaller beam angle or a narrower envelope fixes it"]
+            f"for beams {rig.mean_angle_deg():.1f} deg apart the seed's eq. 41 asks a sensor size over focal length "
+            f"of at least {geometry.seed_min_sensor_ratio(rig.mean_angle_deg()):.2f} (level, camera at the beams' "
+            f"origin), this camera has {short_side:.2f} across its short side: a wider lens, a smaller beam angle or "
+            f"a narrower envelope fixes it"]
 
 
 @register_pipeline("laser_dots", LaserDotsConfig, check_files=_check_files, advise=_advise)
