@@ -154,6 +154,18 @@ def test_a_second_spot_on_a_beams_curve_loses_to_the_one_nearer_the_previous_dot
     assert np.abs(detector().detect(image, previous).pixels[0] - elsewhere.pixels[0]).max() < 0.15
 
 
+def test_with_the_previous_dots_only_squares_around_them_are_read_and_a_miss_falls_back_to_the_windows() -> None:
+    truth = dot_truth(*POSES[0])
+    stray = truth.pixels[:1] + [0.0, 40.0]  # in beam 0's search window, outside its 30 px tracking square
+    image = draw_dots(np.vstack((truth.pixels, stray)))
+    assert detector().detect(image).extra == 1
+    tracked = detector().detect(image, truth.pixels + 2.0)  # the dots moved 2 px since the previous frame
+    assert tracked.found.all() and tracked.extra == 0
+    assert np.abs(tracked.pixels - truth.pixels).max() < 0.15
+    lost = detector().detect(image, truth.pixels + [80.0, 0.0])  # a wrong previous: not all three nearby
+    assert lost.found.all() and np.abs(lost.pixels - truth.pixels).max() < 0.15
+
+
 def test_a_missing_dot_leaves_only_its_beam_unfound() -> None:
     truth = dot_truth(*POSES[1])
     dots = detector().detect(draw_dots(truth.pixels[[0, 2]]))

@@ -78,15 +78,17 @@ def run_dots_bench(repeat: int) -> tuple[dict[str, tuple[float, float]], dict[st
 
 
 class Tracked:
-    """Frames processed in order, each with the previous one's pose (as the pipeline does)."""
+    """Frames processed in order, each with the previous one's pose and dots (as the pipeline does)."""
 
     def __init__(self, poser: FramePoser) -> None:
         self.poser = poser
         self.previous: tuple[np.ndarray, np.ndarray] | None = None
+        self.pixels: np.ndarray | None = None
 
     def process(self, frame: BenchFrame) -> FrameResult:
-        result = self.poser.process(frame.image, frame.rotation, self.previous)
+        result = self.poser.process(frame.image, frame.rotation, self.previous, self.pixels)
         self.previous = None if result.solution is None else (result.solution.rotation, result.solution.position_ned)
+        self.pixels = result.dots.pixels
         return result
 
 

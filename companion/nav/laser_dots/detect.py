@@ -20,7 +20,9 @@ Steps:
    beams assigned first, then the least summed cost, where the cost is the distance from the
    curve plus ``prior_weight`` times the distance from the beam's dot in the previous frame.
    Blobs left over are counted as ``extra``. Only each beam's search window is looked at (its
-   curve's bounding box grown by ``search_margin_px``): a red spot farther away is not seen at all;
+   curve's bounding box grown by ``search_margin_px``): a red spot farther away is not seen at all.
+   With the previous frame's three dots, first only squares around them (``track_px``), the
+   search windows when that does not find all three;
 5. the beam length of each dot: closest approach between the beam and the camera ray through the
    dot (:func:`triangulate`).
 """
@@ -62,6 +64,9 @@ class DotParams:
     # about a sixth of a 640x480 image instead of all of it.
     search_margin_px: int = 30
     saturation_stride_px: int = 4  # the saturated share is estimated on every n-th pixel of every n-th row
+    # With the previous frame's three dots known, each is looked for first within this (pixels, half
+    # the side of a square) of where it was; the whole search windows only if that misses one.
+    track_px: int = 30
 
 
 @dataclass(frozen=True)
@@ -263,24 +268,39 @@ class DotDetector:
         self.windows = [w for w in (search_window(c, params.search_margin_px, calibration.width, calibration.height)
                                     for c in self.curves) if w is not None]
 
-    def blobs(self, image_bgr: np.ndarray) -> Blobs:
-        """The red blobs of the search windows (one blob seen by two overlapping windows counts once)."""
+    def blobs(self, image_bgr: np.ndarray, windows: list[tuple[slice, slice]]) -> Blobs:
+        """The red blobs of the ``windows`` ((rows, columns) of the image; one blob seen by two
+        overlapping windows counts once)."""
         p = self.params
         found = [find_blobs(*laser_weight(image_bgr[rows, cols], p.saturation_level, p.min_dominance), p,
-                            (cols.start, rows.start)) for rows, cols in self.windows]
+                            (cols.start, rows.start)) for rows, cols in windows]
         centroids = np.concatenate([b.centroids for b in found]).reshape(-1, 2)
         strengths = np.concatenate([b.strengths for b in found])
         keep = [i for i in range(len(centroids))
                 if not np.any(np.linalg.norm(centroids[:i] - centroids[i], axis=1) < SAME_BLOB_PX)]
         return Blobs(centroids[keep], strengths[keep])
 
+    def tracking_windows(self, previous: np.ndarray) -> list[tuple[slice, slice]]:
+        """Squares of half-side ``track_px`` around the (3, 2) dot pixels of the previous frame."""
+        t, width, height = self.params.track_px, self.calibration.width, self.calibration.height
+        return [(slice(max(int(v) - t, 0), min(int(v) + t + 1, height)),
+                 slice(max(int(u) - t, 0), min(int(u) + t + 1, width))) for u, v in previous]
+
     def detect(self, image_bgr: np.ndarray, previous: np.ndarray | None = None) -> Dots:
         """The dots in ``image_bgr`` ((H, W, 3) uint8 BGR at the calibration's size); ``previous``:
-        the (3, 2) dot pixels of the previous frame (NaN rows = unknown), a prior for the identity."""
+        the (3, 2) dot pixels of the previous frame (NaN rows = unknown), a prior for the identity
+        and, when all three are known, where to look first (``track_px``)."""
         reason = self.unusable(image_bgr)
         if reason is not None:
             return no_dots(reason)
-        blobs = self.blobs(image_bgr)
+        if previous is not None and np.all(np.isfinite(previous)):
+            dots = self.match(self.blobs(image_bgr, self.tracking_windows(previous)), previous)
+            if dots.found.all():
+                return dots
+        return self.match(self.blobs(image_bgr, self.windows), previous)
+
+    def match(self, blobs: Blobs, previous: np.ndarray | None) -> Dots:
+        """The dots among ``blobs``: each beam's blob (module docstring, step 4) and its length."""
         if len(blobs.strengths) == 0:
             return no_dots(None)
         distances = self.curve_distances(blobs.centroids)
