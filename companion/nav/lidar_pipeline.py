@@ -36,7 +36,7 @@ from companion.frames import planar_increment, wrap_pi
 from companion.health import Health, State
 from companion.messages import Estimate, PoseEstimate, Scan
 from companion.nav.corners import CornerParams
-from companion.nav.fusion import FusedState, FusionFilter, ImuFeed, to_pose_estimate, without_direction
+from companion.nav.fusion import FusedOutput, FusedState, FusionFilter, ImuFeed, to_pose_estimate, without_direction
 from companion.nav.heading import HeadingParams
 from companion.nav.height import HeightEstimator
 from companion.nav.lidar_streams import STREAMS, ProcessedScan, map_payload, scan_payloads
@@ -156,6 +156,7 @@ class LidarPipeline:
                                           planar_mount(horizontal), initial)
         self.height = HeightEstimator(tuple(vertical.position_m), tuple(math.radians(a) for a in vertical.rpy_deg))
         self.fusion = FusionFilter()
+        self.output = FusedOutput(self.fusion, health, "nav:fusion")
         self.stats = LidarPipelineStats()
         self.timings = {"lidar": Timings(), "fusion": Timings()}
         self._horizontal: Scan | None = None
@@ -165,7 +166,6 @@ class LidarPipeline:
         self._scan_yaw: float | None = None  # autopilot yaw at the previous horizontal scan
         self._scan_state: tuple[float, float, float] | None = None  # fused x, y (m), yaw (rad) there, if healthy
         self._coasting = False  # the previous horizontal fix matched no corner: its position is stale
-        self._reset_counter = 0
         self._map_features = 1  # corners (or walls) the newest measured fix matched
         self.last_horizontal: ProcessedScan | None = None  # read-only, for telemetry
         health.report("nav:lidar", State.LOST, "waiting for scans")
@@ -275,13 +275,10 @@ class LidarPipeline:
         return elapsed
 
     def _output(self, now: float) -> PoseEstimate | None:
-        state = self.fusion.state(now)
-        if not state.healthy:
-            self.health.report("nav:fusion", State.LOST, state.reason)
+        fused = self.output.at(now)
+        if fused is None:
             return None
-        self.health.report("nav:fusion", state.status, state.reason or "fused")
-        reset = state.reset_counter != self._reset_counter
-        self._reset_counter = state.reset_counter
+        state, reset = fused
         roll, pitch, _ = self._attitude()
         return to_pose_estimate(self._with_map_error(state), roll, pitch, reset=reset, source=self.name)
 

@@ -40,7 +40,7 @@ from companion.frames import rotation_from_euler, wrap_pi
 from companion.health import Health, State
 from companion.laser_beams import BeamRigConfig
 from companion.messages import AttitudeEstimate, Estimate, Frame, PoseEstimate, RangeEstimate
-from companion.nav.fusion import FusionFilter, ImuFeed, to_pose_estimate
+from companion.nav.fusion import FusedOutput, FusionFilter, ImuFeed, to_pose_estimate
 from companion.nav.laser_dots import geometry
 from companion.nav.laser_dots.frame_pose import FramePoseParams, FramePoser, FrameResult
 from companion.pipeline import PipelineContext
@@ -132,6 +132,7 @@ class LaserDotsPipeline:
         self._image_size = (calibration.width, calibration.height)
         self.poser = frame_poser(cfg, calibration, camera_mount, world.floor_markers)
         self.fusion = FusionFilter()
+        self.output = FusedOutput(self.fusion, health, "nav:laser_dots:fusion")
         self.stats = LaserDotsStats()
         self.timings = {"laser_dots": Timings(), "fusion": Timings()}
         self._frame: Frame | None = None
@@ -142,7 +143,6 @@ class LaserDotsPipeline:
         self._frames_without_pose = 0
         self._attitude_cov = np.full((2, 2), np.nan)  # of the newest measured roll, pitch, rad^2
         self._pending: list[Estimate] = []  # range and attitude estimates of this cycle's frame
-        self._reset_counter = 0
         self.last_result: tuple[float, FrameResult] | None = None  # capture time (s), what that frame gave
         self._published: tuple[float, FrameResult] | None = None
         health.report("nav:laser_dots", State.LOST, "waiting for frames")
@@ -222,13 +222,10 @@ class LaserDotsPipeline:
         self.stats.height_fixes += 1
 
     def _output(self, now: float) -> PoseEstimate | None:
-        state = self.fusion.state(now)
-        if not state.healthy:
-            self.health.report("nav:fusion", State.LOST, state.reason)
+        fused = self.output.at(now)
+        if fused is None:
             return None
-        self.health.report("nav:fusion", state.status, state.reason or "fused")
-        reset = state.reset_counter != self._reset_counter
-        self._reset_counter = state.reset_counter
+        state, reset = fused
         roll, pitch = self._roll_pitch()
         estimate = to_pose_estimate(state, roll, pitch, reset=reset, source=self.name)
         estimate.pose_covariance[3:5, 3:5] = self._attitude_cov
