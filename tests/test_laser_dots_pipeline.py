@@ -25,8 +25,9 @@ from companion.config import load_config
 from companion.frames import rotation_from_quat
 from companion.health import Health
 from companion.messages import AttitudeEstimate, Frame, ImuSample, PoseEstimate, RangeEstimate
-from companion.nav.laser_dots.frame_pose import FrameResult
-from companion.nav.laser_dots.pipeline import LaserDotsPipeline, frame_poser
+from companion.nav.laser_dots.frame_pose import UNTRIANGULATED, FrameResult
+from companion.nav.laser_dots.pipeline import LaserDotsConfig, LaserDotsPipeline, frame_poser
+from companion.schema import SchemaError, parse_document
 from companion.world import Obstacle, World, load_world
 from drivers.mount import Mount
 from sitl.calibration_sweep import NO_TRUTH, laser_dots_camera
@@ -119,6 +120,24 @@ def test_a_dot_on_a_table_is_found_off_the_floor_and_no_pose_is_given() -> None:
 def test_a_saturated_camera_gives_no_dots_and_says_why() -> None:
     result = process(camera(gain=10.0).render(0.0, OVER_MARKERS).image)
     assert result.kind == "none" and "saturated" in result.reason
+
+
+def test_dots_whose_lengths_cannot_be_triangulated_give_no_fix_rather_than_an_unchecked_one_or_a_crash() -> None:
+    at_the_beams = Mount(MOUNT.rotation, np.array(SECTION.beams.origin_m))  # no baseline: each ray runs along its beam
+    cam = camera()
+    cam = SimulatedCamera("down", cam.settings, cam.calibration, at_the_beams, FIG4, NO_TRUTH)
+    image = cam.render(0.0, OVER_MARKERS).image
+    over_markers, bare = (frame_poser(SECTION, CALIBRATION, at_the_beams, world.floor_markers).process(
+        image, rotation_from_quat(OVER_MARKERS.quat)) for world in (FIG4, dataclasses.replace(FIG4, floor_markers=())))
+    assert over_markers.kind == "none" and over_markers.reason == UNTRIANGULATED
+    assert bare.kind == "none" and bare.reason == "the three floor points are collinear: no plane"  # not a raise
+
+
+def test_the_closed_form_on_a_rig_far_from_90_degrees_is_a_config_error() -> None:
+    raw = yaml.safe_load(CONFIG.read_text())["pipelines"]["laser_dots"]
+    raw.update(method="closed_form", beams={"angle_deg": 60})
+    with pytest.raises(SchemaError, match="beams.angle_deg: closed_form solves beams at 90 degrees"):
+        parse_document(yaml.safe_dump(raw), "c.yaml").build(LaserDotsConfig)
 
 
 def imu_sample(t: float) -> ImuSample:

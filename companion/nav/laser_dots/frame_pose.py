@@ -9,7 +9,8 @@ the checks that refuse a confident wrong pose:
   floor solution needs by more than ``length_gate_sigmas``: that dot is not on the floor plane
   the markers define (a table, a step, a box);
 - the beam-matrix attitude and the P3P / Kabsch rotation differing by more than ``max_cross_check_deg``;
-- a solution outside ``height_range_m`` or tilted beyond ``max_tilt_deg``.
+- a solution outside ``height_range_m`` or tilted beyond ``max_tilt_deg``;
+- a dot whose length cannot be triangulated at all (the check above could not run).
 
 Without a floor marker in view the triangulated dots still give the floor plane in the body
 frame: the height of the body origin and roll and pitch (yaw is unobservable).
@@ -35,6 +36,7 @@ from companion.nav.laser_dots.floor import FloorMapper, FloorView
 from companion.world import FloorMarker
 
 
+UNTRIANGULATED = "a dot's beam length cannot be triangulated (its camera ray runs along the beam)"
 REST_TOLERANCE_M = 0.05  # a height this far below height_range_m's low end still passes (resting on the floor: +/- mm)
 
 
@@ -144,7 +146,10 @@ class FramePoser:
         if solution.cross_check_deg > p.max_cross_check_deg:
             return f"beam-matrix attitude and P3P differ by {solution.cross_check_deg:.1f} deg"
         sigma = self.detector.length_sigma_m(dots.pixels, p.dot_sigma_px)
-        mismatch = np.abs(dots.lengths_m - solution.lengths) / sigma
+        with np.errstate(divide="ignore", invalid="ignore"):
+            mismatch = np.abs(dots.lengths_m - solution.lengths) / sigma
+        if not np.all(np.isfinite(mismatch)):  # the off-floor check cannot run: no fix rather than an unchecked one
+            return UNTRIANGULATED
         worst = int(np.argmax(mismatch))
         if mismatch[worst] > p.length_gate_sigmas:
             return (f"beam {worst}'s dot is off the floor: {dots.lengths_m[worst]:.2f} m by triangulation, "
@@ -154,12 +159,19 @@ class FramePoser:
     def _tilt(self, dots: Dots) -> FrameResult:
         """No marker in view: the floor plane from the triangulated dots."""
         p = self.params
-        height, roll, pitch = geometry.plane_from_body_points(geometry.dots_in_body(self.rig, dots.lengths_m),
-                                                              self.rig.origins.mean(axis=0))
+        if not np.all(np.isfinite(dots.lengths_m)):
+            return FrameResult("none", UNTRIANGULATED, dots)
+        try:
+            height, roll, pitch = geometry.plane_from_body_points(geometry.dots_in_body(self.rig, dots.lengths_m),
+                                                                  self.rig.origins.mean(axis=0))
+        except ValueError as exc:  # the three points are collinear: no floor plane
+            return FrameResult("none", str(exc), dots)
         if not _in_range(height, p.height_range_m):
             return FrameResult("none", f"height {height:.2f} m outside height_range_m (no marker in view)", dots)
         sigma = self.detector.length_sigma_m(dots.pixels, p.dot_sigma_px)
         cov = geometry.height_covariance(self.rig, dots.lengths_m, sigma ** 2)
+        if not np.all(np.isfinite(cov)):
+            return FrameResult("none", "no covariance: the floor plane fails next to these lengths", dots)
         return FrameResult("tilt", "no floor marker in view: height and tilt only", dots,
                            tilt=(height, roll, pitch), tilt_covariance=cov)
 

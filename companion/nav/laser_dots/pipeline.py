@@ -89,6 +89,9 @@ class LaserDotsConfig:
             return "height_range_m", "give [lowest, highest] with lowest < highest"
         if self.method == "closed_form" and self.beams.directions is not None:
             return "method", "closed_form assumes the nominal 90-degree rig: use general with calibrated beams"
+        if self.method == "closed_form" and abs(self.beams.angle_deg - 90.0) > geometry.RIGHT_ANGLE_TOLERANCE_DEG:
+            return "beams.angle_deg", (f"closed_form solves beams at 90 degrees (within "
+                                       f"{geometry.RIGHT_ANGLE_TOLERANCE_DEG:g}): use method general")
         return None
 
     def sensor_inputs(self) -> dict[str, str]:
