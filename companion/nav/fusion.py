@@ -58,8 +58,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from companion.frames import GRAVITY_MPS2, wrap_pi
-from companion.health import Health, State
-from companion.messages import ImuSample, PoseEstimate
+from companion.health import State
+from companion.messages import PoseEstimate
 
 # Roll and pitch come from the autopilot's own attitude estimate; the pose covariance gives them
 # this small constant variance, (0.01 rad)^2 ~ (0.6 deg)^2. ArduPilot folds roll/pitch/yaw into
@@ -745,50 +745,6 @@ def _unknown_state(t: float, reason: str, reset_counter: int) -> FusedState:
     return FusedState(t, np.zeros(3), np.zeros(3), 0.0, UNKNOWN_VARIANCE * np.eye(3),
                       UNKNOWN_VARIANCE * np.eye(3), UNKNOWN_VARIANCE, False, reason, State.LOST,
                       np.zeros(3), reset_counter)
-
-
-class ImuFeed:
-    """The IMU samples a pipeline received since its previous nav cycle (oldest first), and the
-    autopilot's newest attitude (roll, pitch, yaw rad of body FRD in NED; zeros before any)."""
-
-    def __init__(self) -> None:
-        self.samples: list[ImuSample] = []
-        self.euler: tuple[float, float, float] = (0.0, 0.0, 0.0)
-
-    def add(self, sample: ImuSample) -> None:
-        """The driver's handler: keep ``sample`` for the next cycle."""
-        self.samples.append(sample)
-        if sample.euler_rad is not None:
-            self.euler = sample.euler_rad
-
-    def predict(self, fusion: FusionFilter) -> None:
-        """Propagate ``fusion`` with every sample kept, in order, and forget them."""
-        for sample in self.samples:
-            fusion.predict(sample.t, sample.accel_body, sample.euler_rad or self.euler, sample.gyro_body)
-        self.samples.clear()
-
-
-class FusedOutput:
-    """A pipeline's fused state each nav cycle: its health reported as ``component`` (lost while
-    not healthy, else the filter's own status), None while not healthy (nothing to send), and
-    whether the filter's ``reset_counter`` moved since the previous cycle (the estimate jumped)."""
-
-    def __init__(self, fusion: FusionFilter, health: Health, component: str) -> None:
-        self.fusion = fusion
-        self.health = health
-        self.component = component
-        self._reset_counter = 0
-
-    def at(self, now: float) -> tuple[FusedState, bool] | None:
-        """(state at daemon time ``now`` s, reset) while healthy, else None."""
-        state = self.fusion.state(now)
-        if not state.healthy:
-            self.health.report(self.component, State.LOST, state.reason)
-            return None
-        self.health.report(self.component, state.status, state.reason or "fused")
-        reset = state.reset_counter != self._reset_counter
-        self._reset_counter = state.reset_counter
-        return state, reset
 
 
 def to_pose_estimate(state: FusedState, roll: float, pitch: float, t_capture: float | None = None,

@@ -36,7 +36,8 @@ from companion.frames import planar_increment, wrap_pi
 from companion.health import Health, State
 from companion.messages import Estimate, PoseEstimate, Scan
 from companion.nav.corners import CornerParams
-from companion.nav.fusion import FusedOutput, FusedState, FusionFilter, ImuFeed, to_pose_estimate, without_direction
+from companion.nav.fusion import FusedState, FusionFilter, to_pose_estimate, without_direction
+from companion.nav.fusion_io import FusedOutput, ImuFeed
 from companion.nav.heading import HeadingParams
 from companion.nav.height import HeightEstimator
 from companion.nav.lidar_streams import STREAMS, ProcessedScan, map_payload, scan_payloads

@@ -40,7 +40,8 @@ from companion.frames import rotation_from_euler, wrap_pi
 from companion.health import Health, State
 from companion.laser_beams import BeamRigConfig
 from companion.messages import AttitudeEstimate, Estimate, Frame, PoseEstimate, RangeEstimate
-from companion.nav.fusion import FusedOutput, FusionFilter, ImuFeed, to_pose_estimate
+from companion.nav.fusion import FusionFilter, to_pose_estimate
+from companion.nav.fusion_io import FusedOutput, ImuFeed
 from companion.nav.laser_dots import geometry
 from companion.nav.laser_dots.frame_pose import FramePoseParams, FramePoser, FrameResult
 from companion.pipeline import PipelineContext
@@ -288,7 +289,7 @@ FOV_PROBLEMS_SHOWN = 3
 def _advise(cfg: Any, section: LaserDotsConfig) -> list[str]:
     """The field-of-view constraint (seed eqs. 30-41, generalised by geometry.fov_problems): a
     warning when the camera loses a dot anywhere in the height range and tilt envelope."""
-    calibration, _ = _load(cfg.load_referenced, section)
+    calibration = cfg.load_referenced("pipelines.laser_dots.calibration", section.calibration, load_calibration)
     mount = Mount.from_config(cfg.sensors[section.camera].mount)
     optical_to_body = mount.rotation @ OPTICAL_TO_SENSOR
 
