@@ -1,0 +1,267 @@
+"""EKF-SLAM: a vehicle ``(n, e, yaw)`` at a held altitude and 3-D point landmarks with known ids.
+
+State ``x = [n, e, yaw, l1_n, l1_e, l1_d, l2_n, ...]`` (LOCAL_NED metres, yaw clockwise from north
+in radians); ``P`` its covariance. Observations are ``(range m, azimuth rad, elevation rad)``
+(:mod:`.model` for the conventions). Seed: Lee and Tahk 2010, eqs. 10-38; see :mod:`.model` for
+the equations the seed prints wrongly.
+
+Cost: :meth:`EkfSlam.predict` is O(n) (only the vehicle's rows and columns of ``P`` change);
+:meth:`EkfSlam.update` is O(n^2) per landmark: the observation Jacobian has non-zero columns for
+the vehicle's 3 and the landmark's 3 states only, so ``H P`` is computed from 6 rows of ``P`` and
+the Joseph form ``(I - K H) P (I - K H)^T + K R K^T`` is evaluated as
+``P - K (H P) - (H P)^T K^T + K S K^T`` (algebraically equal, with ``S = H P H^T + R``).
+
+Consistency: the textbook EKF-SLAM (``consistency="plain"``, the seed's) evaluates its Jacobians at
+the latest estimates, which gives the filter spurious information about the global yaw (an
+unobservable direction) and makes it over-confident as the heading uncertainty grows (Julier and
+Uhlmann 2001; Bailey et al. 2006; Huang, Mourikis, Roumeliotis 2008/2010). ``"fej"`` applies the
+first-estimates Jacobians of Huang et al.: the propagation Jacobian's yaw column uses the
+difference between the new predicted position and the *previous predicted* position
+``p_{k|k-1}`` (not the updated ``p_{k|k}``), and the observation Jacobian uses the predicted
+vehicle position ``p_{k|k-1}`` and the landmark's *first* horizontal estimate (its down
+coordinate from the latest estimate: with the altitude known it is observable, and it does not
+enter the yaw null space). The innovation itself always uses the latest estimates.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections import Counter
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from companion.nav.ekf_slam.config import EkfSlamConfig
+from companion.nav.ekf_slam.model import (
+    full_observation_jacobian,
+    inverse_observe,
+    inverse_observe_jacobians,
+    motion,
+    motion_jacobians,
+    observe,
+    wrap,
+)
+
+VEHICLE = 3  # (n, e, yaw)
+LANDMARK = 3  # (n, e, d)
+
+
+@dataclass
+class UpdateResult:
+    """What one :meth:`EkfSlam.update` did with each landmark id."""
+
+    used: list[int] = field(default_factory=list)
+    augmented: list[int] = field(default_factory=list)
+    rejected: list[int] = field(default_factory=list)  # by the innovation gate
+    skipped: list[int] = field(default_factory=list)  # too near the nadir, or taken as moved
+
+
+class EkfSlam:
+    """The EKF-SLAM of the seed (Sec. 3) with a Joseph-form O(n^2) update, gating, sub-maps and an
+    optional first-estimates-Jacobians consistency fix. No I/O: the caller feeds inputs and
+    observations and reads the estimates."""
+
+    def __init__(self, config: EkfSlamConfig, pose: Iterable[float], pose_cov: np.ndarray) -> None:
+        self.config = config
+        self.down_m = config.down_m
+        self.x = np.array(list(pose), dtype=float)
+        assert self.x.shape == (VEHICLE,)
+        self.P = np.array(pose_cov, dtype=float).reshape(VEHICLE, VEHICLE).copy()
+        self.R = np.diag(config.r_matrix())
+        self.Q = np.diag(config.q_matrix())
+        self.fej = config.consistency == "fej"
+        self.ids: list[int] = []  # landmark ids in state order
+        self.slot: dict[int, int] = {}  # id -> offset of its first state in x
+        self.first_ne: dict[int, np.ndarray] = {}  # id -> first horizontal estimate (FEJ)
+        self.prior_ne = self.x[:2].copy()  # p_{k|k-1}: the vehicle position as last predicted
+        self.rejections: Counter[int] = Counter()  # gate rejections per id, all time
+        self._in_a_row: Counter[int] = Counter()
+        self.moved: set[int] = set()  # ids rejected moved_after times in a row: no longer used
+        self.min_horizontal_m = config.min_horizontal_m
+
+    # --- reading -----------------------------------------------------------------------------
+
+    @property
+    def n_landmarks(self) -> int:
+        return len(self.ids)
+
+    @property
+    def pose(self) -> np.ndarray:
+        """Vehicle ``(n, e, yaw)`` (m, m, rad), a copy."""
+        return self.x[:VEHICLE].copy()
+
+    @property
+    def pose_cov(self) -> np.ndarray:
+        """3 x 3 covariance of the vehicle pose, a copy."""
+        return self.P[:VEHICLE, :VEHICLE].copy()
+
+    def landmark(self, lid: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(mean (n, e, d), 3 x 3 covariance)`` of landmark ``lid`` (KeyError if not mapped)."""
+        o = self.slot[lid]
+        return self.x[o:o + 3].copy(), self.P[o:o + 3, o:o + 3].copy()
+
+    def landmarks(self) -> dict[int, np.ndarray]:
+        """Every mapped landmark's mean ``(n, e, d)`` by id (moved ones excepted)."""
+        return {lid: self.x[o:o + 3].copy() for lid, o in self.slot.items() if lid not in self.moved}
+
+    # --- prediction --------------------------------------------------------------------------
+
+    def predict(self, v_mps: float, omega_rps: float, dt_s: float) -> None:
+        """Propagate the vehicle by the speed and yaw-rate inputs over ``dt_s`` (seed eqs. 16-21);
+        O(n): ``P_vv = F P_vv F^T + G Q G^T``, ``P_vm = F P_vm``."""
+        pose = self.x[:VEHICLE]
+        f, g = motion_jacobians(pose, v_mps, omega_rps, dt_s)
+        new = motion(pose, v_mps, omega_rps, dt_s)
+        if self.fej:  # yaw column from p_{k+1|k} - p_{k|k-1} instead of p_{k+1|k} - p_{k|k}
+            f[0, 2] = -(new[1] - self.prior_ne[1])
+            f[1, 2] = new[0] - self.prior_ne[0]
+        self.x[:VEHICLE] = new
+        self.prior_ne = new[:2].copy()
+        p = self.P
+        p[:VEHICLE, :VEHICLE] = f @ p[:VEHICLE, :VEHICLE] @ f.T + g @ self.Q @ g.T
+        if p.shape[0] > VEHICLE:  # F = I except its yaw column: rows n and e gain f02 / f12 times row yaw
+            cross = p[:VEHICLE, VEHICLE:]
+            cross[0] += f[0, 2] * cross[2]
+            cross[1] += f[1, 2] * cross[2]
+            p[VEHICLE:, :VEHICLE] = cross.T
+
+    # --- update ------------------------------------------------------------------------------
+
+    def update(self, observations: Mapping[int, np.ndarray]) -> UpdateResult:
+        """Fuse one frame of observations ``{landmark id: (range, azimuth, elevation)}``: known
+        landmarks update the state one after the other (seed eqs. 25-30, Joseph form, gated),
+        new ids are added (seed eqs. 31-38) after the known ones are used."""
+        result = UpdateResult()
+        new_ids = []
+        for lid, z in observations.items():
+            z = np.asarray(z, dtype=float)
+            if lid in self.moved or z[0] * math.cos(z[2]) < self.min_horizontal_m:
+                result.skipped.append(lid)
+            elif lid not in self.slot:
+                new_ids.append((lid, z))
+            elif self._update_one(lid, z):
+                result.used.append(lid)
+            else:
+                result.rejected.append(lid)
+        for lid, z in new_ids:
+            self.augment(lid, z)
+            result.augmented.append(lid)
+        return result
+
+    def innovation(self, lid: int, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+        """``(nu, H (3 x 6), S, state indices)`` of observation ``z`` of mapped landmark ``lid``."""
+        o = self.slot[lid]
+        idx = [0, 1, 2, o, o + 1, o + 2]
+        landmark = self.x[o:o + 3]
+        nu = np.asarray(z, dtype=float) - observe(self.x[:VEHICLE], self.down_m, landmark)
+        nu[1] = wrap(nu[1])
+        if self.fej:
+            first = self.first_ne[lid]
+            delta = np.array([first[0] - self.prior_ne[0], first[1] - self.prior_ne[1], landmark[2] - self.down_m])
+        else:
+            delta = np.array([landmark[0] - self.x[0], landmark[1] - self.x[1], landmark[2] - self.down_m])
+        h = full_observation_jacobian(delta)
+        s = h @ self.P[np.ix_(idx, idx)] @ h.T + self.R
+        return nu, h, s, idx
+
+    def _update_one(self, lid: int, z: np.ndarray) -> bool:
+        nu, h, s, idx = self.innovation(lid, z)
+        s_inv = np.linalg.inv(s)
+        if float(nu @ s_inv @ nu) > self.config.gate_chi2:
+            self.rejections[lid] += 1
+            self._in_a_row[lid] += 1
+            if self._in_a_row[lid] >= self.config.moved_after:
+                self.moved.add(lid)
+            return False
+        self._in_a_row[lid] = 0
+        p = self.P
+        hp = h @ p[idx, :]  # 3 x n, from 6 rows of P
+        k = hp.T @ s_inv  # n x 3
+        self.x += k @ nu
+        self.x[2] = wrap(self.x[2])
+        khp = k @ hp
+        # Joseph form (I-KH)P(I-KH)^T + KRK^T = P - K(HP) - (HP)^T K^T + K S K^T
+        p -= khp
+        p -= khp.T
+        p += (k @ s) @ k.T
+        p += p.T  # keep it symmetric
+        p *= 0.5
+        return True
+
+    def augment(self, lid: int, z: np.ndarray) -> None:
+        """Add landmark ``lid`` first seen at ``z`` (seed eqs. 31-38):
+        ``l = g(x_v, z)``, ``P_ll = Gv P_vv Gv^T + Gz R Gz^T``, ``P_lx = Gv P_vx``."""
+        if lid in self.slot:
+            raise ValueError(f"landmark {lid} is already mapped")
+        z = np.asarray(z, dtype=float)
+        pose = self.x[:VEHICLE]
+        landmark = inverse_observe(pose, self.down_m, z)
+        gv, gz = inverse_observe_jacobians(pose, z)
+        n = self.x.shape[0]
+        p_lx = gv @ self.P[:VEHICLE, :]  # 3 x n
+        p_ll = gv @ self.P[:VEHICLE, :VEHICLE] @ gv.T + gz @ self.R @ gz.T
+        big = np.empty((n + LANDMARK, n + LANDMARK))
+        big[:n, :n] = self.P
+        big[n:, :n] = p_lx
+        big[:n, n:] = p_lx.T
+        big[n:, n:] = 0.5 * (p_ll + p_ll.T)
+        self.P = big
+        self.x = np.concatenate([self.x, landmark])
+        self.slot[lid] = n
+        self.ids.append(lid)
+        self.first_ne[lid] = landmark[:2].copy()
+
+    # --- sub-maps ----------------------------------------------------------------------------
+
+    def start_submap(self, keep_landmark: int | None = None, keep_cross: bool = True) -> None:
+        """Start a new sub-map (seed Sec. 4 STEP 6): keep the vehicle pose and its covariance and,
+        if ``keep_landmark`` is given, that landmark (the new start point) with its covariance and,
+        if ``keep_cross``, its cross-covariance with the vehicle; drop every other landmark
+        (marginalising them out: the kept block of ``P`` is unchanged). Gate counters of dropped
+        landmarks are kept (an id seen again is a new landmark of the new sub-map)."""
+        keep = list(range(VEHICLE))
+        kept_ids = []
+        if keep_landmark is not None:
+            o = self.slot[keep_landmark]
+            keep += [o, o + 1, o + 2]
+            kept_ids = [keep_landmark]
+        self.x = self.x[keep].copy()
+        self.P = self.P[np.ix_(keep, keep)].copy()
+        if kept_ids and not keep_cross:
+            self.P[:VEHICLE, VEHICLE:] = 0.0
+            self.P[VEHICLE:, :VEHICLE] = 0.0
+        self.ids = kept_ids
+        self.slot = {lid: VEHICLE + 3 * i for i, lid in enumerate(kept_ids)}
+        self.first_ne = {lid: self.first_ne[lid] for lid in kept_ids}
+
+
+def nees(error: np.ndarray, cov: np.ndarray) -> float:
+    """Normalised estimation error squared ``e^T P^-1 e`` (for a pose error give the yaw wrapped)."""
+    e = np.asarray(error, dtype=float)
+    return float(e @ np.linalg.solve(cov, e))
+
+
+def pose_error(truth: np.ndarray, estimate: np.ndarray) -> np.ndarray:
+    """``estimate - truth`` for ``(n, e, yaw)`` with the yaw difference wrapped (m, m, rad)."""
+    e = np.asarray(estimate, dtype=float)[:3] - np.asarray(truth, dtype=float)[:3]
+    e[2] = wrap(e[2])
+    return e
+
+
+def chi2_quantile(p: float, dof: float) -> float:
+    """Chi-square quantile by the Wilson-Hilferty approximation (relative error below 1 % for
+    ``dof >= 3`` at the 2.5 / 97.5 % points; numpy has no chi-square quantile, scipy is not a
+    dependency)."""
+    z = statistics.NormalDist().inv_cdf(p)
+    k = 2.0 / (9.0 * dof)
+    return dof * (1.0 - k + z * math.sqrt(k)) ** 3
+
+
+def nees_band(dof: int, runs: int, probability: float = 0.95) -> tuple[float, float]:
+    """The two-sided ``probability`` band of the average NEES over ``runs`` Monte-Carlo runs of a
+    consistent filter with ``dof``-dimensional errors: ``chi2(dof * runs) / runs``."""
+    tail = (1.0 - probability) / 2.0
+    n = dof * runs
+    return chi2_quantile(tail, n) / runs, chi2_quantile(1.0 - tail, n) / runs
