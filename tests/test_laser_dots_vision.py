@@ -5,6 +5,7 @@ markers on frames rendered by the simulated camera (sitl/camera_sim.py) from kno
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -16,7 +17,8 @@ from companion.calibration import CameraCalibration
 from companion.config import MountConfig
 from companion.frames import quat_from_euler, rotation_from_euler
 from companion.laser_beams import nominal_rig
-from companion.nav.laser_dots.detect import GREY_REASON, SATURATED_REASON, DotDetector, Dots, triangulate
+from companion.nav.laser_dots.detect import (GREY_REASON, SATURATED_REASON, DotDetector, Dots, best_assignment,
+                                             triangulate)
 from companion.nav.laser_dots.floor import FloorMapper, FloorView
 from companion.world import Bounds, FloorMarker, World
 from drivers.mount import OPTICAL_TO_SENSOR, Mount
@@ -342,3 +344,23 @@ def test_a_wrong_prediction_falls_back_to_searching_the_whole_image() -> None:
     far = (rotation, centre + [3.0, 0.0, 0.0])  # predicts the markers out of view
     tracked = mapper.find(cam.render(0.0, cam.truth.at(0.0)).image, far)
     assert whole is not None and tracked is not None and sorted(tracked.marker_ids) == sorted(whole.marker_ids)
+
+
+def test_best_assignment_takes_most_beams_then_least_cost_as_an_exhaustive_search_would() -> None:
+    def reference(cost: np.ndarray) -> tuple[int, ...]:  # the rule, spelled out over every choice
+        best, best_key = (-1,) * cost.shape[0], (0, 0.0)
+        for choice in itertools.product(range(-1, cost.shape[1]), repeat=cost.shape[0]):
+            taken = [k for k in choice if k >= 0]
+            costs = [cost[i, k] for i, k in enumerate(choice) if k >= 0]
+            if len(set(taken)) == len(taken) and np.all(np.isfinite(costs)):
+                key = (-len(costs), float(np.sum(costs)))
+                if key < best_key:
+                    best, best_key = choice, key
+        return best
+
+    rng = np.random.default_rng(4)
+    for n in range(0, 6):
+        for _ in range(40):
+            cost = rng.uniform(0.0, 4.0, (3, n))
+            cost[rng.uniform(size=cost.shape) < 0.4] = np.inf
+            assert best_assignment(cost) == reference(cost), cost

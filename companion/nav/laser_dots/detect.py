@@ -29,6 +29,7 @@ Steps:
 
 from __future__ import annotations
 
+import functools
 import itertools
 from dataclasses import dataclass
 
@@ -63,7 +64,7 @@ class DotParams:
     # this (pixels; a blob farther from the curve is refused anyway, and one this wide is no dot):
     # about a sixth of a 640x480 image instead of all of it.
     search_margin_px: int = 30
-    saturation_stride_px: int = 4  # the saturated share is estimated on every n-th pixel of every n-th row
+    saturation_stride_px: int = 8  # the saturated share is estimated on every n-th pixel of every n-th row (4800 of 640x480)
     # With the previous frame's three dots known, each is looked for first within this (pixels, half
     # the side of a square) of where it was; the whole search windows only if that misses one.
     track_px: int = 30
@@ -90,23 +91,26 @@ class Blobs:
 
 
 def triangulate(origin: np.ndarray, direction: np.ndarray, camera_centre: np.ndarray,
-                ray: np.ndarray) -> tuple[float, float, np.ndarray]:
+                ray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closest approach of the beam ``origin + l * direction`` and the camera ray ``camera_centre +
-    s * ray`` (all (3,) in one frame, body FRD for the detector, metres; ``direction`` and ``ray``
-    need not be unit): (beam length l in units of |direction|, m for a unit direction; miss
-    distance between the two lines, m; the point on the beam at l, (3,) m). The beam is taken as
-    exact (calibrated), so the dot is placed on it. Parallel lines give NaN."""
+    s * ray`` (each (..., 3), broadcast, in one frame, body FRD for the detector, metres;
+    ``direction`` and ``ray`` need not be unit): (beam length l in units of |direction|, m for a
+    unit direction, (...); miss distance between the two lines, m, (...); the point on the beam at
+    l, (..., 3) m). The beam is taken as exact (calibrated), so the dot is placed on it. Parallel
+    lines give NaN."""
     d, r = np.asarray(direction, dtype=float), np.asarray(ray, dtype=float)
     w = np.asarray(origin, dtype=float) - np.asarray(camera_centre, dtype=float)
-    a, b, c = d @ d, d @ r, r @ r
+    a, b, c = (np.sum(d * d, axis=-1), np.sum(d * r, axis=-1), np.sum(r * r, axis=-1))
+    rw, dw = np.sum(r * w, axis=-1), np.sum(d * w, axis=-1)
     denominator = a * c - b * b
-    if denominator <= 1e-12 * a * c:
-        return float("nan"), float("nan"), np.full(3, np.nan)
-    length = (b * (r @ w) - c * (d @ w)) / denominator
-    along_ray = (a * (r @ w) - b * (d @ w)) / denominator
-    point = origin + length * d
-    miss = float(np.linalg.norm(point - (camera_centre + along_ray * r)))
-    return float(length), miss, point
+    with np.errstate(divide="ignore", invalid="ignore"):
+        parallel = ~(denominator > 1e-12 * a * c)
+        denominator = np.where(parallel, np.nan, denominator)
+        length = (b * rw - c * dw) / denominator
+        along_ray = (a * rw - b * dw) / denominator
+    point = origin + length[..., None] * d
+    miss = np.linalg.norm(point - (camera_centre + along_ray[..., None] * r), axis=-1)
+    return length, miss, point
 
 
 def red_dominance(image_bgr: np.ndarray) -> np.ndarray:
@@ -223,22 +227,26 @@ def search_window(segments: np.ndarray, margin_px: int, width: int, height: int)
     return (rows, cols) if rows.start < rows.stop and cols.start < cols.stop else None
 
 
+@functools.lru_cache(maxsize=None)
+def _assignments(beams: int, n: int) -> np.ndarray:
+    """(M, beams) every assignment of ``n`` blobs to ``beams`` beams (-1 = none), no blob twice,
+    in ``itertools.product`` order."""
+    rows = [c for c in itertools.product(range(-1, n), repeat=beams)
+            if len({k for k in c if k >= 0}) == sum(k >= 0 for k in c)]
+    return np.array(rows, dtype=int).reshape(-1, beams)
+
+
 def best_assignment(cost: np.ndarray) -> tuple[int, ...]:
     """For a (beams, N) cost matrix (inf = not admissible), the blob index per beam (-1 = none),
-    no blob twice: most beams assigned first, then the least summed cost. Brute force."""
+    no blob twice: most beams assigned first, then the least summed cost (the first such in
+    ``itertools.product`` order on a tie). Exhaustive, over a cached table of the assignments."""
     beams, n = cost.shape
-    best, best_key = (-1,) * beams, (0, 0.0)
-    for choice in itertools.product(range(-1, n), repeat=beams):
-        taken = [k for k in choice if k >= 0]
-        if len(set(taken)) != len(taken):
-            continue
-        costs = [cost[i, k] for i, k in enumerate(choice) if k >= 0]
-        if not np.all(np.isfinite(costs)):
-            continue
-        key = (-len(costs), float(np.sum(costs)))
-        if key < best_key:
-            best, best_key = choice, key
-    return best
+    choices = _assignments(beams, n)
+    assigned = choices >= 0
+    costs = np.concatenate((cost, np.zeros((beams, 1))), axis=1)[np.arange(beams), np.where(assigned, choices, n)]
+    admissible = np.flatnonzero(np.all(np.isfinite(costs), axis=1))
+    order = np.lexsort((costs[admissible].sum(axis=1), -assigned[admissible].sum(axis=1)))
+    return tuple(int(k) for k in choices[admissible[order[0]]])
 
 
 def no_dots(reason: str | None, extra: int = 0) -> Dots:
@@ -349,12 +357,13 @@ class DotDetector:
         return cost
 
     def lengths(self, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """((3,) beam lengths m, (3,) miss distances m) of the (3, 2) dot pixels (NaN rows give NaN)."""
-        rays = np.column_stack((self.calibration.undistort_points(pixels), np.ones(BEAMS))) @ self.optical_to_body.T
-        lengths, miss = np.full(BEAMS, np.nan), np.full(BEAMS, np.nan)
-        for i in np.flatnonzero(np.all(np.isfinite(rays), axis=1)):
-            lengths[i], miss[i], _ = triangulate(self.rig.origins[i], self.rig.directions[i],
-                                                 self.camera_origin_body, rays[i])
+        """((..., 3) beam lengths m, (..., 3) miss distances m) of (..., 3, 2) dot pixels, row i
+        the dot of beam i (NaN rows give NaN)."""
+        pixels = np.asarray(pixels, dtype=float)
+        flat = pixels.reshape(-1, 2)
+        rays = np.column_stack((self.calibration.undistort_points(flat), np.ones(len(flat)))) @ self.optical_to_body.T
+        rays = rays.reshape(pixels.shape[:-1] + (3,))
+        lengths, miss, _ = triangulate(self.rig.origins, self.rig.directions, self.camera_origin_body, rays)
         return lengths, miss
 
     def length_sigma_m(self, pixels: np.ndarray, sigma_px: float) -> np.ndarray:
@@ -362,9 +371,7 @@ class DotDetector:
         centroid error of ``sigma_px`` (px, 1-sigma per axis): the length's gradient over the image
         (central differences, 0.5 px) times ``sigma_px``. NaN for a missing dot."""
         step = 0.5
-        grads = []
-        for axis in (np.array([step, 0.0]), np.array([0.0, step])):
-            plus, _ = self.lengths(pixels + axis)
-            minus, _ = self.lengths(pixels - axis)
-            grads.append((plus - minus) / (2.0 * step))
-        return np.hypot(*grads) * sigma_px
+        offsets = np.array([[step, 0.0], [-step, 0.0], [0.0, step], [0.0, -step]])
+        lengths, _ = self.lengths(np.asarray(pixels, dtype=float)[None] + offsets[:, None, :])
+        gradients = (lengths[0::2] - lengths[1::2]) / (2.0 * step)
+        return np.hypot(*gradients) * sigma_px

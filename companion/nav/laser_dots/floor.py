@@ -142,7 +142,8 @@ class FloorMapper:
         self.calibration = calibration
         self.markers = {m.id: m for m in markers}
         self._marker_ids = tuple(self.markers)
-        corners = [np.column_stack((m.corners(), np.zeros(4))) for m in self.markers.values()]
+        self._floor_corners = {i: m.corners() for i, m in self.markers.items()}  # (4, 2) north, east m
+        corners = [np.column_stack((c, np.zeros(4))) for c in self._floor_corners.values()]
         self._corners_ned = np.concatenate(corners) if corners else np.zeros((0, 3))  # (4M, 3), for tracking
         self.params = params
         detector_params = cv2.aruco.DetectorParameters()
@@ -168,7 +169,7 @@ class FloorMapper:
         if not marker_ids:
             return None
         normalised = self.calibration.undistort_points(pixels.reshape(-1, 2))
-        floor = np.concatenate([self.markers[i].corners() for i in marker_ids])
+        floor = np.concatenate([self._floor_corners[i] for i in marker_ids])
         homography, _ = cv2.findHomography(normalised, floor, 0)
         if homography is None:
             return None
@@ -241,7 +242,7 @@ class FloorMapper:
         on all the corners of several (both on the undistorted corners)."""
         if len(view.marker_ids) == 1:
             return self._single_marker_pose(view)
-        floor = np.concatenate([self.markers[i].corners() for i in view.marker_ids])
+        floor = np.concatenate([self._floor_corners[i] for i in view.marker_ids])
         ok, rvec, tvec = cv2.solvePnP(np.column_stack((floor, np.zeros(len(floor)))),
                                       view.corner_normalised.reshape(-1, 1, 2), np.eye(3), None,
                                       flags=cv2.SOLVEPNP_ITERATIVE)

@@ -493,35 +493,65 @@ def _pose_states(rotation: np.ndarray, position_ned: np.ndarray) -> np.ndarray:
     return np.column_stack((position_ned, [euler_from_rotation(r) for r in rotation]))
 
 
-def _branch_solver(rig: BeamRig, method: Method, solution: PoseSolution) -> Callable[[np.ndarray], np.ndarray | None]:
-    """(K, 6) dot coordinates -> (K, 6) pose states of the solution's branch (None on a failure):
-    the closed form again, or Newton from the solution (the same P3P root, no reselection)."""
-    if method == "closed_form":
-        ideal = ideal_90_rig(rig)
+def _closed_form_states(rig: BeamRig) -> Callable[[np.ndarray], np.ndarray | None]:
+    """(K, 6) dot coordinates -> (K, 6) pose states of the seed's closed form on the 90-degree
+    rig (None on a failure)."""
+    ideal = ideal_90_rig(rig)
 
-        def states(x: np.ndarray) -> np.ndarray | None:
-            found = _closed_form_poses(ideal, x.reshape(-1, BEAMS, 2))
-            return None if found is None else _pose_states(found[0], found[1])
-        return states
+    def states(x: np.ndarray) -> np.ndarray | None:
+        found = _closed_form_poses(ideal, x.reshape(-1, BEAMS, 2))
+        return None if found is None else _pose_states(found[0], found[1])
+    return states
 
-    def refined(x: np.ndarray) -> np.ndarray | None:
-        k = len(x)
-        r, p, _, residual = _newton(rig, floor_points(x.reshape(k, BEAMS, 2)), np.tile(solution.rotation, (k, 1, 1)),
-                                    np.tile(solution.position_ned, (k, 1)), np.tile(solution.lengths, (k, 1)))
-        return _pose_states(r, p) if np.all(residual < CONVERGED_M) else None
-    return refined
+
+def _euler_rates(rotation: np.ndarray) -> np.ndarray:
+    """(3, 3) d(roll, pitch, yaw) / dw (rad per rad) of a small rotation ``exp(w) R`` (w in NED)
+    applied to ``rotation`` (body FRD -> NED, ZYX Euler): the inverse of the matrix whose columns
+    are the NED axes each Euler angle turns about, w = Rz Ry e_x droll + Rz e_y dpitch + e_z dyaw."""
+    _, pitch, yaw = euler_from_rotation(rotation)
+    cy, sy, cp, sp = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch)
+    axes = np.array([[cy * cp, -sy, 0.0], [sy * cp, cy, 0.0], [-sp, 0.0, 1.0]])
+    return np.linalg.inv(axes)
+
+
+def _general_jacobian(rig: BeamRig, solution: PoseSolution) -> np.ndarray | None:
+    """(6, 6) d(north, east, down, roll, pitch, yaw) / d(dot coordinates [n0, e0, n1, e1, n2, e2])
+    of the general solver at ``solution`` (m per m, rad per m), by the implicit function theorem
+    on Newton's square system (:func:`refine_pose`): F(x, dots) = 0 with dF/dx = J (its 9 x 9
+    Jacobian in w, position and lengths) and dF/d dots = -E (E picks each dot's north and east),
+    so dx/d dots = J^-1 E, exactly what central differences of Newton converge to, in one solve.
+    None when J is singular (the solver fails next to these dots)."""
+    directions, ends = _beam_ends(rig, solution.rotation[None], solution.lengths[None])
+    jac = np.zeros((3 * BEAMS, 3 * BEAMS))
+    jac[:, 0:3] = -_skew_rows(ends.reshape(-1, 3)).reshape(3 * BEAMS, 3)
+    jac[:, 3:6] = np.tile(np.eye(3), (BEAMS, 1))
+    jac[np.arange(3 * BEAMS), 6 + np.repeat(np.arange(BEAMS), 3)] = directions.reshape(-1)
+    picks = np.zeros((3 * BEAMS, 2 * BEAMS))
+    picks[3 * np.arange(BEAMS), 2 * np.arange(BEAMS)] = 1.0
+    picks[3 * np.arange(BEAMS) + 1, 2 * np.arange(BEAMS) + 1] = 1.0
+    try:
+        sensitivity = np.linalg.solve(jac, picks)
+    except np.linalg.LinAlgError:
+        return None
+    if not np.all(np.isfinite(sensitivity)):
+        return None
+    return np.vstack((sensitivity[3:6], _euler_rates(solution.rotation) @ sensitivity[0:3]))
 
 
 def pose_covariance(rig: BeamRig, dots: np.ndarray, dots_cov: np.ndarray, method: Method,
                     solution: PoseSolution) -> np.ndarray:
     """(6, 6) covariance of (north, east, down m, roll, pitch, yaw rad) of ``solution`` given the
     (3, 2, 2) covariances (m^2, [north, east]) of the (3, 2) ``dots``: J Sigma J^T with J the
-    central-difference Jacobian (1 mm steps) of the solver with respect to the six dot
-    coordinates. All NaN (MAVLink's unknown) when the solver fails next to these dots."""
+    solver's Jacobian with respect to the six dot coordinates (the general solver: analytic,
+    :func:`_general_jacobian`; the closed form: central differences, 1 mm steps). All NaN
+    (MAVLink's unknown) when the solver fails next to these dots."""
     sigma = np.zeros((2 * BEAMS, 2 * BEAMS))
     for i, block in enumerate(np.asarray(dots_cov, dtype=float).reshape(BEAMS, 2, 2)):
         sigma[2 * i:2 * i + 2, 2 * i:2 * i + 2] = block
-    jac = _central_jacobian(_branch_solver(rig, method, solution), np.asarray(dots, dtype=float).ravel(), slice(3, 6))
+    if method == "closed_form":
+        jac = _central_jacobian(_closed_form_states(rig), np.asarray(dots, dtype=float).ravel(), slice(3, 6))
+    else:
+        jac = _general_jacobian(rig, solution)
     return np.full((6, 6), np.nan) if jac is None else jac @ sigma @ jac.T
 
 
