@@ -95,6 +95,7 @@ def run_bench(repeat: int) -> int:
     from companion.dashboard.bench import print_dashboard_figures
     from companion.nav.bench_fusion import run_fusion_bench
     from companion.nav.bench_stages import run_stage_bench
+    from companion.nav.ekf_slam.bench_slam import run_slam_bench
     from companion.nav.laser_dots.bench_dots import run_dots_bench
 
     print(f"companion bench: {repeat} calls per stage, Python {platform.python_version()}, "
@@ -111,6 +112,9 @@ def run_bench(repeat: int) -> int:
         _row(name, median, p99)
     for name, text in dot_accuracy.items():
         print(f"  {name}: {text}")
+    print("EKF-SLAM (a map of 100 landmarks, 303 states; issue 14: update <= 2 ms median):")
+    for name, (median, p99) in run_slam_bench(repeat).items():
+        _row(name, median, p99)
     print("fusion (50 Hz Kalman filter):")
     for name, (median, p99) in run_fusion_bench(repeat).items():
         _row(name, median, p99)

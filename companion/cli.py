@@ -206,6 +206,13 @@ def _cmd_experiment_soak(args: argparse.Namespace) -> int:
     return run_soak(args)
 
 
+def _cmd_experiment_slam_recovery(args: argparse.Namespace) -> int:
+    from sitl.slam_experiment import run_slam_recovery
+
+    setup_logging(args.log_level or "warning")
+    return run_slam_recovery(args)
+
+
 def _cmd_config_reference(args: argparse.Namespace) -> int:
     from companion.config_reference import render
 
@@ -335,6 +342,14 @@ def build_parser() -> argparse.ArgumentParser:
                       help="SITL config (default: config/sitl-real-driver.yaml)")
     soak.add_argument("--seed", type=int, default=0)
     soak.set_defaults(func=_cmd_experiment_soak)
+    slam = experiments.add_parser("slam-recovery", help="the EKF-SLAM return-to-base paper's three simulations as a "
+                                                        "seeded Monte-Carlo, no SITL (sitl/slam_experiment.py)")
+    slam.add_argument("--seeds", type=int, default=30, help="number of seeds (default 30)")
+    slam.add_argument("--seed", type=int, default=0, help="first seed (default 0)")
+    slam.add_argument("--out", required=True, help="write the results (JSON) here")
+    slam.add_argument("--variant", choices=["reference", "larger-loop"], default="reference",
+                      help="circles around a reference landmark (default) or the larger loops of the paper's Figs. 7-8")
+    slam.set_defaults(func=_cmd_experiment_slam_recovery)
 
     ref = sub.add_parser("config-reference", help="print the config reference (docs/config.md)")
     ref.set_defaults(func=_cmd_config_reference)

@@ -9,7 +9,9 @@ Cost: :meth:`EkfSlam.predict` is O(n) (only the vehicle's rows and columns of ``
 :meth:`EkfSlam.update` is O(n^2) per landmark: the observation Jacobian has non-zero columns for
 the vehicle's 3 and the landmark's 3 states only, so ``H P`` is computed from 6 rows of ``P`` and
 the Joseph form ``(I - K H) P (I - K H)^T + K R K^T`` is evaluated as
-``P - K (H P) - (H P)^T K^T + K S K^T`` (algebraically equal, with ``S = H P H^T + R``).
+``P - K (H P) - (H P)^T K^T + K S K^T`` (algebraically equal, with ``S = H P H^T + R``), itself as
+``P + M + M^T`` with ``M = K (S K^T / 2 - H P)``: one n x 3 x n product and a correction that is
+exactly symmetric, so ``P`` stays symmetric to the bit (prediction and augmentation keep it so).
 
 Consistency: the textbook EKF-SLAM (``consistency="plain"``, the seed's) evaluates its Jacobians at
 the latest estimates, which gives the filter spurious information about the global yaw (an
@@ -79,6 +81,7 @@ class EkfSlam:
         self.rejections: Counter[int] = Counter()  # gate rejections per id, all time
         self._in_a_row: Counter[int] = Counter()
         self.moved: set[int] = set()  # ids rejected moved_after times in a row: no longer used
+        self._work = np.empty((2, 0, 0))
         self.min_horizontal_m = config.min_horizontal_m
 
     # --- reading -----------------------------------------------------------------------------
@@ -120,7 +123,8 @@ class EkfSlam:
         self.x[:VEHICLE] = new
         self.prior_ne = new[:2].copy()
         p = self.P
-        p[:VEHICLE, :VEHICLE] = f @ p[:VEHICLE, :VEHICLE] @ f.T + g @ self.Q @ g.T
+        pvv = f @ p[:VEHICLE, :VEHICLE] @ f.T + g @ self.Q @ g.T
+        p[:VEHICLE, :VEHICLE] = 0.5 * (pvv + pvv.T)
         if p.shape[0] > VEHICLE:  # F = I except its yaw column: rows n and e gain f02 / f12 times row yaw
             cross = p[:VEHICLE, VEHICLE:]
             cross[0] += f[0, 2] * cross[2]
@@ -181,13 +185,13 @@ class EkfSlam:
         k = hp.T @ s_inv  # n x 3
         self.x += k @ nu
         self.x[2] = wrap(self.x[2])
-        khp = k @ hp
-        # Joseph form (I-KH)P(I-KH)^T + KRK^T = P - K(HP) - (HP)^T K^T + K S K^T
-        p -= khp
-        p -= khp.T
-        p += (k @ s) @ k.T
-        p += p.T  # keep it symmetric
-        p *= 0.5
+        # Joseph form (I-KH)P(I-KH)^T + KRK^T = P - K(HP) - (HP)^T K^T + K S K^T = P + M + M^T
+        # with M = K (S K^T / 2 - HP): one n x 3 x n product, and M + M^T is exactly symmetric
+        n = p.shape[0]
+        if self._work.shape[1] != n:  # kept n x n buffers: fresh ones each update cost page faults
+            self._work = np.empty((2, n, n))
+        m = np.matmul(k, 0.5 * (s @ k.T) - hp, out=self._work[0])
+        p += np.add(m, m.T, out=self._work[1])
         return True
 
     def augment(self, lid: int, z: np.ndarray) -> None:
