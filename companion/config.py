@@ -89,7 +89,7 @@ class MountConfig:
 
 @dataclass
 class SensorConfig:
-    kind: Literal["lidar", "camera", "imu", "gnss"] = field(metadata=meta("What the sensor measures."))
+    kind: Literal["lidar", "camera", "imu", "gnss", "landmarks"] = field(metadata=meta("What the sensor measures."))
     backend: str = field(metadata=meta(
         "Which backend reads it: real (the device), sim (simulated from ground truth; plugin sitl.sim_backends), "
         "replay (a recording), autopilot (the autopilot's own sensor over MAVLink), nmea (a serial NMEA "

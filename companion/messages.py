@@ -1,7 +1,7 @@
 """The typed messages between drivers, pipelines and the edges (like PX4's ``msg/``).
 
 Drivers produce sensor messages (:class:`Scan`, :class:`Frame`, :class:`ImuSample`,
-:class:`GnssFix`); pipelines consume them and produce estimates (:class:`PoseEstimate`,
+:class:`GnssFix`, :class:`LandmarkSightings`); pipelines consume them and produce estimates (:class:`PoseEstimate`,
 :class:`AttitudeEstimate`, :class:`RangeEstimate`); the estimate-source selection and the
 MAVLink and telemetry edges consume those. This module imports numpy only: pipelines import it
 and nothing from ``companion.mavlink``, ``companion.telemetry`` or ``sitl``.
@@ -123,6 +123,35 @@ class GnssFix:
     @property
     def has_position(self) -> bool:
         return self.fix_type >= GNSS_2D
+
+
+@dataclass(frozen=True)
+class LandmarkSightings:
+    """The point landmarks one sensor frame saw (a vision sensor, a marker detector): a range and
+    two bearings to each, with known identities (the landmark ids).
+
+    Level heading frame at the sensor: ``azimuth_rad`` from the vehicle's heading (the body's
+    forward axis projected on the horizontal) towards its right, i.e. ``atan2(d_east, d_north) -
+    yaw``, wrapped to [-pi, pi); ``elevation_rad`` from the horizontal, positive *up*
+    (``atan2(-d_down, horizontal distance)``: a landmark on the ground below the vehicle has a
+    negative elevation); ``range_m`` the straight-line distance. The d's are landmark minus
+    sensor in NED, metres. ``sigma`` is the sensor's stated 1-sigma noise (range m, azimuth
+    rad, elevation rad), the same for every landmark of the frame.
+    """
+
+    sensor_id: str
+    t_capture: float  # daemon clock, s: when the frame was captured
+    ids: np.ndarray  # (N,) int landmark ids
+    range_m: np.ndarray  # (N,) m
+    azimuth_rad: np.ndarray  # (N,) rad, clockwise from the heading seen from above
+    elevation_rad: np.ndarray  # (N,) rad, above the horizontal (negative below)
+    sigma: tuple[float, float, float]  # 1-sigma range m, azimuth rad, elevation rad
+    sequence: int = 0  # increases by one per frame of this sensor
+
+    def __post_init__(self) -> None:
+        n = np.shape(self.ids)
+        if len(n) != 1 or any(np.shape(a) != n for a in (self.range_m, self.azimuth_rad, self.elevation_rad)):
+            raise ValueError("ids, range_m, azimuth_rad and elevation_rad must be 1-D arrays of one length")
 
 
 # -- estimates --------------------------------------------------------------------------------

@@ -1,4 +1,5 @@
-"""A world: the floor plan of an indoor arena (the map a pipeline localizes in, and what the simulator renders), from YAML.
+"""A world: the floor plan of an indoor arena (the map a pipeline localizes in, and what the
+simulator renders), or an outdoor field of point landmarks with a base, from YAML.
 
 Frame (companion/frames.py): world = MAVLink LOCAL_NED at the EKF origin, x north, y east,
 z down, metres. A world is a floor plan: every position in the file is ``[x, y]`` (north,
@@ -120,6 +121,20 @@ class FloorMarker:
 
 
 @dataclass(frozen=True)
+class Landmark:
+    """A point landmark outdoors (a post, a tree top, a marker board): what a landmark sensor sees.
+    Its id is known to the sensor (data association is given, as in the EKF-SLAM seed)."""
+
+    id: int = field(metadata=meta("Landmark id (unique in the world).", (0, 999999)))
+    position: Point = field(metadata=meta("Where it stands [x north, y east], metres.", _COORD_RANGE))
+    height_m: float = field(default=0.0, metadata=meta("Height of the point above the ground, metres.", (0, 100)))
+
+    def ned(self) -> np.ndarray:
+        """(3,) NED position, metres (z = -height)."""
+        return np.array([self.position[0], self.position[1], -self.height_m])
+
+
+@dataclass(frozen=True)
 class Obstacle:
     """A box standing on the floor (a table, a crate): its top is a step in the floor height."""
 
@@ -215,7 +230,7 @@ class World:
     bounds: Bounds = field(metadata=meta("Rectangle holding the whole arena (the geofence)."))
     start: tuple[float, float, float] = field(metadata=meta(
         "Take-off pose on the floor: x north m, y east m, yaw deg (from north towards east).", _COORD_RANGE))
-    walls: tuple[Wall, ...] = field(metadata=meta("Wall segments."))
+    walls: tuple[Wall, ...] = field(default=(), metadata=meta("Wall segments (none outdoors)."))
     corners: tuple[Point, ...] = field(default=(), metadata=meta(
         "Known corner features [x north, y east], metres: the map of the lidar localization."))
     floor_markers: tuple[FloorMarker, ...] = field(default=(), metadata=meta("Fiducials on the floor."))
@@ -223,6 +238,12 @@ class World:
     openings: tuple[Opening, ...] = field(default=(), metadata=meta("Doors and windows in the walls."))
     walkers: tuple[Walker, ...] = field(default=(), metadata=meta(
         "People walking back and forth, seen by simulated scanners only (not part of the map)."))
+    landmarks: tuple[Landmark, ...] = field(default=(), metadata=meta(
+        "Point landmarks (outdoors), seen by simulated landmark sensors; never a map a pipeline reads (the EKF-SLAM "
+        "builds its own)."))
+    base: Point | None = field(default=None, metadata=meta(
+        "Where the vehicle's base is [x north, y east], metres (outdoors: where a return to base should end; the "
+        "SITL report scores the landing against it).", _COORD_RANGE))
     wall_offset_deg: float = field(default=0.0, metadata=meta(
         "The walls run at this angle plus multiples of wall_angle_deg (degrees from north towards east): the map "
         "is in the autopilot's NED frame, and a building need not be aligned with north.", (-90.0, 90.0)))
@@ -323,6 +344,15 @@ class World:
             if marker.id in seen:
                 yield f"floor_markers[{k}].id", f"marker id {marker.id} is used twice"
             seen.add(marker.id)
+        ids: set[int] = set()
+        for k, landmark in enumerate(self.landmarks):
+            if not self.bounds.contains(*landmark.position):
+                yield f"landmarks[{k}].position", f"landmark {landmark.id} does not lie inside bounds"
+            if landmark.id in ids:
+                yield f"landmarks[{k}].id", f"landmark id {landmark.id} is used twice"
+            ids.add(landmark.id)
+        if self.base is not None and not self.bounds.contains(*self.base):
+            yield "base", f"{_fmt(self.base)} is outside bounds"
         for k, walker in enumerate(self.walkers):
             for end in ("start", "end"):
                 if not self.bounds.contains(*getattr(walker, end), margin=walker.radius_m):

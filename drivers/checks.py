@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from companion.health import Health
-from companion.messages import Frame, GnssFix, ImuSample, Scan
+from companion.messages import Frame, GnssFix, ImuSample, LandmarkSightings, Scan
 from drivers.base import Backend, SensorDriver
 
 
@@ -65,6 +65,19 @@ def gnss_problem(fix: GnssFix, previous_t: float | None) -> str | None:
     return None
 
 
+def landmarks_problem(sightings: LandmarkSightings, previous_t: float | None) -> str | None:
+    """A non-finite or non-positive range, a non-finite bearing or noise, or a bad capture time."""
+    problem = _time_problem(sightings.t_capture, previous_t)
+    if problem is not None:
+        return problem
+    values = (sightings.azimuth_rad, sightings.elevation_rad, np.asarray(sightings.sigma, dtype=float))
+    if not (all(np.all(np.isfinite(v)) for v in values) and np.all(sightings.range_m > 0.0)):
+        return "non-finite bearing or noise, or a range not above 0"
+    if len(np.unique(sightings.ids)) != len(sightings.ids):
+        return "a landmark id twice in one frame"
+    return None
+
+
 @dataclass(frozen=True)
 class Kind:
     """A sensor kind: what its backends deliver and how the frontend checks and stamps it."""
@@ -79,6 +92,7 @@ KINDS: dict[str, Kind] = {
     "camera": Kind(Frame, frame_problem, lambda m: m.t_capture),
     "imu": Kind(ImuSample, imu_problem, lambda m: m.t),
     "gnss": Kind(GnssFix, gnss_problem, lambda m: m.t_capture),
+    "landmarks": Kind(LandmarkSightings, landmarks_problem, lambda m: m.t_capture),
 }
 
 

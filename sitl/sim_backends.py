@@ -20,6 +20,7 @@ from sitl.camera_lens import check_lens
 from sitl.camera_scene import check_marker_ids
 from sitl.camera_sim import SimCameraSettings, SimulatedCamera
 from sitl.gnss_sim import SimGnssSettings, SimulatedGnss
+from sitl.landmark_sensor import SimLandmarkSettings, SimulatedLandmarkSensor
 from sitl.lidar_sim import SimLidarSettings, SimulatedLidar
 from sitl.truth import TruthSource
 
@@ -72,3 +73,10 @@ def _gnss(name: str, settings: SimGnssSettings, ctx: Any) -> SimulatedGnss:
     """A receiver fixing the truth position around the configured EKF origin."""
     origin = ctx.config.origin
     return SimulatedGnss(name, settings, (origin.lat, origin.lon, origin.alt), truth(ctx))
+
+
+@register_backend("landmarks", "sim", SimLandmarkSettings, check_files=_check_world)
+def _landmarks(name: str, settings: SimLandmarkSettings, ctx: Any) -> SimulatedLandmarkSensor:
+    """The seed's vision sensor: range and bearings to the world's point landmarks in its cone."""
+    mount = Mount.from_config(ctx.config.sensors[name].mount)
+    return SimulatedLandmarkSensor(name, settings, mount, sim_world(ctx).landmarks, truth(ctx))
