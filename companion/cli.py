@@ -349,6 +349,9 @@ def build_parser() -> argparse.ArgumentParser:
     slam.add_argument("--out", required=True, help="write the results (JSON) here")
     slam.add_argument("--variant", choices=["reference", "larger-loop"], default="reference",
                       help="circles around a reference landmark (default) or the larger loops of the paper's Figs. 7-8")
+    slam.add_argument("--submap-keep", choices=["in_view", "start"], default="in_view",
+                      help="a new sub-map keeps the landmarks in view at its start (default) or only the start "
+                           "landmark (the paper's STEP 6)")
     slam.set_defaults(func=_cmd_experiment_slam_recovery)
 
     ref = sub.add_parser("config-reference", help="print the config reference (docs/config.md)")

@@ -300,3 +300,25 @@ def test_larger_loop_variant_circles_without_a_landmark_towards_the_base() -> No
     r = 2.0 * 100.0 * math.tan(math.radians(20.0))
     assert out.radius_m == pytest.approx(r)
     np.testing.assert_allclose(out.target_ne, (r / math.sqrt(2), r / math.sqrt(2)))  # the start point is on it
+
+
+def test_planner_in_view_submap_keeps_the_landmarks_in_view_and_start_keeps_only_the_start() -> None:
+    mapped = {1: np.array([10.0, 10.0]), 5: np.array([40.0, 45.0]), 6: np.array([60.0, 20.0])}
+    for keep, expected in (("in_view", (6,)), ("start", ())):
+        cfg = RecoveryPlannerConfig(loops=1, submap_keep=keep)
+        planner = RecoveryPlanner(cfg, BASE)
+        planner.target(0.0, (0.0, 0.0, 0.0), {1: mapped[1]}, mapped)
+        _fly_circle(planner, mapped[1], cfg.circle_radius_m, mapped, 1.0, 1.2)
+        out = planner.target(300.0, (40.5, 45.0, 0.0), {5: mapped[5], 6: mapped[6]}, mapped)
+        assert out.new_submap and out.keep_landmark == 5 and out.also_keep == expected
+
+
+def test_submap_can_keep_further_landmarks_with_their_joint_covariance() -> None:
+    slam, _ = _filter_with_landmarks(count=5)
+    block = slam.P[np.ix_(range(3), range(3))].copy()
+    o2, o4 = slam.slot[2], slam.slot[4]
+    joint = slam.P[np.ix_([o2, o2 + 1, o2 + 2, o4, o4 + 1, o4 + 2], [o2, o2 + 1, o2 + 2, o4, o4 + 1, o4 + 2])].copy()
+    slam.start_submap(keep_landmark=2, also_keep=(4, 99))  # 99 is not mapped: ignored
+    assert slam.ids == [2, 4]
+    np.testing.assert_array_equal(slam.pose_cov, block)
+    np.testing.assert_array_equal(slam.P[3:, 3:], joint)

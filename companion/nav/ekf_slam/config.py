@@ -85,6 +85,9 @@ class RecoveryPlannerConfig:
         "When the base is this close (by the estimate, m) the vehicle flies straight to it.", (0.0, 1000.0)))
     land_radius_m: float = field(default=1.0, metadata=meta(
         "Land when the estimate is this close to the base (m, horizontal).", (0.05, 100.0)))
+    submap_keep: Literal["in_view", "start"] = field(default="in_view", metadata=meta(
+        "What a new sub-map keeps besides the vehicle: start = the start landmark only (the seed's STEP 6); "
+        "in_view = also the landmarks in view there, with their covariances (they hold the heading)."))
     search_leg_m: float = field(default=30.0, metadata=meta(
         "Leg increment of the expanding-square search flown when no landmark is in view (m).", (1.0, 1000.0)))
     search_time_s: float = field(default=180.0, metadata=meta(

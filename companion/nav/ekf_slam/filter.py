@@ -219,18 +219,22 @@ class EkfSlam:
 
     # --- sub-maps ----------------------------------------------------------------------------
 
-    def start_submap(self, keep_landmark: int | None = None, keep_cross: bool = True) -> None:
+    def start_submap(self, keep_landmark: int | None = None, keep_cross: bool = True,
+                     also_keep: Iterable[int] = ()) -> None:
         """Start a new sub-map (seed Sec. 4 STEP 6): keep the vehicle pose and its covariance and,
         if ``keep_landmark`` is given, that landmark (the new start point) with its covariance and,
-        if ``keep_cross``, its cross-covariance with the vehicle; drop every other landmark
-        (marginalising them out: the kept block of ``P`` is unchanged). Gate counters of dropped
-        landmarks are kept (an id seen again is a new landmark of the new sub-map)."""
+        if ``keep_cross``, its cross-covariances with the vehicle (and the other kept landmarks);
+        drop every other landmark (marginalising them out: the kept block of ``P`` is unchanged).
+        ``also_keep``: further mapped ids to keep (e.g. those in view at the new start point; not
+        the seed's, which keeps none). Gate counters of dropped landmarks are kept (an id seen
+        again is a new landmark of the new sub-map)."""
         keep = list(range(VEHICLE))
         kept_ids = []
-        if keep_landmark is not None:
-            o = self.slot[keep_landmark]
-            keep += [o, o + 1, o + 2]
-            kept_ids = [keep_landmark]
+        for lid in ([keep_landmark] if keep_landmark is not None else []) + list(also_keep):
+            if lid in self.slot and lid not in kept_ids:
+                o = self.slot[lid]
+                keep += [o, o + 1, o + 2]
+                kept_ids.append(lid)
         self.x = self.x[keep].copy()
         self.P = self.P[np.ix_(keep, keep)].copy()
         if kept_ids and not keep_cross:

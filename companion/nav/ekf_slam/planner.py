@@ -18,7 +18,10 @@ STEPs (seed Sec. 4.1):
    radii whose centre lies on the way to the base, through the start point, no landmark needed;
 5. ``loops`` full loops, counted once the vehicle is within ``on_circle_tolerance`` of the radius;
 6. next start point = the mapped landmark nearest the base; on arriving above it the output says
-   ``new_submap`` (keep that landmark, drop the rest) and the steps repeat from 2.
+   ``new_submap`` (keep that landmark, drop the rest) and the steps repeat from 2. With
+   ``submap_keep: in_view`` (the default) the landmarks in view there are kept too: the seed
+   drops them, but they are few (cost unchanged) and they carry the heading the vehicle had
+   (sitl/slam_experiment.py compares both).
 
 The base within ``final_leg_m``: fly straight to it; within ``land_radius_m``: ``land``. No
 landmark in view when STEP 3 needs one (or none mapped at STEP 6): an expanding-square search
@@ -46,7 +49,7 @@ class PlannerOutput:
     """What to fly now. ``carrot_ne``: the point to steer to (m, NED); ``target_ne``: the goto
     point, the circle's centre, the search corner, or where to land / hold; ``radius_m`` for a
     circle; ``new_submap``: start a new sub-map now keeping landmark ``keep_landmark`` (None: keep
-    none); ``reference``: the reference landmark's id; ``loops_done``: full loops on this circle."""
+    none) and the landmarks ``also_keep`` (those in view, config ``submap_keep: in_view``); ``reference``: the reference landmark's id; ``loops_done``: full loops on this circle."""
 
     kind: Kind
     target_ne: tuple[float, float]
@@ -57,6 +60,7 @@ class PlannerOutput:
     keep_landmark: int | None = None
     reference: int | None = None
     loops_done: float = 0.0
+    also_keep: tuple[int, ...] = ()
 
 
 def _xy(p: object) -> np.ndarray:
@@ -218,8 +222,9 @@ class RecoveryPlanner:
         out = self._select(t_s, pos, {k: v for k, v in in_view.items() if k in mapped or k == keep})
         if out is None:
             out = self._circle(t_s, pos, in_view, mapped)
+        also = tuple(sorted(i for i in in_view if i != keep)) if self.config.submap_keep == "in_view" else ()
         return PlannerOutput(out.kind, out.target_ne, out.carrot_ne, "new sub-map; " + out.reason, out.radius_m,
-                             new_submap=True, keep_landmark=keep, reference=out.reference)
+                             new_submap=True, keep_landmark=keep, reference=out.reference, also_keep=also)
 
     # --- search ------------------------------------------------------------------------------
 
