@@ -214,6 +214,10 @@ class FailsafeConfig:
         "An estimate back and healthy for 1 s before that resumes the flight.", (0, 60)))
     degraded_speed_factor: float = field(default=0.5, metadata=meta(
         "Estimate degraded (any nav component degraded): the trajectory is flown at this fraction of its speed.", (0.1, 1)))
+    gnss_loss: Literal["return_to_base", "continue"] = field(default="return_to_base", metadata=meta(
+        "A pipeline that flies the vehicle itself took over on GNSS loss (the EKF-SLAM return to base): "
+        "return_to_base drops the mission's current step for its guidance (mission step return_to_base); "
+        "continue ignores it (the mission flies on, on whatever pose source is selected)."))
 
 
 @dataclass

@@ -39,7 +39,7 @@ from companion.mission.failsafe import Geofence
 from companion.mission.runner import MissionRunner
 from companion.mission.steps import Mission, load_mission
 from companion.navloop import NavLoop, NavOutputs
-from companion.pipeline import Pipeline, PipelineContext
+from companion.pipeline import GuidanceSource, Pipeline, PipelineContext
 from companion.sdnotify import Notifier, WatchdogGate, run_watchdog
 from companion.selection import SourceSelector
 from companion.sensors import SensorContext, build_driver, check_sensor_files
@@ -190,6 +190,10 @@ class Daemon:
             estimate=self._mission_estimate, nav_health=lambda: self.health.worst("nav:"), publish=self.telemetry.publish,
             control=cfg.control, failsafe=cfg.mission.failsafe, payload=cfg.mission.payload,
             geofence=Geofence.from_config(cfg.mission.geofence, area), select_source=self._select_source)
+        guide = next((p for p in pipelines if isinstance(p, GuidanceSource)), None)
+        if guide is not None:
+            ctx.guidance = lambda: guide.guidance(clock.now())
+            ctx.request_guidance = lambda reason: guide.request_guidance(clock.now(), reason)
         if ctx.geofence is None:
             log.warning("mission %s: no companion geofence (mission.geofence disabled, or neither its box_ned_m "
                         "nor a pipeline's operating area); the autopilot's own fence still applies", mission.name)

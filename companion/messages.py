@@ -215,3 +215,31 @@ class RangeEstimate:
 
 Estimate = PoseEstimate | AttitudeEstimate | RangeEstimate
 
+
+# -- guidance ---------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Guidance:
+    """Where a pipeline that flies the vehicle itself (the EKF-SLAM return to base) wants it now.
+
+    ``kind``: ``fly`` (track ``position_ned`` with ``velocity_ned`` as feed-forward), ``hold``
+    (stay at ``position_ned``; e.g. nothing in view and the search given up) or ``land`` (land
+    where it is). ``position_ned`` is in the frame of the estimates the same pipeline sends (LOCAL_NED
+    at the EKF origin, m), ``velocity_ned`` m/s, ``yaw_rad`` the heading to fly (rad from north,
+    None: keep it). ``trigger`` says why the pipeline took over (``gnss_lost``, ``commanded``);
+    ``reason`` what it is doing (for telemetry and logs)."""
+
+    t: float  # daemon clock, s
+    kind: Literal["fly", "hold", "land"]
+    position_ned: np.ndarray  # (3,) m
+    velocity_ned: np.ndarray  # (3,) m/s
+    yaw_rad: float | None
+    trigger: str
+    reason: str
+
+    def is_finite(self) -> bool:
+        """True if every number a setpoint would carry is finite."""
+        yaw = [] if self.yaw_rad is None else [self.yaw_rad]
+        return bool(np.all(np.isfinite(self.position_ned)) and np.all(np.isfinite(self.velocity_ned))
+                    and np.all(np.isfinite(yaw)))
+

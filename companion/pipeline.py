@@ -16,10 +16,10 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol, TypeVar, runtime_checkable
 
 from companion.health import Health
-from companion.messages import Estimate
+from companion.messages import Estimate, Guidance
 from companion.timing import Timings
 
 T = TypeVar("T")
@@ -63,6 +63,21 @@ class Pipeline(Protocol):
     def operating_area(self) -> tuple[tuple[float, float], tuple[float, float]] | None:
         """((north_min, east_min), (north_max, east_max)) m in LOCAL_NED that the pipeline can
         localize in (e.g. its map's bounds), the default companion geofence; None if unbounded."""
+
+
+@runtime_checkable
+class GuidanceSource(Protocol):
+    """A pipeline that can fly the vehicle itself (optional; the daemon hands the first one it
+    finds to the mission runner). While it is active the mission follows its :class:`Guidance`:
+    the ``return_to_base`` mission step asks for it, and a pipeline may take over on its own (GNSS
+    lost): the mission then drops its current step if ``failsafe.gnss_loss`` says so."""
+
+    def guidance(self, now: float) -> Guidance | None:
+        """What the pipeline wants the vehicle to do at daemon time ``now`` (s); None while it is
+        not active."""
+
+    def request_guidance(self, now: float, reason: str) -> str | None:
+        """Start guiding (a mission step, a command); None if it did, else why it cannot."""
 
 
 @dataclass

@@ -16,7 +16,9 @@ import signal
 import socket
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -25,6 +27,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from companion.config import load_config
 from companion.mavlink.setpoints import IGNORE_ACCELERATION, IGNORE_POSITION, IGNORE_VELOCITY
+from sitl.truth import TruthSource
 from tests.conftest import free_port
 from tests.sitl_helpers import (PipelineDaemon, Processes, TelemetryRecorder, TruthPipeline, read_log,
                                 run_daemon_with_vehicle, vehicle_args, wait_for, write_config)
@@ -37,8 +40,9 @@ GPS_TOLERANCE_M = 0.35
 
 
 def fly(tmp_path: Path, procs: Processes, steps: list[dict], seconds: float, sections: dict | None = None,
-        **faults: object) -> tuple[PipelineDaemon, dict]:
-    """Fly ``steps`` (after wait_ready / GUIDED / arm / takeoff) for ``seconds`` of simulation."""
+        make: Callable[[TruthSource], Any] | None = None, **faults: object) -> tuple[PipelineDaemon, dict]:
+    """Fly ``steps`` (after wait_ready / GUIDED / arm / takeoff) for ``seconds`` of simulation on a
+    TruthPipeline with ``faults``, or on the pipeline ``make`` builds."""
     mission = tmp_path / "mission.yaml"
     mission.write_text(yaml.safe_dump({"name": "test", "steps": TAKEOFF + steps}, sort_keys=False))
     port = free_port()
@@ -47,7 +51,7 @@ def fly(tmp_path: Path, procs: Processes, steps: list[dict], seconds: float, sec
                                    sections=merged))
     log = tmp_path / "flight-log.json"
     vehicle = procs.start("vehicle", vehicle_args(port, log=log, lockstep=True, seconds=seconds, seed=4))
-    daemon = PipelineDaemon(cfg, lambda truth: TruthPipeline(truth, 5, **faults))
+    daemon = PipelineDaemon(cfg, make or (lambda truth: TruthPipeline(truth, 5, **faults)))
     assert run_daemon_with_vehicle(daemon, vehicle, timeout_s=120) == 0
     assert vehicle.returncode == 0, procs.output("vehicle")
     return daemon, read_log(log)

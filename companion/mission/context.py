@@ -20,7 +20,7 @@ from companion.control.outer_loop import MeasuredState
 from companion.health import State
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.commands import Commander
-from companion.messages import PoseEstimate
+from companion.messages import Guidance, PoseEstimate
 from companion.mavlink.origin import OriginSetter
 from companion.mavlink.setpoints import Setpoint, SetpointStream
 from companion.mission.failsafe import EstimateStatus, Geofence, classify_estimate, stopping_point
@@ -43,6 +43,18 @@ class FailsafeLanding(MissionFailed):
     """A failsafe decided to land (the runner switches to LAND and waits for the disarm)."""
 
 
+class GuidanceTakeover(MissionFailed):
+    """A pipeline took over the flight on its own (GNSS lost): the runner follows its guidance."""
+
+
+def _no_guidance() -> Guidance | None:
+    return None
+
+
+def _cannot_guide(reason: str) -> str | None:
+    return "no pipeline can fly the vehicle (none is a guidance source)"
+
+
 @dataclass
 class MissionContext:
     """The mission's view of the daemon (one per runner)."""
@@ -59,6 +71,9 @@ class MissionContext:
     payload: PayloadConfig
     geofence: Geofence | None
     select_source: Callable[[str | None], None]  # pin a pose source (None: the priority order again)
+    guidance: Callable[[], Guidance | None] = _no_guidance  # the guidance source's wish now (None: not active)
+    request_guidance: Callable[[str], str | None] = _cannot_guide  # ask it to start: None, or why not
+    following_guidance: bool = False  # a return_to_base is flying the guidance (no takeover into itself)
     takeover: asyncio.Event = field(default_factory=asyncio.Event)
     takeover_reason: str = ""  # who changed the mode and to what (on_mode_taken)
     autopilot_failsafe: bool = False  # the autopilot's own failsafe took the mode (not a pilot)
@@ -80,8 +95,15 @@ class MissionContext:
             self.takeover_reason = f"pilot or ground station changed the mode to {mode}"
 
     def check_takeover(self) -> None:
+        """Raise if someone else took the flight: the pilot or the autopilot (MissionFailed), or,
+        while airborne, a pipeline that started guiding on its own with ``failsafe.gnss_loss:
+        return_to_base`` (GuidanceTakeover)."""
         if self.takeover.is_set():
             raise MissionFailed(self.takeover_reason)
+        if self.airborne and not self.following_guidance and self.failsafe.gnss_loss == "return_to_base":
+            wish = self.guidance()
+            if wish is not None:
+                raise GuidanceTakeover(f"{wish.trigger}: {wish.reason}")
 
     def estimate_status(self) -> EstimateStatus:
         return classify_estimate(clock.now(), self.estimate(), self.nav_health(), self.failsafe.estimate_timeout_s)

@@ -22,10 +22,10 @@ from companion import clock
 from companion.health import State
 from companion.mavlink.commands import CommandFailed
 from companion.mavlink.setpoints import Setpoint
-from companion.mission.context import FailsafeLanding, MissionContext, MissionFailed
+from companion.mission.context import FailsafeLanding, GuidanceTakeover, MissionContext, MissionFailed
 from companion.mission.flight import TrajectoryFlight
 from companion.mission.steps import (ArmStep, FlyStep, HoldStep, LandStep, Mission, MissionStep, PayloadDropStep,
-                                     PoseSourceStep, TakeoffStep, WaitReadyStep)
+                                     PoseSourceStep, ReturnToBaseStep, TakeoffStep, WaitReadyStep)
 
 log = logging.getLogger("companion.mission")
 
@@ -70,10 +70,7 @@ class MissionRunner:
         if self.status != "pending":
             await asyncio.Event().wait()
         try:
-            for index, step in enumerate(self.mission.steps):
-                self.step_index = index
-                self._set("running")
-                await self._run_step(step)
+            await self._run_steps()
         except FailsafeLanding as exc:
             self._set("failed", str(exc))
             await self._failsafe_land()
@@ -85,6 +82,26 @@ class MissionRunner:
         else:
             self._set("completed")
         await asyncio.Event().wait()
+
+    async def _run_steps(self) -> None:
+        """The steps in order; a pipeline's takeover (GNSS lost) jumps to the next
+        ``return_to_base`` step, or without one flies its guidance and ends the mission failed."""
+        steps = self.mission.steps
+        index = 0
+        while index < len(steps):
+            self.step_index = index
+            self._set("running")
+            try:
+                await self._run_step(steps[index])
+            except GuidanceTakeover as exc:
+                self.ctx.record_failsafe("guidance", f"{exc}: following the pipeline's guidance")
+                later = next((k for k in range(index + 1, len(steps)) if steps[k].kind == "return_to_base"), None)
+                if later is None:
+                    await self._return_to_base(ReturnToBaseStep())
+                    raise MissionFailed(f"{exc}: the pipeline's guidance was flown instead of the mission") from exc
+                index = later
+                continue
+            index += 1
 
     async def on_daemon_stop(self, mode_timeout_s: float) -> None:
         """The daemon is stopping: if the mission commands the vehicle in flight, leave it safe.
@@ -152,8 +169,9 @@ class MissionRunner:
     # -- steps ------------------------------------------------------------------------------
 
     async def _run_step(self, step: MissionStep) -> None:
-        self.ctx.check_takeover()
         kind = step.kind
+        if kind != "return_to_base":  # (that step follows the guidance a takeover would hand it)
+            self.ctx.check_takeover()
         try:
             await getattr(self, f"_{kind}")(getattr(step, kind))
         except CommandFailed as exc:
@@ -229,6 +247,43 @@ class MissionRunner:
         await self.ctx.commander.release_payload(self.ctx.payload)
         log.info("payload released")
         await self._hold(HoldStep(seconds=step.hold_s))
+
+    async def _return_to_base(self, step: ReturnToBaseStep) -> None:
+        """Fly the guidance source's wishes (steps.py, ``return_to_base``) until it lands or stops."""
+        ctx = self.ctx
+        ctx.following_guidance = True
+        try:
+            ctx.check_takeover()  # the pilot's
+            if ctx.guidance() is None:
+                problem = ctx.request_guidance("mission step return_to_base")
+                if problem is not None:
+                    raise MissionFailed(f"return_to_base: {problem}")
+            deadline = clock.now() + step.timeout_s
+            while True:
+                ctx.check_takeover()
+                wish = ctx.guidance()
+                if wish is None:
+                    log.info("return_to_base: the guidance ended (GNSS back?): the mission goes on")
+                    return
+                if not wish.is_finite():
+                    raise MissionFailed(f"return_to_base: non-finite guidance ({wish.reason})")
+                if wish.kind == "land":
+                    log.info("return_to_base: landing (%s)", wish.reason)
+                    await self._land(LandStep(timeout_s=step.land_timeout_s))
+                    return
+                ctx.setpoints.command(Setpoint(position_ned=wish.position_ned,
+                                               velocity_ned=wish.velocity_ned if wish.kind == "fly" else None,
+                                               yaw_rad=wish.yaw_rad))
+                status = ctx.estimate_status()
+                if status.state == State.LOST:
+                    started = clock.now()
+                    await ctx.ride_out_estimate_loss(status, ctx.yaw())
+                    deadline += clock.now() - started
+                if clock.now() > deadline:
+                    raise MissionFailed(f"return_to_base: not landed after {step.timeout_s:g} s ({wish.reason})")
+                await asyncio.sleep(1.0 / ctx.control.rate_hz)
+        finally:
+            ctx.following_guidance = False
 
     async def _pose_source(self, step: PoseSourceStep) -> None:
         self.ctx.select_source(step.source)

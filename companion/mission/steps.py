@@ -15,6 +15,14 @@
   window / door pass with a tolerance (see :class:`Waypoint`);
 - ``payload_drop: {hold_s}``: hold, release the payload (``mission.payload``), keep holding;
 - ``land: {timeout_s}``: switch to LAND and wait for the autopilot to disarm;
+- ``return_to_base: {timeout_s, land_timeout_s}``: hand the flight to the pipeline that can
+  fly the vehicle itself (a :class:`companion.pipeline.GuidanceSource`, e.g. the EKF-SLAM return
+  to base): ask it to start if it has not taken over already, fly its guidance (position
+  targets with velocity feed-forward) until it says land, then land. The pipeline ending its
+  guidance (GNSS back) ends the step and the mission goes on. While airborne, a pipeline taking
+  over on its own (GNSS lost) jumps the mission to its next ``return_to_base`` step if
+  ``failsafe.gnss_loss`` is ``return_to_base`` (without one, the guidance is flown to its
+  landing and the mission ends failed, naming the takeover);
 - ``pose_source: {source}``: command the pose source (a pipeline of ``pipelines.sources``): it
   feeds the autopilot while it has fresh estimates; ``source: null`` returns to the priority
   order. A switch increments ``reset_counter`` once, as any switch does.
@@ -114,6 +122,14 @@ class LandStep:
 
 
 @dataclass
+class ReturnToBaseStep:
+    timeout_s: float = field(default=3600.0, metadata=meta("Give up (hold) after this long.", (1, 36000)))
+    land_timeout_s: float = field(default=300.0, metadata=meta(
+        "Wait for touchdown and disarm after the guidance says land this long (a descent from 100 m takes minutes).",
+        (1, 3600)))
+
+
+@dataclass
 class PoseSourceStep:
     source: str | None = field(metadata=meta("A pose pipeline of pipelines.sources; null = the priority order again."))
 
@@ -129,6 +145,7 @@ class MissionStep:
     payload_drop: PayloadDropStep | None = None
     land: LandStep | None = None
     pose_source: PoseSourceStep | None = None
+    return_to_base: ReturnToBaseStep | None = None
 
     def validate(self) -> tuple[str, str] | None:
         present = [name for name, value in vars(self).items() if value is not None]

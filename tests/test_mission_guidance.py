@@ -1,0 +1,86 @@
+"""A pipeline that flies the vehicle itself (companion.pipeline.GuidanceSource) and the mission:
+the ``return_to_base`` step and the takeover on GNSS loss (``failsafe.gnss_loss``), flown
+against the real SITL vehicle in lockstep (tests/test_mission_failsafes.py's harness).
+
+The guidance source here is a TEST-ONLY truth pipeline that "loses GNSS" at a set daemon time
+and then guides the vehicle to a base 2 m away and lands it there; the EKF-SLAM pipeline is the
+real one (tests/test_ekf_slam_sitl.py)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from companion.messages import Guidance
+from tests.sitl_helpers import Processes, TruthPipeline
+from tests.test_mission_failsafes import GPS_TOLERANCE_M, fly, mode_entries, truth_at
+
+BASE = np.array([2.0, 1.0, -1.0])
+SPEED_MPS = 0.5
+
+
+class GuidingTruthPipeline(TruthPipeline):
+    """Truth plus noise as the pose; from ``lost_at`` (daemon s) on, or when asked, guidance:
+    fly at 0.5 m/s straight to BASE, then land within 0.1 m of it."""
+
+    def __init__(self, truth: object, lost_at: float) -> None:
+        super().__init__(truth, 5)
+        self.lost_at = lost_at
+        self.requested: str | None = None
+
+    def request_guidance(self, now: float, reason: str) -> str | None:
+        self.requested = reason
+        return None
+
+    def guidance(self, now: float) -> Guidance | None:
+        sample = self.truth.latest
+        if sample is None or (now < self.lost_at and self.requested is None):
+            return None
+        trigger = "commanded" if self.requested is not None else "gnss_lost"
+        offset = BASE - sample.position_ned
+        if np.linalg.norm(offset[:2]) < 0.1:
+            return Guidance(now, "land", BASE, np.zeros(3), None, trigger, "at the base")
+        along = offset / np.linalg.norm(offset)
+        target = sample.position_ned + along * min(1.0, float(np.linalg.norm(offset)))
+        return Guidance(now, "fly", target, along * SPEED_MPS, None, trigger, "flying to the base")
+
+
+HOLD_LONG = [{"hold": {"seconds": 120}}]
+
+
+def fly_guided(tmp_path: Path, procs: Processes, steps: list[dict], lost_at: float, gnss_loss: str = "return_to_base",
+               seconds: float = 50) -> tuple[object, dict]:
+    daemon, log = fly(tmp_path, procs, steps, seconds, sections={"mission": {"failsafe": {
+        "lost_hold_s": 2.0, "gnss_loss": gnss_loss}}}, make=lambda truth: GuidingTruthPipeline(truth, lost_at))
+    return daemon, log
+
+
+def test_gnss_lost_in_a_hold_jumps_to_the_return_to_base_step_which_flies_the_guidance_and_lands_at_base(
+        tmp_path: Path, procs: Processes) -> None:
+    daemon, log = fly_guided(tmp_path, procs, HOLD_LONG + [{"return_to_base": {}}], lost_at=15.0)
+    mission = daemon.mission
+    assert mission.status == "completed", mission.snapshot()
+    assert mission.ctx.failsafes[0]["kind"] == "guidance" and "gnss_lost" in mission.ctx.failsafes[0]["reason"]
+    assert 15.0 <= mission.ctx.failsafes[0]["t"] < 15.5
+    land_at = mode_entries(log, "LAND")[0]
+    np.testing.assert_allclose(truth_at(log, land_at)[:2], BASE[:2], atol=GPS_TOLERANCE_M)
+    assert not log["modes"][-1][2]  # landed and disarmed
+
+
+def test_without_a_return_to_base_step_the_guidance_is_flown_and_the_mission_ends_failed_naming_it(
+        tmp_path: Path, procs: Processes) -> None:
+    daemon, log = fly_guided(tmp_path, procs, HOLD_LONG, lost_at=15.0)
+    mission = daemon.mission
+    assert mission.status == "failed" and "gnss_lost" in mission.reason, mission.snapshot()
+    np.testing.assert_allclose(truth_at(log, mode_entries(log, "LAND")[0])[:2], BASE[:2], atol=GPS_TOLERANCE_M)
+
+
+def test_gnss_loss_continue_ignores_the_takeover_and_a_return_to_base_step_asks_for_the_guidance(
+        tmp_path: Path, procs: Processes) -> None:
+    daemon, log = fly_guided(tmp_path, procs, [{"hold": {"seconds": 3}}, {"return_to_base": {}}], lost_at=1e9,
+                             gnss_loss="continue")
+    mission = daemon.mission
+    assert mission.status == "completed", mission.snapshot()
+    assert daemon.pipeline.requested == "mission step return_to_base" and not mission.ctx.failsafes
+    np.testing.assert_allclose(truth_at(log, mode_entries(log, "LAND")[0])[:2], BASE[:2], atol=GPS_TOLERANCE_M)
