@@ -87,13 +87,15 @@ class ImuSample:
     and angular rate (rad/s), at ``t`` (daemon clock, s: the sample time mapped onto it).
 
     ``euler_rad`` is the autopilot's own attitude estimate (roll, pitch, yaw of body FRD in
-    NED, rad) newest at this sample, when the IMU comes from the autopilot; None otherwise.
+    NED, rad) newest at this sample, and ``velocity_ned`` its own velocity estimate (NED m/s,
+    LOCAL_POSITION_NED, at most a second old), when the IMU comes from the autopilot; None otherwise.
     """
 
     t: float
     accel_body: np.ndarray  # (3,) m/s^2, body FRD
     gyro_body: np.ndarray  # (3,) rad/s, body FRD
     euler_rad: tuple[float, float, float] | None = None
+    velocity_ned: np.ndarray | None = None  # (3,) m/s
 
 
 GNSS_NO_FIX, GNSS_2D, GNSS_3D, GNSS_DGPS, GNSS_RTK_FLOAT, GNSS_RTK_FIXED = 1, 2, 3, 4, 5, 6  # MAVLink GPS_FIX_TYPE

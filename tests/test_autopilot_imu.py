@@ -12,7 +12,7 @@ from companion import clock
 from companion.config import MavlinkConfig, VehicleConfig
 from companion.frames import GRAVITY_MPS2
 from companion.health import Health
-from companion.mavlink.autopilot import AutopilotState
+from companion.mavlink.autopilot import VELOCITY_MAX_AGE_S, AutopilotState
 from companion.mavlink.link import MavlinkLink, mavlink
 from companion.mavlink.trust import OLD_CLOCK_SILENT_S
 
@@ -81,3 +81,19 @@ def test_a_failsafe_announcement_is_found_but_not_one_that_says_the_failsafe_end
     assert state.failsafe_text(1.5) is None  # only the "cleared" one since
     state.statustext.append((3.0, 2, "GCS Failsafe Off"))
     assert state.failsafe_text(1.5) is None
+
+
+def test_imu_samples_carry_the_autopilots_velocity_only_while_it_is_fresh() -> None:
+    async def main() -> AutopilotState:
+        link = MavlinkLink(MavlinkConfig(), VehicleConfig(), "udpout:127.0.0.1:9", Health(clock.now))
+        state = AutopilotState(link)
+        state.imu_source = "SCALED_IMU"
+        link._dispatch(from_autopilot(mavlink.MAVLink_local_position_ned_message(99_000, 1.0, 2.0, -3.0, 4.0, -5.0, 0.5)))
+        await stream_imu(link, 100_000, 3)
+        await asyncio.sleep(VELOCITY_MAX_AGE_S)
+        await stream_imu(link, 101_100, 1)
+        return state
+
+    state = asyncio.run(main())
+    np.testing.assert_allclose(state.imu[0].velocity_ned, [4.0, -5.0, 0.5])
+    assert state.imu[-1].velocity_ned is None  # the velocity is older than VELOCITY_MAX_AGE_S by then

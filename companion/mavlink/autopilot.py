@@ -52,6 +52,7 @@ COMMANDABLE_MODES = {"GUIDED", "OFFBOARD"}
 IMU_MESSAGES = ("HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "RAW_IMU")
 IMU_QUEUE = 64  # samples kept: > 1 s at 50 Hz, far more than one nav cycle
 IMU_CLOCK_WINDOW = 50  # samples in the clock-offset minimum (1 s at 50 Hz)
+VELOCITY_MAX_AGE_S = 1.0  # the autopilot velocity attached to an IMU sample is at most this old
 FAILSAFE_WORDS = ("failsafe", "ekf variance")  # in an autopilot STATUSTEXT: it acted by itself
 FAILSAFE_OVER_WORDS = ("clear", " off", "resolved")  # ... unless the text says a failsafe ended
 MILLI_G = GRAVITY_MPS2 / 1000.0  # SCALED_IMU* (and ArduPilot's RAW_IMU) accelerations are in mG
@@ -237,6 +238,14 @@ class AutopilotState:
         self.local_velocity_ned = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
         self.local_position_time = clock.now()
 
+    def _fresh_velocity(self) -> np.ndarray | None:
+        """The autopilot's velocity estimate (NED m/s) if finite and at most
+        ``VELOCITY_MAX_AGE_S`` old, else None (attached to IMU samples)."""
+        v, t = self.local_velocity_ned, self.local_position_time
+        if v is None or t is None or clock.now() - t > VELOCITY_MAX_AGE_S or not np.all(np.isfinite(v)):
+            return None
+        return v
+
     def _on_imu(self, msg: mavlink.MAVLink_message) -> None:
         if msg.get_type() != self.imu_source:
             return
@@ -245,7 +254,7 @@ class AutopilotState:
         if t is None or (self.imu and t <= self.imu[-1].t):
             self.imu_rejected += 1
             return
-        sample = ImuSample(t, accel, gyro, self.attitude_euler)
+        sample = ImuSample(t, accel, gyro, self.attitude_euler, self._fresh_velocity())
         self.imu.append(sample)
         for listener in self._imu_listeners:
             listener(sample)
