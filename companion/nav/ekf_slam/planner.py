@@ -211,11 +211,17 @@ class RecoveryPlanner:
         if self.next_start is not None and self.next_start in mapped:
             self.next_start_ne = _xy(mapped[self.next_start]).copy()
         assert self.next_start_ne is not None
-        if np.linalg.norm(self.next_start_ne - pos) > self.config.arrive_m:
+        d = float(np.linalg.norm(self.next_start_ne - pos))
+        self._goto_best = min(getattr(self, "_goto_best", math.inf), d)
+        # arrived: within arrive_m, or passed it within 3 arrive_m (a vehicle whose turns are wider
+        # than arrive_m could orbit the point for ever)
+        passed = self._goto_best <= 3.0 * self.config.arrive_m and d > self._goto_best + 0.5
+        if d > self.config.arrive_m and not passed:
             why = (f"STEP 6: to landmark {self.next_start}, the mapped one nearest the base" if self.next_start
                    is not None else "STEP 6: no mapped landmark nearer the base, a leg towards it")
             return PlannerOutput("goto", _t(self.next_start_ne), _t(self.next_start_ne), why)
         keep = self.next_start
+        self._goto_best = math.inf
         self._set_start(self.next_start_ne)
         self.submaps += 1
         self.state = "select"
