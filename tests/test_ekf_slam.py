@@ -63,12 +63,19 @@ def test_observation_conventions_ned_azimuth_clockwise_elevation_negative_below(
     assert el == pytest.approx(-math.atan2(100.0, 10.0))  # below the horizontal: negative
 
 
-def test_motion_jacobians_match_numerical_differentiation() -> None:
+@pytest.mark.parametrize("lateral", [0.0, -1.3])
+def test_motion_jacobians_match_numerical_differentiation(lateral: float) -> None:
     pose, v, w, dt = np.array([5.0, -3.0, 0.7]), 5.0, 0.2, 0.025
-    f, g = motion_jacobians(pose, v, w, dt)
-    np.testing.assert_allclose(f, numeric_jacobian(lambda p: motion(p, v, w, dt), pose, wrap_rows=(2,)), atol=1e-8)
-    np.testing.assert_allclose(g, numeric_jacobian(lambda u: motion(pose, u[0], u[1], dt), np.array([v, w]),
-                                                   wrap_rows=(2,)), atol=1e-8)
+    f, g = motion_jacobians(pose, v, w, dt, lateral)
+    np.testing.assert_allclose(f, numeric_jacobian(lambda p: motion(p, v, w, dt, lateral), pose, wrap_rows=(2,)),
+                               atol=1e-8)
+    np.testing.assert_allclose(g, numeric_jacobian(lambda u: motion(pose, u[0], u[2], dt, u[1]),
+                                                   np.array([v, lateral, w]), wrap_rows=(2,)), atol=1e-8)
+
+
+def test_a_lateral_speed_moves_the_vehicle_to_the_right_of_its_heading() -> None:
+    east_heading = np.array([0.0, 0.0, math.pi / 2])
+    np.testing.assert_allclose(motion(east_heading, 0.0, 0.0, 2.0, 1.5), [-3.0, 0.0, math.pi / 2], atol=1e-12)
 
 
 def test_inverse_observation_inverts_and_its_jacobians_match_numerical_differentiation() -> None:

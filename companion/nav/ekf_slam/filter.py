@@ -48,6 +48,7 @@ from companion.nav.ekf_slam.model import (
 
 VEHICLE = 3  # (n, e, yaw)
 LANDMARK = 3  # (n, e, d)
+POSITION_GATE_CHI2 = 13.82  # 99.9 % of chi-square with 2 degrees of freedom
 
 
 @dataclass
@@ -72,7 +73,9 @@ class EkfSlam:
         assert self.x.shape == (VEHICLE,)
         self.P = np.array(pose_cov, dtype=float).reshape(VEHICLE, VEHICLE).copy()
         self.R = np.diag(config.r_matrix())
-        self.Q = np.diag(config.q_matrix())
+        sigma_v2, sigma_omega2 = config.q_matrix()
+        self.Q = np.diag([sigma_v2, 0.0, sigma_omega2])  # inputs (v, v_right, omega): the seed's vehicle
+        self.Q_lateral = np.diag([sigma_v2, sigma_v2, sigma_omega2])  # with a measured lateral speed
         self.fej = config.consistency == "fej"
         self.ids: list[int] = []  # landmark ids in state order
         self.slot: dict[int, int] = {}  # id -> offset of its first state in x
@@ -111,19 +114,23 @@ class EkfSlam:
 
     # --- prediction --------------------------------------------------------------------------
 
-    def predict(self, v_mps: float, omega_rps: float, dt_s: float) -> None:
+    def predict(self, v_mps: float, omega_rps: float, dt_s: float, v_right_mps: float | None = None) -> None:
         """Propagate the vehicle by the speed and yaw-rate inputs over ``dt_s`` (seed eqs. 16-21);
-        O(n): ``P_vv = F P_vv F^T + G Q G^T``, ``P_vm = F P_vm``."""
+        ``v_right_mps``: a measured speed across the heading (a crabbing multicopter), noisy like
+        the speed along it; None: the seed's vehicle, which moves along its heading (no lateral
+        term, no lateral noise). O(n): ``P_vv = F P_vv F^T + G Q G^T``, ``P_vm = F P_vm``."""
         pose = self.x[:VEHICLE]
-        f, g = motion_jacobians(pose, v_mps, omega_rps, dt_s)
-        new = motion(pose, v_mps, omega_rps, dt_s)
+        lateral = 0.0 if v_right_mps is None else v_right_mps
+        f, g = motion_jacobians(pose, v_mps, omega_rps, dt_s, lateral)
+        new = motion(pose, v_mps, omega_rps, dt_s, lateral)
         if self.fej:  # yaw column from p_{k+1|k} - p_{k|k-1} instead of p_{k+1|k} - p_{k|k}
             f[0, 2] = -(new[1] - self.prior_ne[1])
             f[1, 2] = new[0] - self.prior_ne[0]
         self.x[:VEHICLE] = new
         self.prior_ne = new[:2].copy()
         p = self.P
-        pvv = f @ p[:VEHICLE, :VEHICLE] @ f.T + g @ self.Q @ g.T
+        q = self.Q_lateral if v_right_mps is not None else self.Q
+        pvv = f @ p[:VEHICLE, :VEHICLE] @ f.T + g @ q @ g.T
         p[:VEHICLE, :VEHICLE] = 0.5 * (pvv + pvv.T)
         if p.shape[0] > VEHICLE:  # F = I except its yaw column: rows n and e gain f02 / f12 times row yaw
             cross = p[:VEHICLE, VEHICLE:]
@@ -180,18 +187,34 @@ class EkfSlam:
                 self.moved.add(lid)
             return False
         self._in_a_row[lid] = 0
+        self._correct(h @ self.P[idx, :], s, s_inv, nu)  # H P from 6 rows of P
+        return True
+
+    def _correct(self, hp: np.ndarray, s: np.ndarray, s_inv: np.ndarray, nu: np.ndarray) -> None:
+        """The Kalman correction for an m-row measurement given ``H P`` (m x n), its innovation
+        covariance ``S`` (m x m, and its inverse) and innovation ``nu`` (m,)."""
         p = self.P
-        hp = h @ p[idx, :]  # 3 x n, from 6 rows of P
-        k = hp.T @ s_inv  # n x 3
+        k = hp.T @ s_inv  # n x m
         self.x += k @ nu
         self.x[2] = wrap(self.x[2])
         # Joseph form (I-KH)P(I-KH)^T + KRK^T = P - K(HP) - (HP)^T K^T + K S K^T = P + M + M^T
-        # with M = K (S K^T / 2 - HP): one n x 3 x n product, and M + M^T is exactly symmetric
+        # with M = K (S K^T / 2 - HP): one n x m x n product, and M + M^T is exactly symmetric
         n = p.shape[0]
         if self._work.shape[1] != n:  # kept n x n buffers: fresh ones each update cost page faults
             self._work = np.empty((2, n, n))
         m = np.matmul(k, 0.5 * (s @ k.T) - hp, out=self._work[0])
         p += np.add(m, m.T, out=self._work[1])
+
+    def update_position(self, ne: np.ndarray, cov: np.ndarray) -> bool:
+        """Fuse a measurement of the vehicle's horizontal position (a GNSS fix: ``ne`` (2,) m NED,
+        ``cov`` 2 x 2 m^2): linear, so no Jacobian question; gated at the 99.9 % chi-square of 2
+        degrees of freedom (13.8). False (nothing changed) when gated out."""
+        nu = np.asarray(ne, dtype=float) - self.x[:2]
+        s = self.P[:2, :2] + np.asarray(cov, dtype=float)
+        s_inv = np.linalg.inv(s)
+        if float(nu @ s_inv @ nu) > POSITION_GATE_CHI2:
+            return False
+        self._correct(self.P[:2, :].copy(), s, s_inv, nu)
         return True
 
     def augment(self, lid: int, z: np.ndarray) -> None:

@@ -70,22 +70,27 @@ def wrap(angle: float) -> float:
     return a - math.pi
 
 
-def motion(pose: np.ndarray, v_mps: float, omega_rps: float, dt_s: float) -> np.ndarray:
-    """The vehicle pose ``(n, e, yaw)`` (m, m, rad) after ``dt_s`` at speed ``v_mps`` and yaw
-    rate ``omega_rps`` (seed eqs. 1-3 without the noise, eq. 16)."""
-    heading = pose[2] + omega_rps * dt_s
-    step = v_mps * dt_s
-    return np.array([pose[0] + step * math.cos(heading), pose[1] + step * math.sin(heading), wrap(heading)])
-
-
-def motion_jacobians(pose: np.ndarray, v_mps: float, omega_rps: float, dt_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """``(F, G)``: derivatives of :func:`motion` by the pose (3 x 3, seed eq. 20) and by the
-    input ``(v, omega)`` (3 x 2, seed eq. 21 with ``dpsi = omega dt``)."""
+def motion(pose: np.ndarray, v_mps: float, omega_rps: float, dt_s: float, v_right_mps: float = 0.0) -> np.ndarray:
+    """The vehicle pose ``(n, e, yaw)`` (m, m, rad) after ``dt_s`` at speed ``v_mps`` along the
+    heading, ``v_right_mps`` across it (to the right; 0 in the seed, whose vehicle moves along its
+    heading, but a multicopter crabs in wind) and yaw rate ``omega_rps`` (seed eqs. 1-3 without
+    the noise, eq. 16)."""
     heading = pose[2] + omega_rps * dt_s
     c, s = math.cos(heading), math.sin(heading)
-    step = v_mps * dt_s
-    f = np.array([[1.0, 0.0, -step * s], [0.0, 1.0, step * c], [0.0, 0.0, 1.0]])
-    g = np.array([[dt_s * c, -step * s * dt_s], [dt_s * s, step * c * dt_s], [0.0, dt_s]])
+    return np.array([pose[0] + (v_mps * c - v_right_mps * s) * dt_s, pose[1] + (v_mps * s + v_right_mps * c) * dt_s,
+                     wrap(heading)])
+
+
+def motion_jacobians(pose: np.ndarray, v_mps: float, omega_rps: float, dt_s: float,
+                     v_right_mps: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """``(F, G)``: derivatives of :func:`motion` by the pose (3 x 3, seed eq. 20) and by the
+    input ``(v, v_right, omega)`` (3 x 3; seed eq. 21 with ``dpsi = omega dt`` and the lateral
+    speed's column added)."""
+    heading = pose[2] + omega_rps * dt_s
+    c, s = math.cos(heading), math.sin(heading)
+    dn, de = (v_mps * c - v_right_mps * s) * dt_s, (v_mps * s + v_right_mps * c) * dt_s
+    f = np.array([[1.0, 0.0, -de], [0.0, 1.0, dn], [0.0, 0.0, 1.0]])
+    g = np.array([[dt_s * c, -dt_s * s, -de * dt_s], [dt_s * s, dt_s * c, dn * dt_s], [0.0, 0.0, dt_s]])
     return f, g
 
 
