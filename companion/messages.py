@@ -89,6 +89,8 @@ class ImuSample:
     ``euler_rad`` is the autopilot's own attitude estimate (roll, pitch, yaw of body FRD in
     NED, rad) newest at this sample, and ``velocity_ned`` its own velocity estimate (NED m/s,
     LOCAL_POSITION_NED, at most a second old), when the IMU comes from the autopilot; None otherwise.
+    ``pressure_alt_m``: the barometric altitude sent with the sample (HIGHRES_IMU ``pressure_alt``,
+    m, up; the autopilot's datum: only its changes mean something), None if not sent.
     """
 
     t: float
@@ -96,6 +98,7 @@ class ImuSample:
     gyro_body: np.ndarray  # (3,) rad/s, body FRD
     euler_rad: tuple[float, float, float] | None = None
     velocity_ned: np.ndarray | None = None  # (3,) m/s
+    pressure_alt_m: float | None = None  # m, up
 
 
 GNSS_NO_FIX, GNSS_2D, GNSS_3D, GNSS_DGPS, GNSS_RTK_FLOAT, GNSS_RTK_FIXED = 1, 2, 3, 4, 5, 6  # MAVLink GPS_FIX_TYPE

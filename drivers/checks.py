@@ -45,12 +45,14 @@ def frame_problem(frame: Frame, previous_t: float | None) -> str | None:
 
 
 def imu_problem(sample: ImuSample, previous_t: float | None) -> str | None:
-    """A non-finite specific force, rate or attached velocity, or a bad sample time."""
+    """A non-finite specific force, rate, attached velocity or pressure altitude, or a bad sample time."""
     problem = _time_problem(sample.t, previous_t)
     if problem is None and not (np.all(np.isfinite(sample.accel_body)) and np.all(np.isfinite(sample.gyro_body))):
         return "non-finite acceleration or rate"
     if problem is None and sample.velocity_ned is not None and not np.all(np.isfinite(sample.velocity_ned)):
         return "non-finite velocity"
+    if problem is None and sample.pressure_alt_m is not None and not math.isfinite(sample.pressure_alt_m):
+        return "non-finite pressure altitude"
     return problem
 
 

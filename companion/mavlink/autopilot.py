@@ -32,6 +32,7 @@ SITL over TCP) keeps its real spacing. The last :data:`IMU_QUEUE` samples are ke
 from __future__ import annotations
 
 import logging
+import math
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -52,6 +53,7 @@ COMMANDABLE_MODES = {"GUIDED", "OFFBOARD"}
 IMU_MESSAGES = ("HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "RAW_IMU")
 IMU_QUEUE = 64  # samples kept: > 1 s at 50 Hz, far more than one nav cycle
 IMU_CLOCK_WINDOW = 50  # samples in the clock-offset minimum (1 s at 50 Hz)
+HIGHRES_PRESSURE_ALT = 1 << 11  # HIGHRES_IMU fields_updated: pressure_alt is valid
 VELOCITY_MAX_AGE_S = 1.0  # the autopilot velocity attached to an IMU sample is at most this old
 FAILSAFE_WORDS = ("failsafe", "ekf variance")  # in an autopilot STATUSTEXT: it acted by itself
 FAILSAFE_OVER_WORDS = ("clear", " off", "resolved")  # ... unless the text says a failsafe ended
@@ -77,6 +79,14 @@ def imu_sample(msg: mavlink.MAVLink_message) -> tuple[np.ndarray, np.ndarray]:
     if msg.get_type() == "HIGHRES_IMU":
         return accel, gyro
     return accel * MILLI_G, gyro * 1e-3
+
+
+def pressure_altitude(msg: mavlink.MAVLink_message) -> float | None:
+    """HIGHRES_IMU's barometric altitude (m) when its fields_updated says it is there and it is
+    finite; None for any other IMU message."""
+    if msg.get_type() != "HIGHRES_IMU" or not msg.fields_updated & HIGHRES_PRESSURE_ALT:
+        return None
+    return float(msg.pressure_alt) if math.isfinite(msg.pressure_alt) else None
 
 
 @dataclass
@@ -254,7 +264,7 @@ class AutopilotState:
         if t is None or (self.imu and t <= self.imu[-1].t):
             self.imu_rejected += 1
             return
-        sample = ImuSample(t, accel, gyro, self.attitude_euler, self._fresh_velocity())
+        sample = ImuSample(t, accel, gyro, self.attitude_euler, self._fresh_velocity(), pressure_altitude(msg))
         self.imu.append(sample)
         for listener in self._imu_listeners:
             listener(sample)
