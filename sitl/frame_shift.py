@@ -41,7 +41,8 @@ def shift_world(raw: dict, offset: Offset) -> dict:
     out = dict(raw)
     out["bounds"] = {key: shifted(raw["bounds"][key], offset) for key in ("min", "max")}
     out["start"] = shifted(raw["start"], offset)
-    out["walls"] = [{**w, "start": shifted(w["start"], offset), "end": shifted(w["end"], offset)} for w in raw["walls"]]
+    out["walls"] = [{**w, "start": shifted(w["start"], offset), "end": shifted(w["end"], offset)}
+                    for w in raw.get("walls") or []]
     out["corners"] = [shifted(c, offset) for c in raw.get("corners") or []]
     out["openings"] = [{**o, "center": shifted(o["center"], offset)} for o in raw.get("openings") or []]
     out["obstacles"] = [{**o, "min": shifted(o["min"], offset), "max": shifted(o["max"], offset)}
@@ -49,6 +50,9 @@ def shift_world(raw: dict, offset: Offset) -> dict:
     out["floor_markers"] = [{**m, "position": shifted(m["position"], offset)} for m in raw.get("floor_markers") or []]
     out["walkers"] = [{**w, "start": shifted(w["start"], offset), "end": shifted(w["end"], offset)}
                       for w in raw.get("walkers") or []]
+    out["landmarks"] = [{**m, "position": shifted(m["position"], offset)} for m in raw.get("landmarks") or []]
+    if raw.get("base") is not None:
+        out["base"] = shifted(raw["base"], offset)
     return out
 
 

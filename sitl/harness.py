@@ -531,7 +531,9 @@ def run_harness(args: argparse.Namespace) -> int:
                   file=sys.stderr)
             return 1
         sim_log = json.loads(vehicle_log.read_text())
-        frame = load_config(session.run_config).origin if session.run_config is not None else cfg.origin
+        run_cfg = load_config(session.run_config) if session.run_config is not None else cfg
+        frame = run_cfg.origin
+        base = run_cfg.load_referenced("sitl.world", run_cfg.sitl.world, load_world).base
         usage = session.usage
         report = build_report(
             mission=mission_name, seconds=sim_log["sim_seconds"], lockstep=bool(args.lockstep), seed=args.seed,
@@ -539,7 +541,7 @@ def run_harness(args: argparse.Namespace) -> int:
             origin=(frame.lat, frame.lon, frame.alt),
             internal_errors=session.ardupilot.internal_errors() if session.ardupilot is not None else None,
             cpu_percent=None if usage is None else 100.0 * usage[0] / max(wall, 1e-6),
-            rss_mb=None if usage is None else usage[1])
+            rss_mb=None if usage is None else usage[1], base_ne=base)
         Path(args.report).write_text(json.dumps(report, indent=2) + "\n")
         print(json.dumps(report, indent=2), flush=True)
         print(f"companion sitl: flight log (truth, everything the autopilot received) in {vehicle_log}", flush=True)

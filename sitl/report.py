@@ -158,14 +158,38 @@ def _stage(system: dict, name: str, key: str) -> float | None:
     return None if stage is None else stage.get(key)
 
 
+def score_recovery(log: dict, base_ne: tuple[float, float] | None) -> dict[str, Any] | None:
+    """A return to base scored by truth (None for a world without a base): ``base_error_m`` the
+    horizontal distance from the true landing point to the base (None unless landed and
+    disarmed), ``final_distance_m`` the same at the end of the run whatever happened, and
+    ``autopilot_position_lost_s``: how long the autopilot's own estimate had no position after
+    it first had one (its EKF must keep one all the way home)."""
+    if base_ne is None:
+        return None
+    truth = np.asarray(log["truth"]["pos_ned"], dtype=float)
+    if len(truth) == 0:
+        return {"base_error_m": None, "final_distance_m": None, "autopilot_position_lost_s": None}
+    final = float(np.hypot(*(truth[-1, :2] - np.asarray(base_ne, dtype=float))))
+    landed = bool(log["modes"]) and not log["modes"][-1][2]
+    valid = np.asarray(log["vehicle_estimate"]["pos_valid"], dtype=bool)
+    t = np.asarray(log["vehicle_estimate"]["t"], dtype=float)
+    lost_s = None
+    if valid.any():
+        first = int(np.argmax(valid))
+        dt = np.diff(t[first:], append=t[-1])
+        lost_s = float(np.sum(dt[~valid[first:]]))
+    return {"base_error_m": final if landed else None, "final_distance_m": final, "autopilot_position_lost_s": lost_s}
+
+
 def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, control_law: str, log: dict,
                  telemetry: dict[str, dict], origin: tuple[float, float, float],
                  cpu_percent: float | None, rss_mb: float | None,
-                 internal_errors: list[str] | None = None) -> dict[str, Any]:
+                 internal_errors: list[str] | None = None, base_ne: tuple[float, float] | None = None) -> dict[str, Any]:
     """The report dict (schema 1) from a vehicle log and the daemon's last telemetry.
 
     ``internal_errors``: what a real autopilot (ArduPilot SITL) stopped on during the run; None
-    for the built-in vehicle, which has no such thing."""
+    for the built-in vehicle, which has no such thing. ``base_ne``: the world's base (north,
+    east m): the report gains ``recovery`` (:func:`score_recovery`)."""
     estimate = score_estimate(log)
     estimate.pop("horizontal_rms_m", None)
     system = telemetry.get("system", {})
@@ -178,7 +202,7 @@ def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, con
     failsafes = telemetry.get("mission", {}).get("failsafe_counts") or {}
     landed_disarmed = bool(log["modes"]) and not log["modes"][-1][2]
     nonfinite = stats.get("nonfinite_dropped", 0) + stats.get("nonfinite_dropped_link", 0) if stats else None
-    return {
+    report: dict[str, Any] = {
         "schema": SCHEMA, "mission": mission, "seconds": seconds, "lockstep": lockstep, "seed": seed,
         "estimate": estimate,
         "autopilot": {
@@ -209,3 +233,7 @@ def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, con
             "rss_mb": rss_mb,
         },
     }
+    recovery = score_recovery(log, base_ne)
+    if recovery is not None:
+        report["recovery"] = recovery
+    return report

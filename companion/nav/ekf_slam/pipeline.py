@@ -1,0 +1,420 @@
+"""The ``ekf_slam`` pipeline: the outdoor pose while GNSS lasts, and on its loss the EKF-SLAM
+return to base of Lee and Tahk (2010).
+
+Data flow, every nav cycle, the inputs taken in capture-time order (no I/O here):
+
+- IMU samples from the autopilot (``imu_sensor``) -> the SLAM's prediction (:class:`EkfSlam`)
+  with its speed along and across the heading and its yaw rate (the gyro, as ZYX Euler rates):
+  the speeds from the GNSS Doppler velocity while there is a fix, then from the autopilot's own
+  velocity estimate, the motion input a vehicle still has without GNSS (the seed's commanded
+  velocity and heading), each resolved along the autopilot's heading;
+- landmark sightings (``landmarks``, kind landmarks) -> the SLAM's updates and new landmarks, but
+  only while the vehicle is at the held altitude (the SLAM's model: ``slam.altitude_m``), judged by
+  the GNSS altitude while there is one;
+- usable GNSS fixes (``gnss``: fix type at least ``min_fix_type``, no jamming flag) -> position
+  updates of the SLAM. The SLAM starts at the first usable fix with the autopilot's heading
+  (``start_yaw_sigma_deg``), so by the time GNSS is lost the heading and the landmarks near the
+  vehicle are known in the GNSS frame from the flight so far (the seed starts at the last good fix
+  with an exact heading: a real compass is not that good, and the heading error at the start
+  would rotate the whole way home);
+- GNSS lost (no usable fix for ``gnss_lost_after_s``) while airborne at the held altitude: the
+  recovery planner (:mod:`.planner`) starts at the SLAM's pose (STEP 1) and the pipeline guides the
+  vehicle (:class:`companion.pipeline.GuidanceSource`: the mission's ``return_to_base`` step, or
+  the takeover of ``mission.failsafe.gnss_loss``): a point just ahead of the estimate towards the
+  planner's carrot, at the held altitude, with the cruise speed as feed-forward and the nose
+  along the path; the planner's new sub-maps are applied to the SLAM; near the base it lands.
+  GNSS usable again for ``gnss_back_after_s`` before the landing ends the guidance.
+
+Output: a :class:`PoseEstimate` every nav cycle once the SLAM runs: north and east from the SLAM,
+down from the GNSS fix while there is one, then the held altitude; roll and pitch the
+autopilot's, yaw the SLAM's. The covariance is the SLAM's (north, east, yaw) with the altitude's
+and the autopilot attitude's stated sigmas.
+
+Frames: LOCAL_NED at the EKF origin (GNSS fixes converted around ``origin``), body FRD; times on
+the daemon clock, s.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from companion.frames import ned_from_geodetic, wrap_pi
+from companion.health import Health, State
+from companion.messages import Estimate, GnssFix, Guidance, ImuSample, LandmarkSightings, PoseEstimate
+from companion.nav.ekf_slam.config import EkfSlamConfig, RecoveryPlannerConfig
+from companion.nav.ekf_slam.filter import EkfSlam
+from companion.nav.ekf_slam.planner import PlannerOutput, RecoveryPlanner
+from companion.pipeline import PipelineContext
+from companion.plugins import register_pipeline
+from companion.schema import meta
+from companion.timing import Timings
+
+STREAM = "ekf_slam"
+HEALTH = "nav:ekf_slam"
+LEAD_S = 0.2  # the guidance's position target lies this far ahead along the path (s at cruise speed)
+MAX_IMU_GAP_S = 0.5  # a longer gap between IMU samples is not integrated (the SLAM waits for the next)
+BARO_DATUM_GAIN = 0.02  # per fix: the baro datum averages about 50 fixes (10 s at 5 Hz) of GNSS height
+
+
+@dataclass
+class EkfSlamPipelineConfig:
+    """``pipelines.ekf_slam``: GNSS while it lasts, then the EKF-SLAM return to base (Lee and Tahk)."""
+
+    gnss: str = field(metadata=meta("Name (in `sensors`) of the GNSS receiver (kind gnss)."))
+    landmarks: str = field(metadata=meta("Name (in `sensors`) of the landmark sensor (kind landmarks)."))
+    base_ne: tuple[float, float] = field(metadata=meta(
+        "Where the base is [north, east], metres in LOCAL_NED: where the return ends.", (-100000, 100000)))
+    imu_sensor: str = field(default="imu", metadata=meta(
+        "Name (in `sensors`) of the autopilot's IMU (kind imu, backend autopilot: its samples carry the "
+        "autopilot's attitude and velocity, the SLAM's motion input)."))
+    speed_mps: float = field(default=5.0, metadata=meta("Cruise speed of the return, m/s (seed: 5).", (0.5, 30)))
+    min_fix_type: int = field(default=3, metadata=meta(
+        "A fix is usable from this MAVLink GPS_FIX_TYPE on (3 = 3-D), unless it reports jamming.", (2, 6)))
+    gnss_lost_after_s: float = field(default=1.0, metadata=meta(
+        "No usable fix for this long: GNSS is lost and the return to base starts.", (0.1, 60)))
+    gnss_back_after_s: float = field(default=10.0, metadata=meta(
+        "Usable fixes again for this long end the return (unless it is landing).", (0.5, 600)))
+    gnss_reset_after: int = field(default=5, metadata=meta(
+        "This many usable fixes in a row refused by the SLAM's gate (the SLAM went wrong, or GNSS jumped) "
+        "restart the SLAM at the fix, as an autopilot resets to GNSS.", (1, 1000)))
+    altitude_band_m: float = field(default=5.0, metadata=meta(
+        "Landmarks are used only while the GNSS altitude is within this of slam.altitude_m (the SLAM's "
+        "model holds the altitude), and the return starts only there, metres.", (0.1, 100)))
+    start_yaw_sigma_deg: float = field(default=5.0, metadata=meta(
+        "1-sigma of the autopilot's heading the SLAM starts with (a compass), degrees.", (0.01, 90)))
+    attitude_sigma_deg: float = field(default=1.0, metadata=meta(
+        "1-sigma stated for the autopilot's roll and pitch in the estimate, degrees.", (0.01, 30)))
+    altitude_sigma_m: float = field(default=1.0, metadata=meta(
+        "1-sigma stated for the held altitude once GNSS is lost, metres.", (0.01, 100)))
+    slam: EkfSlamConfig = field(default_factory=EkfSlamConfig, metadata=meta(
+        "The EKF-SLAM: held altitude, motion and sensor noise, gating, consistency fix."))
+    planner: RecoveryPlannerConfig = field(default_factory=RecoveryPlannerConfig, metadata=meta(
+        "The recovery path: circles around a reference landmark (or larger loops), sub-maps, search, landing."))
+
+    def validate(self) -> tuple[str, str] | None:
+        if self.planner.altitude_m != self.slam.altitude_m:
+            return "planner.altitude_m", f"must equal slam.altitude_m ({self.slam.altitude_m:g}): one held altitude"
+        if self.planner.half_fov_deg != self.slam.half_fov_deg:
+            return "planner.half_fov_deg", f"must equal slam.half_fov_deg ({self.slam.half_fov_deg:g}): one sensor"
+        return None
+
+    def sensor_inputs(self) -> dict[str, str]:
+        return {"gnss": "gnss", "landmarks": "landmarks", "imu_sensor": "imu"}
+
+    def moved(self, raw: dict[str, Any], offset: tuple[float, float], move_map: Callable[[str], str]) -> dict[str, Any]:
+        """This section for a local frame whose origin moved by ``offset`` (north, east m): the base moves."""
+        return {**raw, "base_ne": [self.base_ne[0] - offset[0], self.base_ne[1] - offset[1]]}
+
+
+def motion_input(sample: ImuSample, velocity_ned: np.ndarray | None) -> tuple[float, float, float] | None:
+    """(forward, right speed m/s, yaw rate rad/s) of a vehicle moving at ``velocity_ned`` (NED
+    m/s; its horizontal part resolved along and across the autopilot's heading of ``sample``) and
+    turning at the ZYX yaw rate ``(q sin roll + r cos roll) / cos pitch`` of the sample's body
+    rates; None without the autopilot's attitude or a velocity."""
+    if sample.euler_rad is None or velocity_ned is None:
+        return None
+    roll, pitch, yaw = sample.euler_rad
+    c, s = math.cos(yaw), math.sin(yaw)
+    forward = float(velocity_ned[0] * c + velocity_ned[1] * s)
+    right = float(-velocity_ned[0] * s + velocity_ned[1] * c)
+    q, r = float(sample.gyro_body[1]), float(sample.gyro_body[2])
+    return forward, right, (q * math.sin(roll) + r * math.cos(roll)) / max(math.cos(pitch), 1e-3)
+
+
+@dataclass
+class EkfSlamStats:
+    fixes: int = 0
+    fixes_used: int = 0
+    fixes_gated: int = 0
+    slam_restarts: int = 0  # restarted at a fix after gnss_reset_after gated ones
+    frames: int = 0
+    frames_used: int = 0  # at the held altitude
+    landmarks_used: int = 0
+    landmarks_rejected: int = 0
+    landmarks_added: int = 0
+    imu_samples: int = 0
+    imu_without_input: int = 0  # no autopilot attitude or velocity attached
+    gnss_losses: int = 0
+    submaps: int = 0
+
+
+class EkfSlamPipeline:
+    """GNSS, then the EKF-SLAM return to base (module docstring)."""
+
+    name = "ekf_slam"
+    telemetry_streams = (STREAM,)
+
+    def __init__(self, cfg: EkfSlamPipelineConfig, origin: tuple[float, float, float], health: Health) -> None:
+        self.cfg = cfg
+        self.origin = origin
+        self.health = health
+        self.stats = EkfSlamStats()
+        self.timings = {"ekf_slam": Timings()}
+        self.slam: EkfSlam | None = None
+        self.planner: RecoveryPlanner | None = None
+        self.plan: PlannerOutput | None = None
+        self.trigger = ""
+        self._inbox: list[tuple[float, int, Any]] = []  # (capture time, order, message)
+        self._order = 0
+        self._t: float | None = None  # time the SLAM is at
+        self._euler: tuple[float, float, float] | None = None
+        self._down: float | None = None  # down of the newest usable fix, m
+        self._gnss_ok = False  # a usable fix within gnss_lost_after_s
+        self._was_at_altitude = False  # at the previous cycle, by GNSS
+        self._last_usable: float | None = None  # capture time of the newest usable fix
+        self._gnss_velocity: np.ndarray | None = None  # Doppler velocity of the newest usable fix, NED m/s
+        self._gated_in_a_row = 0
+        self._pressure_alt: float | None = None  # newest barometric altitude from the autopilot, m up
+        self._baro_datum: float | None = None  # GNSS down + pressure altitude, averaged while GNSS lasts
+        self._usable_since: float | None = None
+        self._in_view: dict[int, np.ndarray] = {}
+        health.report(HEALTH, State.LOST, "waiting for a GNSS fix")
+
+    # -- inputs (driver callbacks) ------------------------------------------------------
+
+    def subscriptions(self) -> dict[str, Callable[[Any], None]]:
+        return {self.cfg.gnss: self._keep, self.cfg.landmarks: self._keep, self.cfg.imu_sensor: self._keep}
+
+    def _keep(self, message: GnssFix | LandmarkSightings | ImuSample) -> None:
+        t = message.t if isinstance(message, ImuSample) else message.t_capture
+        self._order += 1
+        self._inbox.append((t, self._order, message))
+
+    # -- the nav cycle --------------------------------------------------------------------
+
+    def step(self, now: float) -> list[Estimate]:
+        """Take the messages received since the last cycle in capture order; the pose while the SLAM runs."""
+        started = time.perf_counter()
+        inbox, self._inbox = sorted(self._inbox, key=lambda m: (m[0], m[1])), []
+        for t, _, message in inbox:
+            if isinstance(message, GnssFix):
+                self._on_fix(message)
+            elif isinstance(message, LandmarkSightings):
+                self._on_sightings(message)
+            else:
+                self._on_imu(message)
+        self._watch_gnss(now)
+        estimate = self._estimate()
+        self.timings["ekf_slam"].add((time.perf_counter() - started) * 1e3)
+        return [] if estimate is None else [estimate]
+
+    def _usable(self, fix: GnssFix) -> bool:
+        return fix.fix_type >= self.cfg.min_fix_type and not fix.jamming and fix.has_position
+
+    def _on_fix(self, fix: GnssFix) -> None:
+        self.stats.fixes += 1
+        if not self._usable(fix):
+            self._usable_since = None
+            return
+        self._last_usable = fix.t_capture
+        self._usable_since = self._usable_since if self._usable_since is not None else fix.t_capture
+        ned = ned_from_geodetic(fix.lat_deg, fix.lon_deg, fix.alt_m, self.origin)
+        self._down = float(ned[2])
+        if self._pressure_alt is not None:  # the baro's datum in the GNSS frame: a slow average of the fixes
+            datum = self._down + self._pressure_alt
+            self._baro_datum = datum if self._baro_datum is None else self._baro_datum + BARO_DATUM_GAIN * (
+                datum - self._baro_datum)
+        self._gnss_velocity = fix.velocity_ned_mps
+        h = fix.h_acc_m if fix.h_acc_m is not None else 2.0
+        if self.slam is not None:
+            self._predict_to(fix.t_capture, None)
+            if self.slam.update_position(ned[:2], np.eye(2) * h * h):
+                self.stats.fixes_used += 1
+                self._gated_in_a_row = 0
+                return
+            self.stats.fixes_gated += 1
+            self._gated_in_a_row += 1
+            if self._gated_in_a_row < self.cfg.gnss_reset_after:
+                return
+            self.stats.slam_restarts += 1
+        self._start_slam(fix.t_capture, ned, h)
+
+    def _start_slam(self, t: float, ned: np.ndarray, h_m: float) -> None:
+        """A fresh SLAM at the fix ``ned`` (m, 1-sigma ``h_m``) with the autopilot's heading."""
+        if self._euler is None:
+            return  # the heading to start with comes from the autopilot
+        pose_cov = np.diag([h_m * h_m, h_m * h_m, math.radians(self.cfg.start_yaw_sigma_deg) ** 2])
+        self.slam = EkfSlam(self.cfg.slam, [ned[0], ned[1], self._euler[2]], pose_cov)
+        self._t = t
+        self._gated_in_a_row = 0
+
+    def _on_imu(self, sample: ImuSample) -> None:
+        self.stats.imu_samples += 1
+        if sample.euler_rad is not None:
+            self._euler = sample.euler_rad
+        if sample.pressure_alt_m is not None:
+            self._pressure_alt = sample.pressure_alt_m
+        gnss = self._gnss_velocity if self._gnss_ok else None
+        u = motion_input(sample, gnss if gnss is not None else sample.velocity_ned)
+        if u is None:
+            self.stats.imu_without_input += 1
+        self._predict_to(sample.t, u)
+
+    def _predict_to(self, t: float, u: tuple[float, float, float] | None) -> None:
+        """Propagate the SLAM from its time to ``t`` (s) with the input ``u`` (forward and right
+        speed, yaw rate; :func:`motion_input`); without one (a fix between samples) only the clock."""
+        if self.slam is None or self._t is None or t <= self._t:
+            return
+        dt, self._t = t - self._t, t
+        if u is not None and dt <= MAX_IMU_GAP_S:
+            self.slam.predict(u[0], u[2], dt, v_right_mps=u[1])
+
+    def _current_down(self) -> float | None:
+        """The vehicle's NED down (m): GNSS while it lasts, then the baro on the datum GNSS gave it,
+        else (no baro) the held altitude while returning; None if unknown."""
+        if self._gnss_ok and self._down is not None:
+            return self._down
+        if self._baro_datum is not None and self._pressure_alt is not None:
+            return self._baro_datum - self._pressure_alt
+        return self.cfg.slam.down_m if self.planner is not None else None
+
+    def _at_altitude(self) -> bool:
+        """The vehicle flies within ``altitude_band_m`` of the SLAM's held altitude."""
+        down = self._current_down()
+        return down is not None and abs(down - self.cfg.slam.down_m) <= self.cfg.altitude_band_m
+
+    def _on_sightings(self, frame: LandmarkSightings) -> None:
+        self.stats.frames += 1
+        if self.slam is None or not self._at_altitude():
+            return
+        self.stats.frames_used += 1
+        down = self._current_down()
+        assert down is not None  # _at_altitude()
+        self.slam.down_m = down  # the observation model's vehicle height: measured, not assumed
+        observations = {int(i): np.array([r, a, e]) for i, r, a, e in
+                        zip(frame.ids, frame.range_m, frame.azimuth_rad, frame.elevation_rad)}
+        result = self.slam.update(observations)
+        self.stats.landmarks_used += len(result.used)
+        self.stats.landmarks_rejected += len(result.rejected)
+        self.stats.landmarks_added += len(result.augmented)
+        mapped = self.slam.landmarks()
+        self._in_view = {i: mapped[i] for i in observations if i in mapped}
+        if self.planner is not None:
+            self._replan(frame.t_capture)
+
+    def _replan(self, t: float) -> None:
+        assert self.slam is not None and self.planner is not None
+        self.plan = self.planner.target(t, self.slam.pose, self._in_view, self.slam.landmarks())
+        if self.plan.new_submap:
+            self.slam.start_submap(self.plan.keep_landmark, also_keep=self.plan.also_keep)
+            self.stats.submaps += 1
+
+    def _watch_gnss(self, now: float) -> None:
+        """GNSS lost at the held altitude -> start the return; back long enough -> end it (unless
+        landing). Lost elsewhere (on the ground, climbing): no return, the pose coasts, degraded."""
+        self._gnss_ok = self._last_usable is not None and now - self._last_usable <= self.cfg.gnss_lost_after_s
+        if not self._gnss_ok:
+            self._usable_since = None
+        if self.planner is None and not self._gnss_ok and self.slam is not None:
+            if self._was_at_altitude:
+                self.stats.gnss_losses += 1
+                self._start_return(now, "gnss_lost")
+            else:
+                self.health.report(HEALTH, State.DEGRADED, "GNSS lost away from the held altitude: coasting, no return")
+        elif (self.planner is not None and self.trigger == "gnss_lost" and self._usable_since is not None
+              and now - self._usable_since >= self.cfg.gnss_back_after_s
+              and (self.plan is None or self.plan.kind != "land")):
+            self.planner, self.plan, self.trigger = None, None, ""
+            self.health.report(HEALTH, State.OK, "GNSS back: the return to base ended")
+        elif self.planner is None and self._gnss_ok and self.slam is not None:
+            self.health.report(HEALTH, State.OK, "GNSS")
+        self._was_at_altitude = self._gnss_ok and self._at_altitude()
+
+    def _start_return(self, now: float, trigger: str) -> None:
+        assert self.slam is not None
+        self.planner = RecoveryPlanner(self.cfg.planner, self.cfg.base_ne)
+        self.trigger = trigger
+        self._replan(now)
+        self.health.report(HEALTH, State.OK, f"returning to base on the EKF-SLAM ({trigger})")
+
+    def _estimate(self) -> PoseEstimate | None:
+        slam = self.slam
+        if slam is None or self._euler is None or self._t is None:
+            return None
+        n, e, yaw = slam.pose
+        down = self._current_down()
+        if down is None:
+            return None
+        cov = np.zeros((6, 6))
+        p = slam.pose_cov
+        cov[np.ix_([0, 1], [0, 1])] = p[:2, :2]
+        cov[np.ix_([0, 1], [5])] = p[:2, 2:3]
+        cov[np.ix_([5], [0, 1])] = p[2:3, :2]
+        cov[5, 5] = p[2, 2]
+        cov[2, 2] = self.cfg.altitude_sigma_m ** 2
+        cov[3, 3] = cov[4, 4] = math.radians(self.cfg.attitude_sigma_deg) ** 2
+        roll, pitch, _ = self._euler
+        return PoseEstimate(self._t, np.array([n, e, down]), (roll, pitch, float(wrap_pi(yaw))), cov, source=self.name)
+
+    # -- guidance (companion.pipeline.GuidanceSource) -------------------------------------
+
+    def request_guidance(self, now: float, reason: str) -> str | None:
+        """Start the return on command (a mission step); why not, if it cannot."""
+        if self.planner is not None:
+            return None
+        if self.slam is None:
+            return "the EKF-SLAM has not started (no usable GNSS fix with the autopilot's attitude yet)"
+        if not self._at_altitude():
+            return f"not at the held altitude of {self.cfg.slam.altitude_m:g} m (slam.altitude_m)"
+        self._start_return(now, "commanded")
+        return None
+
+    def guidance(self, now: float) -> Guidance | None:
+        """The planner's wish as a flight target, None while not returning."""
+        if self.planner is None or self.plan is None or self.slam is None:
+            return None
+        plan, down = self.plan, self.cfg.slam.down_m
+        n, e, yaw = self.slam.pose
+        if plan.kind in ("land", "hold"):
+            target = np.array([*plan.target_ne, down])
+            return Guidance(now, plan.kind, target, np.zeros(3), None, self.trigger, plan.reason)
+        offset = np.array(plan.carrot_ne) - np.array([n, e])
+        distance = float(np.linalg.norm(offset))
+        if distance < 1e-6:
+            return Guidance(now, "hold", np.array([n, e, down]), np.zeros(3), None, self.trigger, plan.reason)
+        along = offset / distance
+        lead = min(distance, self.cfg.speed_mps * LEAD_S)
+        target = np.array([n + along[0] * lead, e + along[1] * lead, down])
+        velocity = np.array([along[0], along[1], 0.0]) * self.cfg.speed_mps
+        return Guidance(now, "fly", target, velocity, math.atan2(along[1], along[0]), self.trigger, plan.reason)
+
+    # -- telemetry --------------------------------------------------------------------------
+
+    def snapshot(self) -> dict:
+        """Counters for telemetry."""
+        return {**self.stats.__dict__, "landmarks": 0 if self.slam is None else self.slam.n_landmarks,
+                "returning": self.planner is not None, "trigger": self.trigger}
+
+    def telemetry(self, static_due: bool) -> dict[str, dict[str, Any]]:
+        """The map (landmarks with their horizontal covariances), the pose and the plan."""
+        slam = self.slam
+        if slam is None:
+            return {}
+        marks = []
+        for lid in slam.ids:
+            mean, cov = slam.landmark(lid)
+            marks.append({"id": lid, "ne": mean[:2], "cov_ne": cov[:2, :2], "in_view": lid in self._in_view})
+        plan = self.plan
+        return {STREAM: {
+            "t_s": self._t, "pose": slam.pose, "pose_cov": slam.pose_cov, "landmarks": marks,
+            "returning": self.planner is not None, "trigger": self.trigger, "base_ne": self.cfg.base_ne,
+            "plan": None if plan is None else {"kind": plan.kind, "target_ne": plan.target_ne,
+                                               "carrot_ne": plan.carrot_ne, "radius_m": plan.radius_m,
+                                               "reason": plan.reason, "reference": plan.reference},
+        }}
+
+    def operating_area(self) -> None:
+        """Unbounded outdoors (the geofence comes from mission.geofence.box_ned_m)."""
+        return None
+
+
+@register_pipeline("ekf_slam", EkfSlamPipelineConfig)
+def _build(section: EkfSlamPipelineConfig, ctx: PipelineContext) -> EkfSlamPipeline:
+    o = ctx.config.origin
+    return EkfSlamPipeline(section, (o.lat, o.lon, o.alt), ctx.health)

@@ -1,0 +1,44 @@
+"""Writes the outdoor world of the EKF-SLAM return to base (config/worlds/outdoor.yaml).
+
+``python -m sitl.outdoor_world > config/worlds/outdoor.yaml``: the landmark field of the seed's
+simulations (sitl/slam_experiment.py ``make_world``: one point landmark per 1000 m^2 over
+[-150, 650] m squared, 0-5 m high) drawn once with :data:`SEED`, the base at the seed's (353.5,
+353.5) m and the take-off there: a flight out to the jam point at the origin, 500 m away, and
+back. LOCAL_NED metres (x north, y east).
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import yaml
+
+from sitl.slam_experiment import AREA_NE, BASE_NE, make_world
+
+SEED = 14
+
+
+def outdoor_world() -> dict:
+    """The world document (companion/world.py)."""
+    landmarks = make_world(np.random.default_rng(SEED)).landmarks
+    (n0, n1), (e0, e1) = AREA_NE
+    return {
+        "name": "outdoor-field",
+        "wall_angle_deg": 90,
+        "bounds": {"min": [n0, e0], "max": [n1, e1]},
+        "start": [BASE_NE[0], BASE_NE[1], 225.0],
+        "base": list(BASE_NE),
+        "landmarks": [{"id": k, "position": [round(float(p[0]), 2), round(float(p[1]), 2)],
+                       "height_m": round(float(-p[2]), 2)} for k, p in enumerate(landmarks)],
+    }
+
+
+def main() -> None:
+    sys.stdout.write("# The outdoor landmark field of the EKF-SLAM return to base: written by\n"
+                     "# python -m sitl.outdoor_world > config/worlds/outdoor.yaml (see that module).\n")
+    yaml.safe_dump(outdoor_world(), sys.stdout, sort_keys=False, default_flow_style=None, width=120)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,141 @@
+"""The ``ekf_slam`` pipeline on its own (no daemon): GNSS, landmark sightings of the simulated
+sensor and autopilot IMU samples from a kinematic vehicle that follows the pipeline's guidance,
+scored against that vehicle's truth. The flight against the SITL vehicle is
+tests/test_ekf_slam_sitl.py."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from companion.frames import geodetic_from_ned, quat_from_euler, wrap_pi
+from companion.health import Health, State
+from companion.messages import GNSS_NO_FIX, GnssFix, Guidance, ImuSample
+from companion.nav.ekf_slam.pipeline import HEALTH, EkfSlamPipeline, EkfSlamPipelineConfig
+from companion.pipeline import GuidanceSource
+from companion.world import load_world
+from drivers.mount import Mount
+from sitl.landmark_sensor import SimLandmarkSettings, SimulatedLandmarkSensor
+from sitl.truth import TruthSample
+from tests.conftest import REPO
+
+ORIGIN = (47.3977, 8.5456, 488.0)
+BASE = (353.5, 353.5)
+IMU_DT = 0.02  # 50 Hz
+SENSOR_EVERY = 10  # GNSS and landmarks at 5 Hz
+BARO_DATUM_M = 37.0  # the autopilot's pressure altitude at the origin's height
+
+
+class Flight:
+    """A vehicle at 100 m over the outdoor world flying a constant ground velocity (or the
+    pipeline's guidance, once it guides), feeding the pipeline as the daemon would."""
+
+    def __init__(self, velocity_ned: tuple[float, float, float], start_ne: tuple[float, float] = BASE,
+                 altitude_m: float = 100.0, seed: int = 3) -> None:
+        world = load_world(REPO / "config" / "worlds" / "outdoor.yaml")
+        self.health = Health(lambda: 0.0)
+        self.pipeline = EkfSlamPipeline(EkfSlamPipelineConfig(gnss="gnss", landmarks="landmarks", base_ne=BASE),
+                                        ORIGIN, self.health)
+        self.sensor = SimulatedLandmarkSensor("landmarks", SimLandmarkSettings(seed=seed), Mount(np.eye(3), np.zeros(3)),
+                                              world.landmarks, truth=None)
+        self.rng = np.random.default_rng(seed)
+        self.position = np.array([start_ne[0], start_ne[1], -altitude_m])
+        self.velocity = np.array(velocity_ned, dtype=float)
+        self.t = 0.0
+        self.k = 0
+        self.gnss = True
+        self.errors: list[float] = []
+        self.guided: list[Guidance] = []
+
+    @property
+    def yaw(self) -> float:
+        return math.atan2(self.velocity[1], self.velocity[0]) if np.hypot(*self.velocity[:2]) > 0.1 else 0.0
+
+    def fly(self, seconds: float) -> None:
+        for _ in range(int(round(seconds / IMU_DT))):
+            self.k += 1
+            self.t = self.k * IMU_DT
+            wish = self.pipeline.guidance(self.t)
+            if wish is not None:
+                self.guided.append(wish)
+            yaw_before = self.yaw
+            if wish is not None:
+                self.velocity = wish.velocity_ned.copy() if wish.kind == "fly" else np.zeros(3)
+            self.position = self.position + self.velocity * IMU_DT
+            yaw_rate = wrap_pi(self.yaw - yaw_before) / IMU_DT
+            p = self.pipeline
+            p._keep(ImuSample(self.t, np.array([0.0, 0.0, -9.81]), np.array([0.0, 0.0, yaw_rate]) + self.rng.normal(0.0, 0.002, 3),
+                              (0.0, 0.0, self.yaw), self.velocity + self.rng.normal(0.0, 0.05, 3),
+                              BARO_DATUM_M - self.position[2] + self.rng.normal(0.0, 0.1)))
+            if self.k % SENSOR_EVERY == 0:
+                p._keep(self.fix())
+                truth = TruthSample(self.t, self.position.copy(), self.velocity.copy(), quat_from_euler(0.0, 0.0, self.yaw))
+                p._keep(self.sensor.sightings(self.t, truth))
+            if self.k % 2 == 0:  # the nav loop at 25 Hz
+                for estimate in p.step(self.t):
+                    self.errors.append(float(np.hypot(*(estimate.position_ned[:2] - self.position[:2]))))
+
+    def fix(self) -> GnssFix:
+        if not self.gnss:
+            return GnssFix("gnss", self.t, GNSS_NO_FIX, 0.0, 0.0, 0.0, satellites=0, jamming=True)
+        lat, lon, alt = geodetic_from_ned(self.position + self.rng.normal(0.0, 0.3, 3), ORIGIN)
+        return GnssFix("gnss", self.t, 3, lat, lon, alt, self.velocity + self.rng.normal(0.0, 0.05, 3), 0.3, 0.5)
+
+
+SOUTH_WEST = (-5.0 / math.sqrt(2), -5.0 / math.sqrt(2), 0.0)
+
+
+def test_on_gnss_the_pose_follows_the_fixes_and_the_landmarks_flown_over_are_mapped() -> None:
+    flight = Flight(SOUTH_WEST)
+    flight.fly(30.0)
+    assert max(flight.errors[-50:]) < 0.5
+    assert flight.pipeline.slam is not None and flight.pipeline.slam.n_landmarks >= 5
+    assert flight.pipeline.guidance(flight.t) is None and isinstance(flight.pipeline, GuidanceSource)
+
+
+def test_gnss_lost_at_altitude_starts_the_return_which_the_guidance_flies_and_gnss_back_ends_it() -> None:
+    flight = Flight(SOUTH_WEST)
+    flight.fly(40.0)  # 200 m out
+    flight.gnss = False
+    flight.fly(60.0)
+    p = flight.pipeline
+    assert p.trigger == "gnss_lost" and p.stats.gnss_losses == 1 and flight.guided
+    assert all(g.trigger == "gnss_lost" and g.is_finite() for g in flight.guided)
+    assert max(flight.errors[-100:]) < 2.0  # on the SLAM, scored against the truth
+    assert math.hypot(flight.position[0] - BASE[0], flight.position[1] - BASE[1]) < 200.0  # heading home
+    assert flight.guided[-1].position_ned[2] == pytest.approx(-100.0)  # at the held altitude
+    estimate = flight.pipeline.step(flight.t + 0.001)[0]
+    assert estimate.position_ned[2] == pytest.approx(flight.position[2], abs=0.5)  # the baro, on GNSS's datum
+    flight.gnss = True
+    flight.fly(12.0)  # gnss_back_after_s 10
+    assert p.guidance(flight.t) is None and p.planner is None
+
+
+def test_gnss_lost_away_from_the_held_altitude_gives_no_return_but_a_degraded_pose() -> None:
+    flight = Flight((0.0, 0.0, 0.0), altitude_m=30.0)  # climbing through 30 m, say
+    flight.fly(5.0)
+    flight.gnss = False
+    flight.fly(3.0)
+    assert flight.pipeline.guidance(flight.t) is None
+    assert flight.health.get(HEALTH).state == State.DEGRADED
+    assert "not at the held altitude" in (flight.pipeline.request_guidance(flight.t, "test") or "")
+
+
+def test_a_return_can_be_commanded_while_gnss_is_fine() -> None:
+    flight = Flight(SOUTH_WEST)
+    assert "has not started" in (flight.pipeline.request_guidance(0.0, "test") or "")
+    flight.fly(20.0)
+    assert flight.pipeline.request_guidance(flight.t, "test") is None
+    flight.fly(1.0)
+    assert flight.guided and flight.guided[-1].trigger == "commanded"
+
+
+def test_fixes_the_slam_keeps_refusing_restart_it_at_gnss() -> None:
+    flight = Flight(SOUTH_WEST)
+    flight.fly(10.0)
+    flight.pipeline.slam.x[:2] += 50.0  # the SLAM gone wrong by 50 m
+    flight.fly(3.0)
+    assert flight.pipeline.stats.slam_restarts == 1
+    assert max(flight.errors[-10:]) < 1.0
