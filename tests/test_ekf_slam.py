@@ -329,3 +329,16 @@ def test_submap_can_keep_further_landmarks_with_their_joint_covariance() -> None
     assert slam.ids == [2, 4]
     np.testing.assert_array_equal(slam.pose_cov, block)
     np.testing.assert_array_equal(slam.P[3:, 3:], joint)
+
+
+def test_when_every_landmark_is_refused_the_vehicle_is_lost_not_the_map_and_its_covariance_grows_until_they_pass() -> None:
+    slam, truth = _filter_with_landmarks(count=4)
+    rng = np.random.default_rng(6)
+    sig = np.sqrt(np.diag(slam.R))
+    true_pose = slam.x[:3].copy()
+    slam.x[:2] += 4.0  # the vehicle's estimate 5.7 m off, its covariance still small
+    for _ in range(12):
+        frame = {i: observe(true_pose, DOWN, truth[i]) + rng.normal(0, 1, 3) * sig for i in range(4)}
+        slam.update(frame)
+    assert not slam.moved and slam.inflations >= 1  # no landmark blamed
+    assert np.hypot(*(slam.x[:2] - true_pose[:2])) < 0.5  # pulled back onto the map

@@ -37,7 +37,11 @@ class EkfSlamConfig:
     gate_chi2: float = field(default=16.27, metadata=meta(
         "Innovation gate: squared Mahalanobis distance (3 degrees of freedom; 16.27 = 99.9 %).", (1.0, 1000.0)))
     moved_after: int = field(default=5, metadata=meta(
-        "A landmark rejected by the gate this many times in a row is taken as moved and no longer used.",
+        "A landmark rejected by the gate this many frames in a row, while others of its frames were accepted, is "
+        "taken as moved and no longer used.", (1, 1000)))
+    lost_after_frames: int = field(default=3, metadata=meta(
+        "Frames in a row in which the gate refused known landmarks and accepted no more: the vehicle "
+        "is lost against its map, and its pose covariance is inflated (doubled sigmas) each further such frame.",
         (1, 1000)))
     consistency: Literal["fej", "plain"] = field(default="fej", metadata=meta(
         "fej: first-estimates Jacobians (Huang, Mourikis, Roumeliotis 2008/2010); plain: the textbook "

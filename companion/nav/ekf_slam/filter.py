@@ -49,6 +49,7 @@ from companion.nav.ekf_slam.model import (
 VEHICLE = 3  # (n, e, yaw)
 LANDMARK = 3  # (n, e, d)
 POSITION_GATE_CHI2 = 13.82  # 99.9 % of chi-square with 2 degrees of freedom
+LOST_MIN_M = 0.5  # a lost vehicle's inflated position sigma is at least this (m)
 
 
 @dataclass
@@ -84,6 +85,8 @@ class EkfSlam:
         self.rejections: Counter[int] = Counter()  # gate rejections per id, all time
         self._in_a_row: Counter[int] = Counter()
         self.moved: set[int] = set()  # ids rejected moved_after times in a row: no longer used
+        self.lost_frames = 0  # frames in a row whose every known landmark the gate refused
+        self.inflations = 0  # times the vehicle covariance was inflated for it
         self._work = np.empty((2, 0, 0))
         self.min_horizontal_m = config.min_horizontal_m
 
@@ -142,8 +145,9 @@ class EkfSlam:
 
     def update(self, observations: Mapping[int, np.ndarray]) -> UpdateResult:
         """Fuse one frame of observations ``{landmark id: (range, azimuth, elevation)}``: known
-        landmarks update the state one after the other (seed eqs. 25-30, Joseph form, gated),
-        new ids are added (seed eqs. 31-38) after the known ones are used."""
+        landmarks update the state one after the other (seed eqs. 25-30, Joseph form, gated; the
+        refused ones are tried once more after the accepted ones), new ids are added (seed eqs.
+        31-38) after the known ones are used."""
         result = UpdateResult()
         new_ids = []
         for lid, z in observations.items():
@@ -156,10 +160,44 @@ class EkfSlam:
                 result.used.append(lid)
             else:
                 result.rejected.append(lid)
+        if result.used and result.rejected:  # once the accepted ones have moved the vehicle, again
+            refused, result.rejected = result.rejected, []
+            for lid in refused:
+                (result.used if self._update_one(lid, np.asarray(observations[lid], dtype=float))
+                 else result.rejected).append(lid)
+        self._judge_rejections(result)
         for lid, z in new_ids:
             self.augment(lid, z)
             result.augmented.append(lid)
         return result
+
+    def _judge_rejections(self, result: UpdateResult) -> None:
+        """Who is wrong when the gate refuses observations. With at least two other landmarks of
+        the frame accepted, and more accepted than refused, the vehicle agrees with the map and a
+        refused landmark may have moved (taken as moved after ``moved_after`` such frames in a
+        row). With some refused and no fewer accepted, the
+        vehicle is what is off: no landmark is blamed, and after
+        ``lost_after_frames`` such frames the vehicle's position covariance is inflated (its
+        standard deviation doubled, at least ``LOST_MIN_M``) until the map's landmarks pass the gate
+        again and pull it back (the ids are known: no wrong association can follow). The heading
+        is left alone: landmarks seen from above constrain it weakly, and a heading let loose turns
+        the whole way home."""
+        for lid in result.used:
+            self._in_a_row[lid] = 0
+        if len(result.used) >= 2 and len(result.used) > len(result.rejected):
+            self.lost_frames = 0
+            for lid in result.rejected:
+                self._in_a_row[lid] += 1
+                if self._in_a_row[lid] >= self.config.moved_after:
+                    self.moved.add(lid)
+        elif result.rejected and len(result.rejected) >= len(result.used):
+            self.lost_frames += 1
+            if self.lost_frames >= self.config.lost_after_frames:
+                self.inflations += 1
+                p = self.P
+                position_sigma = max(math.sqrt(max(p[0, 0] + p[1, 1], 0.0)), LOST_MIN_M)
+                p[0, 0] += 1.5 * position_sigma ** 2  # (sigma^2 + 3 sigma^2 / 2 per axis: twice the sigma)
+                p[1, 1] += 1.5 * position_sigma ** 2
 
     def innovation(self, lid: int, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
         """``(nu, H (3 x 6), S, state indices)`` of observation ``z`` of mapped landmark ``lid``."""
@@ -182,11 +220,7 @@ class EkfSlam:
         s_inv = np.linalg.inv(s)
         if float(nu @ s_inv @ nu) > self.config.gate_chi2:
             self.rejections[lid] += 1
-            self._in_a_row[lid] += 1
-            if self._in_a_row[lid] >= self.config.moved_after:
-                self.moved.add(lid)
             return False
-        self._in_a_row[lid] = 0
         self._correct(h @ self.P[idx, :], s, s_inv, nu)  # H P from 6 rows of P
         return True
 

@@ -8,9 +8,11 @@ Data flow, every nav cycle, the inputs taken in capture-time order (no I/O here)
   the speeds from the GNSS Doppler velocity while there is a fix, then from the autopilot's own
   velocity estimate, the motion input a vehicle still has without GNSS (the seed's commanded
   velocity and heading), each resolved along the autopilot's heading;
-- landmark sightings (``landmarks``, kind landmarks) -> the SLAM's updates and new landmarks, but
-  only while the vehicle is at the held altitude (the SLAM's model: ``slam.altitude_m``), judged by
-  the GNSS altitude while there is one;
+- landmark sightings (``landmarks``, kind landmarks) -> the SLAM's updates and new landmarks, with
+  the vehicle's height measured, not assumed: the autopilot's barometric altitude on the datum
+  the first GNSS heights gave it (the seed holds the altitude exact; a real one wanders, and a
+  metre of height error is five sigmas of the seed's range noise), so the descent to land still
+  sees the landmarks and corrects the wind's drift;
 - usable GNSS fixes (``gnss``: fix type at least ``min_fix_type``, no jamming flag) -> position
   updates of the SLAM. The SLAM starts at the first usable fix with the autopilot's heading
   (``start_yaw_sigma_deg``), so by the time GNSS is lost the heading and the landmarks near the
@@ -59,7 +61,9 @@ STREAM = "ekf_slam"
 HEALTH = "nav:ekf_slam"
 LEAD_S = 0.2  # the guidance's position target lies this far ahead along the path (s at cruise speed)
 MAX_IMU_GAP_S = 0.5  # a longer gap between IMU samples is not integrated (the SLAM waits for the next)
-BARO_DATUM_GAIN = 0.02  # per fix: the baro datum averages about 50 fixes (10 s at 5 Hz) of GNSS height
+HOLD_FOR_IMU_S = 0.5  # a fix or a landmark frame waits at most this long for the IMU samples up to it
+MAX_LATE_FIX_S = 1.0  # a fix up to this far from the SLAM's time is moved to it by its velocity
+BARO_DATUM_FIXES = 50  # the baro datum is the mean of this many fixes' heights (10 s at 5 Hz), then frozen
 
 
 @dataclass
@@ -84,8 +88,8 @@ class EkfSlamPipelineConfig:
         "This many usable fixes in a row refused by the SLAM's gate (the SLAM went wrong, or GNSS jumped) "
         "restart the SLAM at the fix, as an autopilot resets to GNSS.", (1, 1000)))
     altitude_band_m: float = field(default=5.0, metadata=meta(
-        "Landmarks are used only while the GNSS altitude is within this of slam.altitude_m (the SLAM's "
-        "model holds the altitude), and the return starts only there, metres.", (0.1, 100)))
+        "GNSS lost within this of slam.altitude_m (the altitude the return flies at) starts the return; lost "
+        "elsewhere (on the ground, climbing) it does not, metres.", (0.1, 100)))
     start_yaw_sigma_deg: float = field(default=5.0, metadata=meta(
         "1-sigma of the autopilot's heading the SLAM starts with (a compass), degrees.", (0.01, 90)))
     attitude_sigma_deg: float = field(default=1.0, metadata=meta(
@@ -134,7 +138,7 @@ class EkfSlamStats:
     fixes_gated: int = 0
     slam_restarts: int = 0  # restarted at a fix after gnss_reset_after gated ones
     frames: int = 0
-    frames_used: int = 0  # at the held altitude
+    frames_used: int = 0  # with the vehicle's height known
     landmarks_used: int = 0
     landmarks_rejected: int = 0
     landmarks_added: int = 0
@@ -171,7 +175,8 @@ class EkfSlamPipeline:
         self._gnss_velocity: np.ndarray | None = None  # Doppler velocity of the newest usable fix, NED m/s
         self._gated_in_a_row = 0
         self._pressure_alt: float | None = None  # newest barometric altitude from the autopilot, m up
-        self._baro_datum: float | None = None  # GNSS down + pressure altitude, averaged while GNSS lasts
+        self._baro_datum: float | None = None  # GNSS down + pressure altitude, averaged over the first fixes
+        self._datum_fixes = 0
         self._usable_since: float | None = None
         self._in_view: dict[int, np.ndarray] = {}
         health.report(HEALTH, State.LOST, "waiting for a GNSS fix")
@@ -191,8 +196,14 @@ class EkfSlamPipeline:
     def step(self, now: float) -> list[Estimate]:
         """Take the messages received since the last cycle in capture order; the pose while the SLAM runs."""
         started = time.perf_counter()
-        inbox, self._inbox = sorted(self._inbox, key=lambda m: (m[0], m[1])), []
-        for t, _, message in inbox:
+        inbox = sorted(self._inbox, key=lambda m: (m[0], not isinstance(m[2], ImuSample), m[1]))  # IMU first on a tie
+        imu_times = [t for t, _, m in inbox if isinstance(m, ImuSample)]
+        horizon = max(imu_times) if imu_times else (self._t if self._t is not None else -math.inf)
+        # a fix or a frame waits for the IMU samples up to its capture time (the pose it needs),
+        # at most HOLD_FOR_IMU_S (an IMU that stopped does not hold the rest back for ever)
+        ready = [m for m in inbox if m[0] <= horizon or now - m[0] > HOLD_FOR_IMU_S]
+        self._inbox = [m for m in inbox if not (m[0] <= horizon or now - m[0] > HOLD_FOR_IMU_S)]
+        for t, _, message in ready:
             if isinstance(message, GnssFix):
                 self._on_fix(message)
             elif isinstance(message, LandmarkSightings):
@@ -216,14 +227,20 @@ class EkfSlamPipeline:
         self._usable_since = self._usable_since if self._usable_since is not None else fix.t_capture
         ned = ned_from_geodetic(fix.lat_deg, fix.lon_deg, fix.alt_m, self.origin)
         self._down = float(ned[2])
-        if self._pressure_alt is not None:  # the baro's datum in the GNSS frame: a slow average of the fixes
+        if self._pressure_alt is not None and self._datum_fixes < BARO_DATUM_FIXES:
+            # the baro's datum in the GNSS frame: the mean over the first fixes, then frozen (a datum
+            # that followed GNSS's slowly wandering height error would move every landmark's range)
+            self._datum_fixes += 1
             datum = self._down + self._pressure_alt
-            self._baro_datum = datum if self._baro_datum is None else self._baro_datum + BARO_DATUM_GAIN * (
-                datum - self._baro_datum)
+            self._baro_datum = datum if self._baro_datum is None else self._baro_datum + (
+                datum - self._baro_datum) / self._datum_fixes
         self._gnss_velocity = fix.velocity_ned_mps
         h = fix.h_acc_m if fix.h_acc_m is not None else 2.0
         if self.slam is not None:
-            self._predict_to(fix.t_capture, None)
+            assert self._t is not None  # set with the SLAM
+            late = self._t - fix.t_capture  # > 0: the fix describes an instant the SLAM has moved past
+            if abs(late) <= MAX_LATE_FIX_S and fix.velocity_ned_mps is not None:
+                ned[:2] += fix.velocity_ned_mps[:2] * late
             if self.slam.update_position(ned[:2], np.eye(2) * h * h):
                 self.stats.fixes_used += 1
                 self._gated_in_a_row = 0
@@ -258,7 +275,7 @@ class EkfSlamPipeline:
 
     def _predict_to(self, t: float, u: tuple[float, float, float] | None) -> None:
         """Propagate the SLAM from its time to ``t`` (s) with the input ``u`` (forward and right
-        speed, yaw rate; :func:`motion_input`); without one (a fix between samples) only the clock."""
+        speed, yaw rate; :func:`motion_input`); without one only the clock moves."""
         if self.slam is None or self._t is None or t <= self._t:
             return
         dt, self._t = t - self._t, t
@@ -266,12 +283,14 @@ class EkfSlamPipeline:
             self.slam.predict(u[0], u[2], dt, v_right_mps=u[1])
 
     def _current_down(self) -> float | None:
-        """The vehicle's NED down (m): GNSS while it lasts, then the baro on the datum GNSS gave it,
-        else (no baro) the held altitude while returning; None if unknown."""
-        if self._gnss_ok and self._down is not None:
-            return self._down
+        """The vehicle's NED down (m): the baro on the datum the GNSS heights gave it (smooth: a
+        GNSS height is metres noisy, and the landmarks' ranges are decimetres; the datum's own
+        error only shifts every landmark's height alike), else the newest fix's while GNSS
+        lasts, else the held altitude while returning; None if unknown."""
         if self._baro_datum is not None and self._pressure_alt is not None:
             return self._baro_datum - self._pressure_alt
+        if self._gnss_ok and self._down is not None:
+            return self._down
         return self.cfg.slam.down_m if self.planner is not None else None
 
     def _at_altitude(self) -> bool:
@@ -281,11 +300,10 @@ class EkfSlamPipeline:
 
     def _on_sightings(self, frame: LandmarkSightings) -> None:
         self.stats.frames += 1
-        if self.slam is None or not self._at_altitude():
+        down = self._current_down()
+        if self.slam is None or down is None:
             return
         self.stats.frames_used += 1
-        down = self._current_down()
-        assert down is not None  # _at_altitude()
         self.slam.down_m = down  # the observation model's vehicle height: measured, not assumed
         observations = {int(i): np.array([r, a, e]) for i, r, a, e in
                         zip(frame.ids, frame.range_m, frame.azimuth_rad, frame.elevation_rad)}
@@ -389,6 +407,7 @@ class EkfSlamPipeline:
     def snapshot(self) -> dict:
         """Counters for telemetry."""
         return {**self.stats.__dict__, "landmarks": 0 if self.slam is None else self.slam.n_landmarks,
+                "landmarks_moved": 0 if self.slam is None else len(self.slam.moved), "in_view": sorted(self._in_view),
                 "returning": self.planner is not None, "trigger": self.trigger}
 
     def telemetry(self, static_due: bool) -> dict[str, dict[str, Any]]:
