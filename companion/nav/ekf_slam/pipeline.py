@@ -28,8 +28,8 @@ Data flow, every nav cycle, the inputs taken in capture-time order (no I/O here)
   GNSS usable again for ``gnss_back_after_s`` before the landing ends the guidance.
 
 Output: a :class:`PoseEstimate` every nav cycle once the SLAM runs: north and east from the SLAM,
-down from the GNSS fix while there is one, then the held altitude; roll and pitch the
-autopilot's, yaw the SLAM's. The covariance is the SLAM's (north, east, yaw) with the altitude's
+down the measured height above (the baro on its GNSS datum; without a baro the newest fix's,
+then the held altitude); roll and pitch the autopilot's, yaw the SLAM's. The covariance is the SLAM's (north, east, yaw) with the altitude's
 and the autopilot attitude's stated sigmas.
 
 Frames: LOCAL_NED at the EKF origin (GNSS fixes converted around ``origin``), body FRD; times on
@@ -170,7 +170,7 @@ class EkfSlamPipeline:
         self._euler: tuple[float, float, float] | None = None
         self._down: float | None = None  # down of the newest usable fix, m
         self._gnss_ok = False  # a usable fix within gnss_lost_after_s
-        self._was_at_altitude = False  # at the previous cycle, by GNSS
+        self._was_at_altitude = False  # with GNSS, within altitude_band_m, at the previous cycle
         self._last_usable: float | None = None  # capture time of the newest usable fix
         self._gnss_velocity: np.ndarray | None = None  # Doppler velocity of the newest usable fix, NED m/s
         self._gated_in_a_row = 0
