@@ -137,7 +137,7 @@ class LandmarkSightings:
 
     Level heading frame at the sensor: ``azimuth_rad`` from the vehicle's heading (the body's
     forward axis projected on the horizontal) towards its right, i.e. ``atan2(d_east, d_north) -
-    yaw``, wrapped to [-pi, pi); ``elevation_rad`` from the horizontal, positive *up*
+    yaw``, wrapped to +-pi; ``elevation_rad`` from the horizontal, positive *up*
     (``atan2(-d_down, horizontal distance)``: a landmark on the ground below the vehicle has a
     negative elevation); ``range_m`` the straight-line distance. The d's are landmark minus
     sensor in NED, metres. ``sigma`` is the sensor's stated 1-sigma noise (range m, azimuth

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from companion.nav.ekf_slam.config import EkfSlamConfig, RecoveryPlannerConfig
-from companion.nav.ekf_slam.filter import EkfSlam, chi2_quantile, nees, nees_band, pose_error
+from companion.nav.ekf_slam.filter import LOST_MAX_M, EkfSlam, chi2_quantile, nees, nees_band, pose_error
 from companion.nav.ekf_slam.model import (
     full_observation_jacobian,
     inverse_observe,
@@ -337,8 +337,19 @@ def test_when_every_landmark_is_refused_the_vehicle_is_lost_not_the_map_and_its_
     sig = np.sqrt(np.diag(slam.R))
     true_pose = slam.x[:3].copy()
     slam.x[:2] += 4.0  # the vehicle's estimate 5.7 m off, its covariance still small
-    for _ in range(12):
+    for _ in range(25):
         frame = {i: observe(true_pose, DOWN, truth[i]) + rng.normal(0, 1, 3) * sig for i in range(4)}
         slam.update(frame)
     assert not slam.moved and slam.inflations >= 1  # no landmark blamed
-    assert np.hypot(*(slam.x[:2] - true_pose[:2])) < 0.5  # pulled back onto the map
+    assert np.hypot(*(slam.x[:2] - true_pose[:2])) < 1.0  # pulled back onto the map (from 5.7 m)
+
+
+def test_a_disagreement_inflation_cannot_fix_stays_bounded_and_never_raises() -> None:
+    slam, truth = _filter_with_landmarks(count=4)
+    rng = np.random.default_rng(7)
+    sig = np.sqrt(np.diag(slam.R))
+    true_pose = slam.x[:3].copy()
+    slam.down_m += 3.0  # a height 3 m off: every range refused, whatever the horizontal position
+    for _ in range(400):  # 80 s at 5 Hz
+        slam.update({i: observe(true_pose, DOWN, truth[i]) + rng.normal(0, 1, 3) * sig for i in range(4)})
+    assert np.all(np.isfinite(slam.P)) and math.sqrt(slam.P[0, 0] + slam.P[1, 1]) < 2.0 * LOST_MAX_M

@@ -76,11 +76,21 @@ def test_without_a_return_to_base_step_the_guidance_is_flown_and_the_mission_end
     np.testing.assert_allclose(truth_at(log, mode_entries(log, "LAND")[0])[:2], BASE[:2], atol=GPS_TOLERANCE_M)
 
 
-def test_gnss_loss_continue_ignores_the_takeover_and_a_return_to_base_step_asks_for_the_guidance(
+def test_gnss_loss_continue_ignores_the_takeover_and_the_return_to_base_step_flies_the_active_guidance(
         tmp_path: Path, procs: Processes) -> None:
-    daemon, log = fly_guided(tmp_path, procs, [{"hold": {"seconds": 3}}, {"return_to_base": {}}], lost_at=1e9,
+    daemon, log = fly_guided(tmp_path, procs, [{"hold": {"seconds": 12}}, {"return_to_base": {}}], lost_at=15.0,
                              gnss_loss="continue")
     mission = daemon.mission
-    assert mission.status == "completed", mission.snapshot()
-    assert daemon.pipeline.requested == "mission step return_to_base" and not mission.ctx.failsafes
+    assert mission.status == "completed" and not mission.ctx.failsafes, mission.snapshot()
+    # the hold ran its 12 s although the guidance was active from 15 s on: no takeover
+    hold_end = mode_entries(log, "GUIDED")[0] + 12.0
+    landed_at = truth_at(log, mode_entries(log, "LAND")[0])
+    np.testing.assert_allclose(landed_at[:2], BASE[:2], atol=GPS_TOLERANCE_M)
+    assert mode_entries(log, "LAND")[0] > hold_end
+
+
+def test_a_return_to_base_step_asks_a_pipeline_that_is_not_guiding_to_start(tmp_path: Path, procs: Processes) -> None:
+    daemon, log = fly_guided(tmp_path, procs, [{"hold": {"seconds": 3}}, {"return_to_base": {}}], lost_at=1e9)
+    assert daemon.mission.status == "completed", daemon.mission.snapshot()
+    assert daemon.pipeline.requested == "mission step return_to_base" and not daemon.mission.ctx.failsafes
     np.testing.assert_allclose(truth_at(log, mode_entries(log, "LAND")[0])[:2], BASE[:2], atol=GPS_TOLERANCE_M)

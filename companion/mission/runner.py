@@ -264,6 +264,9 @@ class MissionRunner:
                 wish = ctx.guidance()
                 if wish is None:
                     log.info("return_to_base: the guidance ended (GNSS back?): the mission goes on")
+                    current = ctx.setpoints.current
+                    if current is not None and current.position_ned is not None:  # no feed-forward left streaming
+                        ctx.setpoints.command(Setpoint(position_ned=current.position_ned, yaw_rad=current.yaw_rad))
                     return
                 if not wish.is_finite():
                     raise MissionFailed(f"return_to_base: non-finite guidance ({wish.reason})")

@@ -1,4 +1,5 @@
-"""EKF-SLAM: a vehicle ``(n, e, yaw)`` at a held altitude and 3-D point landmarks with known ids.
+"""EKF-SLAM: a vehicle ``(n, e, yaw)`` at a known height (``down_m``: held, as in the seed, or
+measured and set by the caller) and 3-D point landmarks with known ids.
 
 State ``x = [n, e, yaw, l1_n, l1_e, l1_d, l2_n, ...]`` (LOCAL_NED metres, yaw clockwise from north
 in radians); ``P`` its covariance. Observations are ``(range m, azimuth rad, elevation rad)``
@@ -49,7 +50,9 @@ from companion.nav.ekf_slam.model import (
 VEHICLE = 3  # (n, e, yaw)
 LANDMARK = 3  # (n, e, d)
 POSITION_GATE_CHI2 = 13.82  # 99.9 % of chi-square with 2 degrees of freedom
-LOST_MIN_M = 0.5  # a lost vehicle's inflated position sigma is at least this (m)
+LOST_MIN_M = 0.5  # a lost vehicle's inflated position sigma is at least this (m) ...
+LOST_MAX_M = 50.0  # ... and is not inflated beyond this (m): a footprint and more
+REFERENCE_STEP_S = 0.025  # the motion noise sigmas are per step of this length (Table 1's 40 Hz)
 
 
 @dataclass
@@ -132,7 +135,7 @@ class EkfSlam:
         self.x[:VEHICLE] = new
         self.prior_ne = new[:2].copy()
         p = self.P
-        q = self.Q_lateral if v_right_mps is not None else self.Q
+        q = (self.Q_lateral if v_right_mps is not None else self.Q) * (dt_s / REFERENCE_STEP_S)  # white noise: per time
         pvv = f @ p[:VEHICLE, :VEHICLE] @ f.T + g @ q @ g.T
         p[:VEHICLE, :VEHICLE] = 0.5 * (pvv + pvv.T)
         if p.shape[0] > VEHICLE:  # F = I except its yaw column: rows n and e gain f02 / f12 times row yaw
@@ -140,6 +143,13 @@ class EkfSlam:
             cross[0] += f[0, 2] * cross[2]
             cross[1] += f[1, 2] * cross[2]
             p[VEHICLE:, :VEHICLE] = cross.T
+
+    def move_vehicle(self, offset_ne: np.ndarray) -> None:
+        """Shift the vehicle's estimated position (and its FEJ prediction point) by ``offset_ne``
+        (north, east m), covariance unchanged: to use an observation captured a moment before the
+        filter's time at the pose of that moment, and back."""
+        self.x[:2] += offset_ne
+        self.prior_ne = self.prior_ne + offset_ne
 
     # --- update ------------------------------------------------------------------------------
 
@@ -172,32 +182,33 @@ class EkfSlam:
         return result
 
     def _judge_rejections(self, result: UpdateResult) -> None:
-        """Who is wrong when the gate refuses observations. With at least two other landmarks of
-        the frame accepted, and more accepted than refused, the vehicle agrees with the map and a
-        refused landmark may have moved (taken as moved after ``moved_after`` such frames in a
-        row). With some refused and no fewer accepted, the
-        vehicle is what is off: no landmark is blamed, and after
-        ``lost_after_frames`` such frames the vehicle's position covariance is inflated (its
-        standard deviation doubled, at least ``LOST_MIN_M``) until the map's landmarks pass the gate
+        """Who is wrong when the gate refuses observations. With more refused than accepted the
+        vehicle is what is off: no landmark is blamed, and every ``lost_after_frames`` such frames
+        in a row its position covariance is inflated (the standard deviation about doubled, at
+        least ``LOST_MIN_M``, never beyond ``LOST_MAX_M``) until the map's landmarks pass the gate
         again and pull it back (the ids are known: no wrong association can follow). The heading
-        is left alone: landmarks seen from above constrain it weakly, and a heading let loose turns
-        the whole way home."""
+        is left alone: landmarks seen from above constrain it weakly, and a heading let loose
+        turns the whole way home. Otherwise, with at least two accepted, the vehicle agrees with
+        the map and a refused landmark may have moved (taken as moved after ``moved_after`` such
+        frames in a row)."""
         for lid in result.used:
             self._in_a_row[lid] = 0
-        if len(result.used) >= 2 and len(result.used) > len(result.rejected):
-            self.lost_frames = 0
+        if len(result.rejected) > len(result.used):
+            self.lost_frames += 1
+            position_sigma = math.sqrt(max(self.P[0, 0] + self.P[1, 1], 0.0))
+            if self.lost_frames >= self.config.lost_after_frames and position_sigma < LOST_MAX_M:
+                self.lost_frames = 0  # the next inflation after lost_after_frames more such frames
+                self.inflations += 1
+                grow = 1.5 * max(position_sigma, LOST_MIN_M) ** 2  # per axis: about twice the sigma
+                self.P[0, 0] += grow
+                self.P[1, 1] += grow
+            return
+        self.lost_frames = 0
+        if len(result.used) >= 2:
             for lid in result.rejected:
                 self._in_a_row[lid] += 1
                 if self._in_a_row[lid] >= self.config.moved_after:
                     self.moved.add(lid)
-        elif result.rejected and len(result.rejected) >= len(result.used):
-            self.lost_frames += 1
-            if self.lost_frames >= self.config.lost_after_frames:
-                self.inflations += 1
-                p = self.P
-                position_sigma = max(math.sqrt(max(p[0, 0] + p[1, 1], 0.0)), LOST_MIN_M)
-                p[0, 0] += 1.5 * position_sigma ** 2  # (sigma^2 + 3 sigma^2 / 2 per axis: twice the sigma)
-                p[1, 1] += 1.5 * position_sigma ** 2
 
     def innovation(self, lid: int, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
         """``(nu, H (3 x 6), S, state indices)`` of observation ``z`` of mapped landmark ``lid``."""
@@ -217,8 +228,8 @@ class EkfSlam:
 
     def _update_one(self, lid: int, z: np.ndarray) -> bool:
         nu, h, s, idx = self.innovation(lid, z)
-        s_inv = np.linalg.inv(s)
-        if float(nu @ s_inv @ nu) > self.config.gate_chi2:
+        s_inv = _inverse(s)
+        if s_inv is None or float(nu @ s_inv @ nu) > self.config.gate_chi2:
             self.rejections[lid] += 1
             return False
         self._correct(h @ self.P[idx, :], s, s_inv, nu)  # H P from 6 rows of P
@@ -245,8 +256,8 @@ class EkfSlam:
         degrees of freedom (13.8). False (nothing changed) when gated out."""
         nu = np.asarray(ne, dtype=float) - self.x[:2]
         s = self.P[:2, :2] + np.asarray(cov, dtype=float)
-        s_inv = np.linalg.inv(s)
-        if float(nu @ s_inv @ nu) > POSITION_GATE_CHI2:
+        s_inv = _inverse(s)
+        if s_inv is None or float(nu @ s_inv @ nu) > POSITION_GATE_CHI2:
             return False
         self._correct(self.P[:2, :].copy(), s, s_inv, nu)
         return True
@@ -300,6 +311,17 @@ class EkfSlam:
         self.ids = kept_ids
         self.slot = {lid: VEHICLE + 3 * i for i, lid in enumerate(kept_ids)}
         self.first_ne = {lid: self.first_ne[lid] for lid in kept_ids}
+
+
+def _inverse(s: np.ndarray) -> np.ndarray | None:
+    """The inverse of an innovation covariance, None if it is singular or not finite (the
+    measurement is then refused, never raised into the caller's cycle)."""
+    if not np.all(np.isfinite(s)):
+        return None
+    try:
+        return np.linalg.inv(s)
+    except np.linalg.LinAlgError:
+        return None
 
 
 def nees(error: np.ndarray, cov: np.ndarray) -> float:

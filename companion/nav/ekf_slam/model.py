@@ -4,8 +4,9 @@ Frames and units
 ----------------
 World: MAVLink LOCAL_NED, metres: ``n`` north, ``e`` east, ``d`` down. The seed's ``x, y, psi``
 are ``n, e, yaw`` (its ``tan^-1(y / x)`` is ``atan2(e, n)``), yaw clockwise from north, radians.
-The vehicle flies at a held altitude: its down coordinate is the constant ``d_v = -altitude``
-(the seed's ``z_v = 100 m`` up). Vehicle state ``(n, e, yaw)``; landmark ``(n, e, d)``.
+The vehicle's down coordinate ``d_v`` is not a state: the seed holds it constant (``z_v = 100 m``
+up, ``d_v = -altitude``); the daemon's pipeline sets it to the measured height before each frame.
+Vehicle state ``(n, e, yaw)``; landmark ``(n, e, d)``.
 
 Observation of a landmark, with ``(dn, de, dd) = landmark - vehicle``, ``rho = hypot(dn, de)``
 (horizontal distance), ``r = |(dn, de, dd)|``:

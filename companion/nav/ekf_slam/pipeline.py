@@ -14,7 +14,8 @@ Data flow, every nav cycle, the inputs taken in capture-time order (no I/O here)
   metre of height error is five sigmas of the seed's range noise), so the descent to land still
   sees the landmarks and corrects the wind's drift;
 - usable GNSS fixes (``gnss``: fix type at least ``min_fix_type``, no jamming flag) -> position
-  updates of the SLAM. The SLAM starts at the first usable fix with the autopilot's heading
+  updates of the SLAM (a fix or a landmark frame captured before the SLAM's time is used at the
+  pose of that moment, moved back by the current velocity). The SLAM starts at the first usable fix with the autopilot's heading
   (``start_yaw_sigma_deg``), so by the time GNSS is lost the heading and the landmarks near the
   vehicle are known in the GNSS frame from the flight so far (the seed starts at the last good fix
   with an exact heading: a real compass is not that good, and the heading error at the start
@@ -25,7 +26,7 @@ Data flow, every nav cycle, the inputs taken in capture-time order (no I/O here)
   the takeover of ``mission.failsafe.gnss_loss``): a point just ahead of the estimate towards the
   planner's carrot, at the held altitude, with the cruise speed as feed-forward and the nose
   along the path; the planner's new sub-maps are applied to the SLAM; near the base it lands.
-  GNSS usable again for ``gnss_back_after_s`` before the landing ends the guidance.
+  GNSS usable again for ``gnss_back_after_s`` ends the guidance of a return GNSS loss started.
 
 Output: a :class:`PoseEstimate` every nav cycle once the SLAM runs: north and east from the SLAM,
 down the measured height above (the baro on its GNSS datum; without a baro the newest fix's,
@@ -62,7 +63,9 @@ HEALTH = "nav:ekf_slam"
 LEAD_S = 0.2  # the guidance's position target lies this far ahead along the path (s at cruise speed)
 MAX_IMU_GAP_S = 0.5  # a longer gap between IMU samples is not integrated (the SLAM waits for the next)
 HOLD_FOR_IMU_S = 0.5  # a fix or a landmark frame waits at most this long for the IMU samples up to it
-MAX_LATE_FIX_S = 1.0  # a fix up to this far from the SLAM's time is moved to it by its velocity
+MAX_LATE_FIX_S = 1.0  # a fix or frame up to this far from the SLAM's time is moved to it by the velocity
+DOPPLER_MAX_AGE_S = 0.3  # the GNSS Doppler velocity is the motion input only this long after its fix
+MIN_FIX_SIGMA_M = 0.1  # a receiver claiming less (or 0) is taken at this
 BARO_DATUM_FIXES = 50  # the baro datum is the mean of this many fixes' heights (10 s at 5 Hz), then frozen
 
 
@@ -83,7 +86,7 @@ class EkfSlamPipelineConfig:
     gnss_lost_after_s: float = field(default=1.0, metadata=meta(
         "No usable fix for this long: GNSS is lost and the return to base starts.", (0.1, 60)))
     gnss_back_after_s: float = field(default=10.0, metadata=meta(
-        "Usable fixes again for this long end the return (unless it is landing).", (0.5, 600)))
+        "Usable fixes again for this long end a return GNSS loss started (a commanded one flies on).", (0.5, 600)))
     gnss_reset_after: int = field(default=5, metadata=meta(
         "This many usable fixes in a row refused by the SLAM's gate (the SLAM went wrong, or GNSS jumped) "
         "restart the SLAM at the fix, as an autopilot resets to GNSS.", (1, 1000)))
@@ -95,7 +98,7 @@ class EkfSlamPipelineConfig:
     attitude_sigma_deg: float = field(default=1.0, metadata=meta(
         "1-sigma stated for the autopilot's roll and pitch in the estimate, degrees.", (0.01, 30)))
     altitude_sigma_m: float = field(default=1.0, metadata=meta(
-        "1-sigma stated for the held altitude once GNSS is lost, metres.", (0.01, 100)))
+        "1-sigma stated for the estimate's height (the baro on its GNSS datum), metres.", (0.01, 100)))
     slam: EkfSlamConfig = field(default_factory=EkfSlamConfig, metadata=meta(
         "The EKF-SLAM: held altitude, motion and sensor noise, gating, consistency fix."))
     planner: RecoveryPlannerConfig = field(default_factory=RecoveryPlannerConfig, metadata=meta(
@@ -173,6 +176,8 @@ class EkfSlamPipeline:
         self._was_at_altitude = False  # with GNSS, within altitude_band_m, at the previous cycle
         self._last_usable: float | None = None  # capture time of the newest usable fix
         self._gnss_velocity: np.ndarray | None = None  # Doppler velocity of the newest usable fix, NED m/s
+        self._gnss_velocity_t = -math.inf  # its capture time
+        self._velocity_ne = np.zeros(2)  # the vehicle's ground velocity by the newest motion input, m/s
         self._gated_in_a_row = 0
         self._pressure_alt: float | None = None  # newest barometric altitude from the autopilot, m up
         self._baro_datum: float | None = None  # GNSS down + pressure altitude, averaged over the first fixes
@@ -235,7 +240,8 @@ class EkfSlamPipeline:
             self._baro_datum = datum if self._baro_datum is None else self._baro_datum + (
                 datum - self._baro_datum) / self._datum_fixes
         self._gnss_velocity = fix.velocity_ned_mps
-        h = fix.h_acc_m if fix.h_acc_m is not None else 2.0
+        self._gnss_velocity_t = fix.t_capture
+        h = max(fix.h_acc_m if fix.h_acc_m is not None else 2.0, MIN_FIX_SIGMA_M)
         if self.slam is not None:
             assert self._t is not None  # set with the SLAM
             late = self._t - fix.t_capture  # > 0: the fix describes an instant the SLAM has moved past
@@ -247,8 +253,8 @@ class EkfSlamPipeline:
                 return
             self.stats.fixes_gated += 1
             self._gated_in_a_row += 1
-            if self._gated_in_a_row < self.cfg.gnss_reset_after:
-                return
+            if self._gated_in_a_row < self.cfg.gnss_reset_after or self.planner is not None:
+                return  # (never while returning: fixes right after a jam may be spoofed, the map is in use)
             self.stats.slam_restarts += 1
         self._start_slam(fix.t_capture, ned, h)
 
@@ -267,10 +273,15 @@ class EkfSlamPipeline:
             self._euler = sample.euler_rad
         if sample.pressure_alt_m is not None:
             self._pressure_alt = sample.pressure_alt_m
-        gnss = self._gnss_velocity if self._gnss_ok else None
+        fresh = self._gnss_ok and abs(sample.t - self._gnss_velocity_t) <= DOPPLER_MAX_AGE_S
+        gnss = self._gnss_velocity if fresh else None
         u = motion_input(sample, gnss if gnss is not None else sample.velocity_ned)
         if u is None:
             self.stats.imu_without_input += 1
+        elif self.slam is not None:  # the ground velocity it moves at now, NED m/s (for late frames)
+            yaw = float(self.slam.x[2])
+            self._velocity_ne = np.array([u[0] * math.cos(yaw) - u[1] * math.sin(yaw),
+                                          u[0] * math.sin(yaw) + u[1] * math.cos(yaw)])
         self._predict_to(sample.t, u)
 
     def _predict_to(self, t: float, u: tuple[float, float, float] | None) -> None:
@@ -307,7 +318,12 @@ class EkfSlamPipeline:
         self.slam.down_m = down  # the observation model's vehicle height: measured, not assumed
         observations = {int(i): np.array([r, a, e]) for i, r, a, e in
                         zip(frame.ids, frame.range_m, frame.azimuth_rad, frame.elevation_rad)}
+        assert self._t is not None  # set with the SLAM
+        late = self._t - frame.t_capture  # > 0: the SLAM has moved past the frame (vision latency)
+        back = -self._velocity_ne * late if 0.0 < late <= MAX_LATE_FIX_S else np.zeros(2)
+        self.slam.move_vehicle(back)  # the observations are used at the pose they were taken from
         result = self.slam.update(observations)
+        self.slam.move_vehicle(-back)
         self.stats.landmarks_used += len(result.used)
         self.stats.landmarks_rejected += len(result.rejected)
         self.stats.landmarks_added += len(result.augmented)
@@ -324,8 +340,7 @@ class EkfSlamPipeline:
             self.stats.submaps += 1
 
     def _watch_gnss(self, now: float) -> None:
-        """GNSS lost at the held altitude -> start the return; back long enough -> end it (unless
-        landing). Lost elsewhere (on the ground, climbing): no return, the pose coasts, degraded."""
+        """GNSS lost at the held altitude -> start the return; back long enough -> end it. Lost elsewhere (on the ground, climbing): no return, health degraded."""
         self._gnss_ok = self._last_usable is not None and now - self._last_usable <= self.cfg.gnss_lost_after_s
         if not self._gnss_ok:
             self._usable_since = None
@@ -336,8 +351,7 @@ class EkfSlamPipeline:
             else:
                 self.health.report(HEALTH, State.DEGRADED, "GNSS lost away from the held altitude: coasting, no return")
         elif (self.planner is not None and self.trigger == "gnss_lost" and self._usable_since is not None
-              and now - self._usable_since >= self.cfg.gnss_back_after_s
-              and (self.plan is None or self.plan.kind != "land")):
+              and now - self._usable_since >= self.cfg.gnss_back_after_s):
             self.planner, self.plan, self.trigger = None, None, ""
             self.health.report(HEALTH, State.OK, "GNSS back: the return to base ended")
         elif self.planner is None and self._gnss_ok and self.slam is not None:
