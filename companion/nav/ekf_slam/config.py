@@ -18,10 +18,10 @@ class EkfSlamConfig:
     altitude_m: float = field(default=100.0, metadata=meta(
         "Held altitude above the ground datum (m, up; the vehicle's NED down is -altitude_m).", (1.0, 2000.0)))
     sigma_v_mps: float = field(default=0.2, metadata=meta(
-        "Standard deviation of the speed input per 40 Hz motion step (m/s; seed Table 1; scaled to the step "
-        "length the inputs come at, as white noise).", (0.0, 10.0)))
+        "Standard deviation of the speed input per motion step (m/s; seed Table 1, at 40 Hz; the daemon's steps are "
+        "its IMU samples).", (0.0, 10.0)))
     sigma_omega_dps: float = field(default=2.5, metadata=meta(
-        "Standard deviation of the yaw-rate input per 40 Hz motion step (deg/s): Table 1's 2 deg steering "
+        "Standard deviation of the yaw-rate input per motion step (deg/s): Table 1's 2 deg steering "
         "noise through Bailey's 4 m wheelbase at 5 m/s (see ekf_slam/model.py).", (0.0, 90.0)))
     sigma_range_m: float = field(default=0.2, metadata=meta(
         "Standard deviation of a landmark's range (m; seed Table 1).", (1e-4, 100.0)))
@@ -40,9 +40,9 @@ class EkfSlamConfig:
         "A landmark rejected by the gate this many frames in a row, while others of its frames were accepted, is "
         "taken as moved and no longer used.", (1, 1000)))
     lost_after_frames: int = field(default=3, metadata=meta(
-        "Frames in a row in which the gate refused more known landmarks than it accepted: the vehicle is lost "
-        "against its map, and its position covariance is inflated (sigma about doubled, at most 50 m); again "
-        "after as many more.",
+        "Frames in a row in which the gate refused known landmarks and accepted no more: the vehicle is lost "
+        "against its map, and from then on its position covariance is inflated each such frame (sigma about "
+        "doubled, at most 50 m).",
         (1, 1000)))
     consistency: Literal["fej", "plain"] = field(default="fej", metadata=meta(
         "fej: first-estimates Jacobians (Huang, Mourikis, Roumeliotis 2008/2010); plain: the textbook "

@@ -52,7 +52,6 @@ LANDMARK = 3  # (n, e, d)
 POSITION_GATE_CHI2 = 13.82  # 99.9 % of chi-square with 2 degrees of freedom
 LOST_MIN_M = 0.5  # a lost vehicle's inflated position sigma is at least this (m) ...
 LOST_MAX_M = 50.0  # ... and is not inflated beyond this (m): a footprint and more
-REFERENCE_STEP_S = 0.025  # the motion noise sigmas are per step of this length (Table 1's 40 Hz)
 
 
 @dataclass
@@ -135,7 +134,7 @@ class EkfSlam:
         self.x[:VEHICLE] = new
         self.prior_ne = new[:2].copy()
         p = self.P
-        q = (self.Q_lateral if v_right_mps is not None else self.Q) * (dt_s / REFERENCE_STEP_S)  # white noise: per time
+        q = self.Q_lateral if v_right_mps is not None else self.Q  # per input step (the seed's 40 Hz; the daemon's IMU rate)
         pvv = f @ p[:VEHICLE, :VEHICLE] @ f.T + g @ q @ g.T
         p[:VEHICLE, :VEHICLE] = 0.5 * (pvv + pvv.T)
         if p.shape[0] > VEHICLE:  # F = I except its yaw column: rows n and e gain f02 / f12 times row yaw
@@ -182,33 +181,33 @@ class EkfSlam:
         return result
 
     def _judge_rejections(self, result: UpdateResult) -> None:
-        """Who is wrong when the gate refuses observations. With more refused than accepted the
-        vehicle is what is off: no landmark is blamed, and every ``lost_after_frames`` such frames
-        in a row its position covariance is inflated (the standard deviation about doubled, at
-        least ``LOST_MIN_M``, never beyond ``LOST_MAX_M``) until the map's landmarks pass the gate
-        again and pull it back (the ids are known: no wrong association can follow). The heading
-        is left alone: landmarks seen from above constrain it weakly, and a heading let loose
-        turns the whole way home. Otherwise, with at least two accepted, the vehicle agrees with
-        the map and a refused landmark may have moved (taken as moved after ``moved_after`` such
-        frames in a row)."""
+        """Who is wrong when the gate refuses observations. With at least two accepted and more
+        accepted than refused, the vehicle agrees with the map and a refused landmark may have
+        moved (taken as moved after ``moved_after`` such frames in a row). With some refused and
+        no fewer accepted the vehicle is what is off: no landmark is blamed, and from the
+        ``lost_after_frames``-th such frame in a row on its position covariance is inflated each
+        frame (the standard deviation about doubled, at least ``LOST_MIN_M``, never beyond
+        ``LOST_MAX_M``) until the map's landmarks pass the gate again and pull it back (the ids
+        are known: no wrong association can follow). The heading is left alone: landmarks seen
+        from above constrain it weakly, and a heading let loose turns the whole way home."""
         for lid in result.used:
             self._in_a_row[lid] = 0
-        if len(result.rejected) > len(result.used):
-            self.lost_frames += 1
-            position_sigma = math.sqrt(max(self.P[0, 0] + self.P[1, 1], 0.0))
-            if self.lost_frames >= self.config.lost_after_frames and position_sigma < LOST_MAX_M:
-                self.lost_frames = 0  # the next inflation after lost_after_frames more such frames
-                self.inflations += 1
-                grow = 1.5 * max(position_sigma, LOST_MIN_M) ** 2  # per axis: about twice the sigma
-                self.P[0, 0] += grow
-                self.P[1, 1] += grow
-            return
-        self.lost_frames = 0
-        if len(result.used) >= 2:
+        if len(result.used) >= 2 and len(result.used) > len(result.rejected):
+            self.lost_frames = 0
             for lid in result.rejected:
                 self._in_a_row[lid] += 1
                 if self._in_a_row[lid] >= self.config.moved_after:
                     self.moved.add(lid)
+        elif result.rejected and len(result.rejected) >= len(result.used):
+            self.lost_frames += 1
+            position_sigma = math.sqrt(max(self.P[0, 0] + self.P[1, 1], 0.0))
+            if self.lost_frames >= self.config.lost_after_frames and position_sigma < LOST_MAX_M:
+                self.inflations += 1
+                grow = 1.5 * max(position_sigma, LOST_MIN_M) ** 2  # per axis: about twice the sigma
+                self.P[0, 0] += grow
+                self.P[1, 1] += grow
+        else:
+            self.lost_frames = 0
 
     def innovation(self, lid: int, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
         """``(nu, H (3 x 6), S, state indices)`` of observation ``z`` of mapped landmark ``lid``."""

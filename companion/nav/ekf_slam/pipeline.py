@@ -64,7 +64,7 @@ LEAD_S = 0.2  # the guidance's position target lies this far ahead along the pat
 MAX_IMU_GAP_S = 0.5  # a longer gap between IMU samples is not integrated (the SLAM waits for the next)
 HOLD_FOR_IMU_S = 0.5  # a fix or a landmark frame waits at most this long for the IMU samples up to it
 MAX_LATE_FIX_S = 1.0  # a fix or frame up to this far from the SLAM's time is moved to it by the velocity
-DOPPLER_MAX_AGE_S = 0.3  # the GNSS Doppler velocity is the motion input only this long after its fix
+DOPPLER_MAX_AGE_S = 0.6  # the GNSS Doppler velocity is the motion input this long after its fix (5 Hz + latency)
 MIN_FIX_SIGMA_M = 0.1  # a receiver claiming less (or 0) is taken at this
 BARO_DATUM_FIXES = 50  # the baro datum is the mean of this many fixes' heights (10 s at 5 Hz), then frozen
 
