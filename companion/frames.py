@@ -71,6 +71,13 @@ def euler_from_rotation(rotation: np.ndarray) -> tuple[float, float, float]:
     return roll, pitch, yaw
 
 
+def euler_yaw_rate(gyro_body: np.ndarray, roll: float, pitch: float) -> float:
+    """ZYX Euler yaw rate (rad/s) of body FRD rates ``gyro_body`` (p, q, r rad/s) at ``roll``,
+    ``pitch`` (rad): ``(q sin roll + r cos roll) / cos pitch``, the cosine kept above 1e-3."""
+    q, r = float(gyro_body[1]), float(gyro_body[2])
+    return (q * math.sin(roll) + r * math.cos(roll)) / max(math.cos(pitch), 1e-3)
+
+
 def wrap_pi(angle: float) -> float:
     """Angle wrapped to [-pi, pi)."""
     return (angle + math.pi) % (2 * math.pi) - math.pi

@@ -57,7 +57,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from companion.frames import GRAVITY_MPS2, wrap_pi
+from companion.frames import GRAVITY_MPS2, euler_yaw_rate, wrap_pi
 from companion.health import State
 from companion.messages import PoseEstimate
 
@@ -239,8 +239,7 @@ class FusionFilter:
             return False
         self.stats.imu_used += 1
         if gyro_body_radps is not None:
-            _, q, r = values[7:10]
-            yaw_rate = (q * math.sin(roll) + r * math.cos(roll)) / max(math.cos(pitch), 1e-3)
+            yaw_rate = euler_yaw_rate(values[7:10], roll, pitch)
         elif t_prev is not None and self._attitude_yaw is not None:
             yaw_rate = wrap_pi(att_yaw - self._attitude_yaw) / (t - t_prev)
         else:

@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.frames import ned_from_geodetic, wrap_pi
+from companion.frames import euler_yaw_rate, ned_from_geodetic, wrap_pi
 from companion.health import Health, State
 from companion.messages import Estimate, GnssFix, Guidance, ImuSample, LandmarkSightings, PoseEstimate
 from companion.nav.ekf_slam.config import EkfSlamConfig, RecoveryPlannerConfig
@@ -130,8 +130,7 @@ def motion_input(sample: ImuSample, velocity_ned: np.ndarray | None) -> tuple[fl
     c, s = math.cos(yaw), math.sin(yaw)
     forward = float(velocity_ned[0] * c + velocity_ned[1] * s)
     right = float(-velocity_ned[0] * s + velocity_ned[1] * c)
-    q, r = float(sample.gyro_body[1]), float(sample.gyro_body[2])
-    return forward, right, (q * math.sin(roll) + r * math.cos(roll)) / max(math.cos(pitch), 1e-3)
+    return forward, right, euler_yaw_rate(sample.gyro_body, roll, pitch)
 
 
 @dataclass
