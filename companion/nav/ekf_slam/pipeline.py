@@ -8,7 +8,9 @@ Data flow, every nav cycle, the inputs taken in capture-time order (no I/O here)
   the speeds from the GNSS Doppler velocity while there is a fix, then from the autopilot's own
   velocity estimate, the motion input a vehicle still has without GNSS (the seed's commanded
   velocity and heading), each resolved along the autopilot's heading;
-- landmark sightings (``landmarks``, kind landmarks) -> the SLAM's updates and new landmarks, with
+- landmark sightings (``landmarks``, kind landmarks, and / or the fiducial markers of the camera
+  ``marker_camera``, :mod:`.markers`, levelled with the roll and pitch of the IMU sample nearest each
+  frame's capture time) -> the SLAM's updates and new landmarks, with
   the vehicle's height measured, not assumed: the autopilot's barometric altitude on the datum
   the first GNSS heights gave it (the seed holds the altitude exact; a real one wanders, and a
   metre of height error is five sigmas of the seed's range noise), so the descent to land still
@@ -41,22 +43,26 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from companion.calibration import load_calibration
 from companion.frames import euler_yaw_rate, ned_from_geodetic, wrap_pi
 from companion.health import Health, State
-from companion.messages import Estimate, GnssFix, Guidance, ImuSample, LandmarkSightings, PoseEstimate
+from companion.messages import Estimate, Frame, GnssFix, Guidance, ImuSample, LandmarkSightings, PoseEstimate
 from companion.nav.ekf_slam.config import EkfSlamConfig, RecoveryPlannerConfig
 from companion.nav.ekf_slam.filter import EkfSlam
+from companion.nav.ekf_slam.markers import MarkerParams, MarkerSighter, aruco_dictionary
 from companion.nav.ekf_slam.planner import PlannerOutput, RecoveryPlanner
 from companion.pipeline import PipelineContext
 from companion.plugins import register_pipeline
 from companion.schema import meta
 from companion.timing import Timings
+from drivers.mount import OPTICAL_TO_SENSOR, Mount
 
 STREAM = "ekf_slam"
 HEALTH = "nav:ekf_slam"
@@ -67,6 +73,8 @@ MAX_LATE_FIX_S = 1.0  # a fix or frame up to this far from the SLAM's time is mo
 DOPPLER_MAX_AGE_S = 0.6  # the GNSS Doppler velocity is the motion input this long after its fix (5 Hz + latency)
 MIN_FIX_SIGMA_M = 0.1  # a receiver claiming less (or 0) is taken at this
 BARO_DATUM_FIXES = 50  # the baro datum is the mean of this many fixes' heights (10 s at 5 Hz), then frozen
+ATTITUDE_HISTORY = 512  # IMU attitudes kept to level marker frames with (over a second at 400 Hz)
+MAX_ATTITUDE_GAP_S = 0.1  # a marker frame without an IMU attitude this close to its capture time is dropped
 
 
 @dataclass
@@ -74,9 +82,29 @@ class EkfSlamPipelineConfig:
     """``pipelines.ekf_slam``: GNSS while it lasts, then the EKF-SLAM return to base (Lee and Tahk)."""
 
     gnss: str = field(metadata=meta("Name (in `sensors`) of the GNSS receiver (kind gnss)."))
-    landmarks: str = field(metadata=meta("Name (in `sensors`) of the landmark sensor (kind landmarks)."))
     base_ne: tuple[float, float] = field(metadata=meta(
         "Where the base is [north, east], metres in LOCAL_NED: where the return ends.", (-100000, 100000)))
+    landmarks: str | None = field(default=None, metadata=meta(
+        "Name (in `sensors`) of the landmark sensor (kind landmarks); null: the marker camera's only (give at "
+        "least one of landmarks and marker_camera)."))
+    marker_camera: str | None = field(default=None, metadata=meta(
+        "Name (in `sensors`) of a camera (kind camera) whose fiducial markers are landmarks (marker id = landmark "
+        "id): range and bearings from each marker's pose (ekf_slam/markers.py); null: none. The SLAM weighs them "
+        "with slam.sigma_*, like the landmark sensor's."))
+    marker_calibration: str | None = field(default=None, metadata=meta(
+        "The marker camera's intrinsics (OpenCV or ROS YAML, relative to this file), for its frames' resolution; "
+        "required with marker_camera."))
+    marker_size_m: float = field(default=1.0, metadata=meta(
+        "Side of a marker's black square, metres.", (0.01, 100)))
+    marker_dictionary: str = field(default="DICT_4X4_250", metadata=meta(
+        "OpenCV's name of the markers' dictionary (DICT_4X4_250: the simulated camera's; DICT_4X4_1000, whose "
+        "first 250 are DICT_4X4_250's, for more landmarks; DICT_APRILTAG_36h11 for AprilTags)."))
+    marker_id_range: tuple[int, int] = field(default=(0, 999999), metadata=meta(
+        "[lowest, highest] id of the markers that are landmarks; others (e.g. a laser-dot floor's) are skipped.",
+        (0, 999999)))
+    marker_pixel_sigma_px: float = field(default=0.5, metadata=meta(
+        "1-sigma of a marker corner per axis, pixels: the frames' stated noise (first-order; markers.py).",
+        (0.01, 20)))
     imu_sensor: str = field(default="imu", metadata=meta(
         "Name (in `sensors`) of the autopilot's IMU (kind imu, backend autopilot: its samples carry the "
         "autopilot's attitude and velocity, the SLAM's motion input)."))
@@ -105,6 +133,16 @@ class EkfSlamPipelineConfig:
         "The recovery path: circles around a reference landmark (or larger loops), sub-maps, search, landing."))
 
     def validate(self) -> tuple[str, str] | None:
+        if self.landmarks is None and self.marker_camera is None:
+            return "landmarks", "give a landmark sensor (landmarks), a marker camera (marker_camera) or both"
+        if self.marker_camera is not None and self.marker_calibration is None:
+            return "marker_calibration", "required with marker_camera: the camera's intrinsics file"
+        try:
+            aruco_dictionary(self.marker_dictionary)
+        except ValueError as exc:
+            return "marker_dictionary", str(exc)
+        if self.marker_id_range[0] > self.marker_id_range[1]:
+            return "marker_id_range", "give [lowest, highest] with lowest <= highest"
         if self.planner.altitude_m != self.slam.altitude_m:
             return "planner.altitude_m", f"must equal slam.altitude_m ({self.slam.altitude_m:g}): one held altitude"
         if self.planner.half_fov_deg != self.slam.half_fov_deg:
@@ -112,7 +150,14 @@ class EkfSlamPipelineConfig:
         return None
 
     def sensor_inputs(self) -> dict[str, str]:
-        return {"gnss": "gnss", "landmarks": "landmarks", "imu_sensor": "imu"}
+        optional = {"landmarks": "landmarks", "marker_camera": "camera"}
+        given = {key: kind for key, kind in optional.items() if getattr(self, key) is not None}
+        return {"gnss": "gnss", "imu_sensor": "imu", **given}
+
+    def marker_params(self) -> MarkerParams:
+        """The marker camera's :class:`MarkerParams`."""
+        return MarkerParams(self.marker_size_m, aruco_dictionary(self.marker_dictionary), self.marker_id_range,
+                            self.marker_pixel_sigma_px)
 
     def moved(self, raw: dict[str, Any], offset: tuple[float, float], move_map: Callable[[str], str]) -> dict[str, Any]:
         """This section for a local frame whose origin moved by ``offset`` (north, east m): the base moves."""
@@ -148,6 +193,9 @@ class EkfSlamStats:
     imu_without_input: int = 0  # no autopilot attitude or velocity attached
     gnss_losses: int = 0
     submaps: int = 0
+    marker_frames: int = 0  # camera frames turned into landmark sightings
+    marker_frames_dropped: int = 0  # overtaken by a newer one before a nav cycle, or no IMU attitude near them
+    markers_skipped: int = 0  # id outside marker_id_range or twice in a frame, or no pose
 
 
 class EkfSlamPipeline:
@@ -156,8 +204,11 @@ class EkfSlamPipeline:
     name = "ekf_slam"
     telemetry_streams = (STREAM,)
 
-    def __init__(self, cfg: EkfSlamPipelineConfig, origin: tuple[float, float, float], health: Health) -> None:
+    def __init__(self, cfg: EkfSlamPipelineConfig, origin: tuple[float, float, float], health: Health,
+                 markers: MarkerSighter | None = None) -> None:
+        """``markers``: the marker camera's sighter (required with ``cfg.marker_camera``)."""
         self.cfg = cfg
+        self.markers = markers
         self.origin = origin
         self.health = health
         self.stats = EkfSlamStats()
@@ -183,17 +234,33 @@ class EkfSlamPipeline:
         self._datum_fixes = 0
         self._usable_since: float | None = None
         self._in_view: dict[int, np.ndarray] = {}
+        self._attitudes: deque[tuple[float, float, float]] = deque(maxlen=ATTITUDE_HISTORY)  # (t s, roll, pitch rad)
         health.report(HEALTH, State.LOST, "waiting for a GNSS fix")
 
     # -- inputs (driver callbacks) ------------------------------------------------------
 
     def subscriptions(self) -> dict[str, Callable[[Any], None]]:
-        return {self.cfg.gnss: self._keep, self.cfg.landmarks: self._keep, self.cfg.imu_sensor: self._keep}
+        handlers: dict[str, Callable[[Any], None]] = {self.cfg.gnss: self._keep, self.cfg.imu_sensor: self._keep}
+        if self.cfg.landmarks is not None:
+            handlers[self.cfg.landmarks] = self._keep
+        if self.cfg.marker_camera is not None:
+            handlers[self.cfg.marker_camera] = self._keep_frame
+        return handlers
 
-    def _keep(self, message: GnssFix | LandmarkSightings | ImuSample) -> None:
+    def _keep(self, message: GnssFix | LandmarkSightings | ImuSample | Frame) -> None:
         t = message.t if isinstance(message, ImuSample) else message.t_capture
+        if isinstance(message, ImuSample) and message.euler_rad is not None:
+            self._attitudes.append((message.t, message.euler_rad[0], message.euler_rad[1]))
         self._order += 1
         self._inbox.append((t, self._order, message))
+
+    def _keep_frame(self, frame: Frame) -> None:
+        """A marker camera frame, for the nav cycle; one still waiting there is dropped (the newest
+        is worth the detection's time)."""
+        waiting = len(self._inbox)
+        self._inbox = [m for m in self._inbox if not isinstance(m[2], Frame)]
+        self.stats.marker_frames_dropped += waiting - len(self._inbox)
+        self._keep(frame)
 
     # -- the nav cycle --------------------------------------------------------------------
 
@@ -212,6 +279,8 @@ class EkfSlamPipeline:
                 self._on_fix(message)
             elif isinstance(message, LandmarkSightings):
                 self._on_sightings(message)
+            elif isinstance(message, Frame):
+                self._on_frame(message)
             else:
                 self._on_imu(message)
         self._watch_gnss(now)
@@ -331,6 +400,21 @@ class EkfSlamPipeline:
         if self.planner is not None:
             self._replan(frame.t_capture)
 
+    def _on_frame(self, frame: Frame) -> None:
+        """A marker camera frame -> its markers' sightings, levelled with the roll and pitch of the
+        IMU sample nearest its capture time -> :meth:`_on_sightings`."""
+        assert self.markers is not None  # frames come with a marker camera
+        times = np.array([a[0] for a in self._attitudes])
+        nearest = int(np.argmin(np.abs(times - frame.t_capture))) if len(times) else -1
+        if nearest < 0 or abs(times[nearest] - frame.t_capture) > MAX_ATTITUDE_GAP_S:
+            self.stats.marker_frames_dropped += 1
+            return
+        _, roll, pitch = self._attitudes[nearest]
+        seen = self.markers.sightings(frame, roll, pitch)
+        self.stats.marker_frames += 1
+        self.stats.markers_skipped += seen.outside_id_range + seen.ambiguous + seen.failed
+        self._on_sightings(seen.sightings)
+
     def _replan(self, t: float) -> None:
         assert self.slam is not None and self.planner is not None
         self.plan = self.planner.target(t, self.slam.pose, self._in_view, self.slam.landmarks())
@@ -446,7 +530,21 @@ class EkfSlamPipeline:
         return None
 
 
-@register_pipeline("ekf_slam", EkfSlamPipelineConfig)
+def _marker_sighter(load: Callable[..., Any], config: Any, section: EkfSlamPipelineConfig) -> MarkerSighter | None:
+    """The marker camera's sighter (its calibration loaded with ``load``, its mount from ``config``), or None."""
+    if section.marker_camera is None:
+        return None
+    calibration = load("pipelines.ekf_slam.marker_calibration", section.marker_calibration, load_calibration)
+    mount = Mount.from_config(config.sensors[section.marker_camera].mount)
+    return MarkerSighter(calibration, mount.rotation @ OPTICAL_TO_SENSOR, mount.offset_m, section.marker_params(),
+                         section.marker_camera)
+
+
+def _check_files(cfg: Any, section: EkfSlamPipelineConfig) -> None:
+    _marker_sighter(cfg.load_referenced, cfg, section)
+
+
+@register_pipeline("ekf_slam", EkfSlamPipelineConfig, check_files=_check_files)
 def _build(section: EkfSlamPipelineConfig, ctx: PipelineContext) -> EkfSlamPipeline:
     o = ctx.config.origin
-    return EkfSlamPipeline(section, (o.lat, o.lon, o.alt), ctx.health)
+    return EkfSlamPipeline(section, (o.lat, o.lon, o.alt), ctx.health, _marker_sighter(ctx.load, ctx.config, section))
