@@ -69,6 +69,10 @@ class MavlinkConfig:
         (0, 9)))
     signing_key_file: str | None = field(default=None, metadata=meta(
         "MAVLink 2 signing: file holding the 32-byte secret key (raw, or 64 hex characters). null = unsigned."))
+    command_sysids: tuple[int, ...] = field(default=(255,), metadata=meta(
+        "Systems whose COMMAND_LONG addressed to this companion (vehicle.sysid / vehicle.compid) it obeys, e.g. "
+        "MAV_CMD_NAV_RETURN_TO_LAUNCH for the EKF-SLAM return to base (255 = a ground station by convention; [] = "
+        "none). Unsigned, anyone on the link can claim one: sign the link.", (1, 255)))
     streams: StreamRatesConfig = field(default_factory=StreamRatesConfig, metadata=meta("Streams requested from the autopilot."))
 
 

@@ -29,6 +29,7 @@ from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.commands import CommandFailed, Commander
 from companion.mavlink.distance import DistanceSender
 from companion.mavlink.estimate import EstimateSender
+from companion.mavlink.inbound import InboundCommands
 from companion.mavlink.link import MavlinkLink, load_signing_key, mavlink
 from companion.mavlink.origin import OriginSetter
 from companion.mavlink.setpoints import SetpointStream
@@ -150,6 +151,7 @@ class Daemon:
         pipelines = self.build_pipelines()
         self.selector = self._build_selector(pipelines)
         self.mission = self._build_mission(pipelines)
+        self.commands = self._build_inbound_commands(pipelines)
         gate = WatchdogGate(max_age=1.0, clock=clock.now)
         p = cfg.pipelines
         crosscheck = AttitudeCrossCheck(lambda: state.attitude_euler, self.health, telemetry.publish,
@@ -198,6 +200,20 @@ class Daemon:
             log.warning("mission %s: no companion geofence (mission.geofence disabled, or neither its box_ned_m "
                         "nor a pipeline's operating area); the autopilot's own fence still applies", mission.name)
         return MissionRunner(mission, cfg.mission.allow_arm, ctx, cfg.mission.on_daemon_stop)
+
+    def _build_inbound_commands(self, pipelines: list[Pipeline]) -> InboundCommands:
+        """The commands a ground station may address to the companion (companion.mavlink.inbound):
+        MAV_CMD_NAV_RETURN_TO_LAUNCH starts a guidance pipeline's return (the EKF-SLAM return to
+        base), flown by the mission runner as a takeover (its next ``return_to_base`` step)."""
+        commands = InboundCommands(self.link, self.cfg.mavlink.command_sysids, self.statustext)
+        if any(isinstance(p, GuidanceSource) for p in pipelines):
+            commands.register(mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH, self._commanded_return)
+        return commands
+
+    def _commanded_return(self, _msg: object) -> str | None:
+        if self.mission is None:
+            return "no mission runs: nobody to fly the return"
+        return self.mission.ctx.request_guidance("MAVLink command")
 
     def _select_source(self, source: str | None) -> None:
         """A commanded pose source (a mission's ``pose_source`` step)."""

@@ -40,9 +40,11 @@ GPS_TOLERANCE_M = 0.35
 
 
 def fly(tmp_path: Path, procs: Processes, steps: list[dict], seconds: float, sections: dict | None = None,
-        make: Callable[[TruthSource], Any] | None = None, **faults: object) -> tuple[PipelineDaemon, dict]:
+        make: Callable[[TruthSource], Any] | None = None, gcs: tuple[str, ...] = (),
+        **faults: object) -> tuple[PipelineDaemon, dict]:
     """Fly ``steps`` (after wait_ready / GUIDED / arm / takeoff) for ``seconds`` of simulation on a
-    TruthPipeline with ``faults``, or on the pipeline ``make`` builds."""
+    TruthPipeline with ``faults``, or on the pipeline ``make`` builds; ``gcs``: the vehicle's
+    ground-station links (pymavlink URLs)."""
     mission = tmp_path / "mission.yaml"
     mission.write_text(yaml.safe_dump({"name": "test", "steps": TAKEOFF + steps}, sort_keys=False))
     port = free_port()
@@ -50,7 +52,7 @@ def fly(tmp_path: Path, procs: Processes, steps: list[dict], seconds: float, sec
     cfg = load_config(write_config(tmp_path / "companion.yaml", vehicle_port=port, sim_state_hz=50, mission=mission,
                                    sections=merged))
     log = tmp_path / "flight-log.json"
-    vehicle = procs.start("vehicle", vehicle_args(port, log=log, lockstep=True, seconds=seconds, seed=4))
+    vehicle = procs.start("vehicle", vehicle_args(port, log=log, lockstep=True, seconds=seconds, seed=4, gcs=gcs))
     daemon = PipelineDaemon(cfg, make or (lambda truth: TruthPipeline(truth, 5, **faults)))
     assert run_daemon_with_vehicle(daemon, vehicle, timeout_s=120) == 0
     assert vehicle.returncode == 0, procs.output("vehicle")

@@ -8,15 +8,20 @@ real one (tests/test_ekf_slam_sitl.py)."""
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import numpy as np
+from pymavlink import mavutil
 
 from companion.messages import Guidance
+from tests.conftest import free_port
+from tests.mavlink_peer import COMPANION_COMPID
 from tests.sitl_helpers import Processes, TruthPipeline
 from tests.test_mission_failsafes import GPS_TOLERANCE_M, fly, mode_entries, truth_at
 
 BASE = np.array([2.0, 1.0, -1.0])
+RTL = mavutil.mavlink.MAV_CMD_NAV_RETURN_TO_LAUNCH
 SPEED_MPS = 0.5
 
 
@@ -50,10 +55,42 @@ HOLD_LONG = [{"hold": {"seconds": 120}}]
 
 
 def fly_guided(tmp_path: Path, procs: Processes, steps: list[dict], lost_at: float, gnss_loss: str = "return_to_base",
-               seconds: float = 50) -> tuple[object, dict]:
+               seconds: float = 50, gcs: tuple[str, ...] = ()) -> tuple[object, dict]:
     daemon, log = fly(tmp_path, procs, steps, seconds, sections={"mission": {"failsafe": {
-        "lost_hold_s": 2.0, "gnss_loss": gnss_loss}}}, make=lambda truth: GuidingTruthPipeline(truth, lost_at))
+        "lost_hold_s": 2.0, "gnss_loss": gnss_loss}}}, make=lambda truth: GuidingTruthPipeline(truth, lost_at),
+        gcs=gcs)
     return daemon, log
+
+
+class GroundStation(threading.Thread):
+    """A ground station (sysid 255) on the vehicle's GCS link: after ``after_heartbeats`` of the
+    autopilot's HEARTBEATs (1 Hz of simulated time) it sends MAV_CMD_NAV_RETURN_TO_LAUNCH to the
+    companion's component, once per HEARTBEAT until the companion acknowledges it."""
+
+    def __init__(self, after_heartbeats: int) -> None:
+        super().__init__(daemon=True)
+        self.port = free_port()
+        self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{self.port}", source_system=255, source_component=190)
+        self.after = after_heartbeats
+        self.acks: list[tuple[int, int]] = []  # (command, result) from the companion
+        self.done = threading.Event()
+
+    @property
+    def vehicle_url(self) -> str:
+        return f"udpout:127.0.0.1:{self.port}"
+
+    def run(self) -> None:
+        beats = 0
+        while not self.done.is_set():
+            msg = self.conn.recv_match(blocking=True, timeout=0.2)
+            if msg is None:
+                continue
+            if msg.get_type() == "COMMAND_ACK" and msg.get_srcComponent() == COMPANION_COMPID:
+                self.acks.append((msg.command, msg.result))
+            elif msg.get_type() == "HEARTBEAT" and msg.get_srcComponent() == 1:
+                beats += 1
+                if beats >= self.after and not self.acks:
+                    self.conn.mav.command_long_send(1, COMPANION_COMPID, RTL, 0, 0, 0, 0, 0, 0, 0, 0)
 
 
 def test_gnss_lost_in_a_hold_jumps_to_the_return_to_base_step_which_flies_the_guidance_and_lands_at_base(
@@ -93,4 +130,23 @@ def test_a_return_to_base_step_asks_a_pipeline_that_is_not_guiding_to_start(tmp_
     daemon, log = fly_guided(tmp_path, procs, [{"hold": {"seconds": 3}}, {"return_to_base": {}}], lost_at=1e9)
     assert daemon.mission.status == "completed", daemon.mission.snapshot()
     assert daemon.pipeline.requested == "mission step return_to_base" and not daemon.mission.ctx.failsafes
+    np.testing.assert_allclose(truth_at(log, mode_entries(log, "LAND")[0])[:2], BASE[:2], atol=GPS_TOLERANCE_M)
+
+
+def test_a_ground_stations_return_command_to_the_companion_takes_over_and_lands_at_base(
+        tmp_path: Path, procs: Processes) -> None:
+    gcs = GroundStation(after_heartbeats=15)
+    gcs.start()
+    try:
+        daemon, log = fly_guided(tmp_path, procs, HOLD_LONG + [{"return_to_base": {}}], lost_at=1e9,
+                                 gnss_loss="continue", gcs=(gcs.vehicle_url,))
+    finally:
+        gcs.done.set()
+        gcs.join(timeout=2.0)
+    assert gcs.acks[:1] == [(RTL, mavutil.mavlink.MAV_RESULT_ACCEPTED)]
+    mission = daemon.mission
+    assert mission.status == "completed", mission.snapshot()
+    assert daemon.pipeline.requested == "MAVLink command"
+    takeover = mission.ctx.failsafes[0]
+    assert takeover["kind"] == "guidance" and "commanded" in takeover["reason"] and 8.0 < takeover["t"] < 25.0
     np.testing.assert_allclose(truth_at(log, mode_entries(log, "LAND")[0])[:2], BASE[:2], atol=GPS_TOLERANCE_M)

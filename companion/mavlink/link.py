@@ -157,6 +157,7 @@ class MavlinkLink:
         self._ended = asyncio.Event()  # the open port ended (EOF, I/O error): reopen it
         self._heartbeats = 0  # autopilot HEARTBEATs received, ever
         self._handlers: dict[str, list[Handler]] = defaultdict(list)
+        self._addressed: list[Handler] = []  # COMMAND_LONGs addressed to this companion, from anyone
         self._on_connect: list[Callable[[], None]] = []
         self._connected = False
         self._paused = False  # lockstep: reading stops at a tick until the loop is idle
@@ -183,6 +184,13 @@ class MavlinkLink:
         """Call ``handler(msg)`` for every message of ``msg_type`` from the autopilot (its sysid and
         compid; HEARTBEATs with its locked identity; boot times that fit its clock)."""
         self._handlers[msg_type].append(handler)
+
+    def on_addressed_command(self, handler: Handler) -> None:
+        """Call ``handler(msg)`` for every COMMAND_LONG addressed to this companion (its sysid and
+        compid), whoever sent it: the autopilot routes a ground station's commands to us. The
+        handler decides whom it obeys (companion.mavlink.inbound); with signing, only signed ones
+        arrive."""
+        self._addressed.append(handler)
 
     def on_connect(self, callback: Callable[[], None]) -> None:
         """Call ``callback()`` whenever the autopilot is (re)found: first contact, link regained, reboot."""
@@ -369,9 +377,14 @@ class MavlinkLink:
                 self.stats.parse_errors += 1
             return
         self.stats.messages_rx += 1
-        if msg.get_srcSystem() != self.ids.autopilot_sysid or not self._from_autopilot(msg):
+        if (msg_type == "COMMAND_LONG" and msg.target_system == self.ids.sysid
+                and msg.target_component == self.ids.compid):
+            handlers = self._addressed
+        elif msg.get_srcSystem() != self.ids.autopilot_sysid or not self._from_autopilot(msg):
             return
-        for handler in self._handlers.get(msg_type, ()):
+        else:
+            handlers = self._handlers.get(msg_type, ())
+        for handler in handlers:
             try:
                 handler(msg)
             except Exception:

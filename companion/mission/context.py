@@ -96,13 +96,13 @@ class MissionContext:
 
     def check_takeover(self) -> None:
         """Raise if someone else took the flight: the pilot or the autopilot (MissionFailed), or,
-        while airborne, a pipeline that started guiding on its own with ``failsafe.gnss_loss:
-        return_to_base`` (GuidanceTakeover)."""
+        while airborne, a pipeline that started guiding on command (a MAVLink command) or on its
+        own with ``failsafe.gnss_loss: return_to_base`` (GuidanceTakeover)."""
         if self.takeover.is_set():
             raise MissionFailed(self.takeover_reason)
-        if self.airborne and not self.following_guidance and self.failsafe.gnss_loss == "return_to_base":
+        if self.airborne and not self.following_guidance:
             wish = self.guidance()
-            if wish is not None:
+            if wish is not None and (wish.trigger == "commanded" or self.failsafe.gnss_loss == "return_to_base"):
                 raise GuidanceTakeover(f"{wish.trigger}: {wish.reason}")
 
     def estimate_status(self) -> EstimateStatus:
