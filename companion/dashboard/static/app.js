@@ -6,6 +6,7 @@ import { setBadge } from "./dom.js";
 import { MapView, ScanView } from "./map.js";
 import { TimePlot } from "./plots.js";
 import * as panels from "./panels.js";
+import { SlamView } from "./slam.js";
 
 const WINDOW_S = 60; // time plots
 const LINK_LOST_S = 3; // no message from the vehicle for this long: telemetry link lost
@@ -15,7 +16,7 @@ const ALERTS_KEPT = 100;
 const RENDER_PERIOD_MS = 100;
 const DEG = 180 / Math.PI;
 const MAP_STREAMS = ["map", "trajectory", "pose", "scan", "lines", "corners", "setpoint"];
-const PANEL_STREAMS = ["autopilot", "link", "mission", "health", "system", "rates", "alerts", "sources", "laser_dots"];
+const PANEL_STREAMS = ["autopilot", "link", "mission", "health", "system", "rates", "alerts", "sources", "laser_dots", "ekf_slam"];
 
 /** Append a time row and drop the rows older than the plot window. */
 function pushRow(rows, row) {
@@ -76,6 +77,7 @@ const page = {
   map: new MapView($("map")),
   scan: new ScanView($("scan")),
   camera: new CameraView($("camera"), $("camera-legend"), $("camera-status")),
+  slam: new SlamView($("slam"), $("slam-status")),
   positionPlots: ["north", "east", "down"].map((axis) => new TimePlot($("position-plots"), axis, "m")),
   sigmaPlots: [new TimePlot($("sigma-plots"), "position σ (north, east, down)", "m"),
     new TimePlot($("sigma-plots"), "yaw σ", "°")],
@@ -170,6 +172,12 @@ function renderCamera(v) {
   if (dots) page.camera.render(dots);
 }
 
+function renderSlam(v) {
+  const slam = v.data("ekf_slam");
+  $("slam-panel").hidden = !slam; // only a vehicle running the EKF-SLAM pipeline has the view
+  if (slam) page.slam.render(slam, v.data("autopilot")); // against the autopilot's own position
+}
+
 function renderPlots(v, now) {
   page.positionPlots.forEach((plot, axis) => plot.render([
     { rows: v.position, column: axis + 1, color: "#0d47a1" },
@@ -202,6 +210,7 @@ function render() {
   if (any("rates", "health")) panels.streams($("streams-table").tBodies[0], status?.vehicles?.[String(selected)]?.streams, v.data("rates"));
   if (any("alerts", "health")) panels.alerts($("alerts"), v.alerts, now);
   if (any("laser_dots")) renderCamera(v);
+  if (any("ekf_slam", "autopilot")) renderSlam(v);
 }
 
 $("vehicle-select").addEventListener("change", (e) => choose(Number(e.target.value)));

@@ -10,12 +10,12 @@ const MAX_SCAN_VIEW_M = 10;
 const ROOM_WITHOUT_MAP_M = 6; // shown around the vehicle until the map arrives
 
 /** A group in which SVG x, y are NED x (north, up the screen) and y (east, right). */
-function nedGroup(root) {
+export function nedGroup(root) {
   return svg("g", { transform: "matrix(0 -1 1 0 0 0)" }, root);
 }
 
 /** SVG transform placing a frame at [x, y, yaw rad] of its parent frame. */
-function placeAt([x, y, yaw]) {
+export function placeAt([x, y, yaw]) {
   return `translate(${x} ${y}) rotate(${yaw * DEG})`;
 }
 
@@ -38,7 +38,7 @@ function scanDots(scan) {
 }
 
 /** SVG viewBox showing the NED rectangle [minX, minY]-[maxX, maxY] (metres) north-up. */
-function viewBox([minX, minY, maxX, maxY], margin) {
+export function viewBox([minX, minY, maxX, maxY], margin) {
   return `${minY - margin} ${-maxX - margin} ${maxY - minY + 2 * margin} ${maxX - minX + 2 * margin}`;
 }
 
