@@ -41,7 +41,18 @@ from companion.schema import load_file, meta
 
 ARUCO_DICTIONARY = cv2.aruco.DICT_4X4_250
 """The ArUco dictionary of the floor markers (OpenCV's named constant; its first 50 markers are
-DICT_4X4_50's). The simulated camera draws them from it and the laser-dot pipeline detects them."""
+DICT_4X4_50's): the laser-dot pipeline detects them, and the simulated camera draws a world's
+markers from it unless the world names another (``marker_dictionary``)."""
+
+
+
+def aruco_dictionary(name: str) -> int:
+    """OpenCV's constant of the ArUco dictionary ``name`` (e.g. "DICT_4X4_1000"); ValueError if none."""
+    value = getattr(cv2.aruco, name, None) if name.startswith("DICT_") else None
+    if not isinstance(value, int):
+        raise ValueError(f"{name!r} is not an OpenCV ArUco dictionary (e.g. DICT_4X4_1000, DICT_APRILTAG_36h11)")
+    return value
+
 
 TOLERANCE_M = 0.01  # how close points must be to count as coinciding / lying on a wall
 ANGLE_TOLERANCE_DEG = 0.1  # how far a wall direction may be from a multiple of wall_angle_deg
@@ -234,6 +245,9 @@ class World:
     corners: tuple[Point, ...] = field(default=(), metadata=meta(
         "Known corner features [x north, y east], metres: the map of the lidar localization."))
     floor_markers: tuple[FloorMarker, ...] = field(default=(), metadata=meta("Fiducials on the floor."))
+    marker_dictionary: str = field(default="DICT_4X4_250", metadata=meta(
+        "OpenCV's name of the ArUco dictionary the simulated camera draws the floor markers from (DICT_4X4_250, "
+        "the laser-dot pipeline's; e.g. DICT_4X4_1000 for markers on up to 1000 landmarks, its first 250 the same)."))
     obstacles: tuple[Obstacle, ...] = field(default=(), metadata=meta("Boxes standing on the floor."))
     openings: tuple[Opening, ...] = field(default=(), metadata=meta("Doors and windows in the walls."))
     walkers: tuple[Walker, ...] = field(default=(), metadata=meta(
@@ -337,6 +351,10 @@ class World:
             for end in ("min", "max"):
                 if not self.bounds.contains(*getattr(obstacle, end)):
                     yield f"obstacles[{k}].{end}", f"{_fmt(getattr(obstacle, end))} is outside bounds"
+        try:
+            aruco_dictionary(self.marker_dictionary)
+        except ValueError as exc:
+            yield "marker_dictionary", str(exc)
         seen: set[int] = set()
         for k, marker in enumerate(self.floor_markers):
             if not self.bounds.contains(*marker.position, margin=marker.size_m / 2):

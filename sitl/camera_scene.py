@@ -10,7 +10,7 @@ float32 arrays north, east, down, any length; a zero ray meets nothing). :meth:`
   (noise with a 1/f amplitude spectrum from 5 mm to 2.56 m, so optic flow finds texture at any
   height), repeating every 10.24 m; texels of 5 mm, mip-mapped so that a far or grazing floor
   does not alias;
-- floor markers: real ArUco markers of companion.world's ``ARUCO_DICTIONARY``, black (20) on white
+- floor markers: real ArUco markers of the world's ``marker_dictionary``, black (20) on white
   paper (235) with a quiet zone of one cell around the black square. ``size_m`` is the black
   square's side; the marker lies as :meth:`companion.world.FloorMarker.corners` places it (its
   top edge faces ``yaw_deg``, from north towards east);
@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from companion.world import ARUCO_DICTIONARY, FloorMarker, Obstacle, World
+from companion.world import FloorMarker, Obstacle, World, aruco_dictionary
 
 MARKER_CELLS = 4 + 2  # bits per side plus the black border, cells
 QUIET_ZONE_CELLS = 1  # white paper around the black square, cells
@@ -85,20 +85,14 @@ def _halve(image: np.ndarray) -> np.ndarray:
     return image.reshape(h // 2, 2, w // 2, 2, *image.shape[2:]).mean(axis=(1, 3), dtype=np.float32)
 
 
-def dictionary_name() -> str:
-    """OpenCV's name of companion.world's ``ARUCO_DICTIONARY``, e.g. DICT_4X4_250."""
-    return next(name for name in dir(cv2.aruco) if name.startswith("DICT_")
-                and getattr(cv2.aruco, name) == ARUCO_DICTIONARY)
-
-
 def check_marker_ids(world: World) -> World:
-    """``world``, if every floor marker's id is in companion.world's ``ARUCO_DICTIONARY``; else
+    """``world``, if every floor marker's id is in the world's ``marker_dictionary``; else
     ValueError naming the marker and the dictionary."""
-    count = cv2.aruco.getPredefinedDictionary(ARUCO_DICTIONARY).bytesList.shape[0]
+    count = cv2.aruco.getPredefinedDictionary(aruco_dictionary(world.marker_dictionary)).bytesList.shape[0]
     for i, marker in enumerate(world.floor_markers):
         if not 0 <= marker.id < count:
             raise ValueError(f"floor_markers[{i}]: id {marker.id} is not in the simulated camera's ArUco dictionary "
-                             f"{dictionary_name()} (ids 0-{count - 1})")
+                             f"{world.marker_dictionary} (ids 0-{count - 1})")
     return world
 
 
@@ -115,8 +109,9 @@ class MarkerTexture:
     down: tuple[float, float]
 
     @classmethod
-    def make(cls, marker: FloorMarker) -> MarkerTexture:
-        dictionary = cv2.aruco.getPredefinedDictionary(ARUCO_DICTIONARY)
+    def make(cls, marker: FloorMarker, dictionary_name: str) -> MarkerTexture:
+        """The texture of ``marker``, drawn from the ArUco dictionary of OpenCV's name ``dictionary_name``."""
+        dictionary = cv2.aruco.getPredefinedDictionary(aruco_dictionary(dictionary_name))
         k = MARKER_TEXELS_PER_CELL
         bits = cv2.aruco.generateImageMarker(dictionary, marker.id, MARKER_CELLS * k, borderBits=1)
         paper = cv2.copyMakeBorder(bits, *[QUIET_ZONE_CELLS * k] * 4, cv2.BORDER_CONSTANT, value=255)
@@ -221,7 +216,7 @@ class Scene:
 
     def __init__(self, world: World, floor_seed: int = 0) -> None:
         self.floor = floor_pyramid(floor_seed)
-        self.markers = [MarkerTexture.make(m) for m in check_marker_ids(world).floor_markers]
+        self.markers = [MarkerTexture.make(m, world.marker_dictionary) for m in check_marker_ids(world).floor_markers]
         self.faces = wall_faces(world)
         self.obstacles = world.obstacles
         # by surface label: 0 nothing, 1 floor (textured instead), then the faces, then the obstacle tops

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -23,6 +24,7 @@ from companion.nav.ekf_slam.markers import MarkerFrame, MarkerParams, MarkerSigh
 from companion.nav.ekf_slam.model import observe
 from companion.nav.ekf_slam.pipeline import EkfSlamPipeline
 from companion.pipeline import PipelineContext
+from companion.schema import SchemaError, load_text
 from companion.world import Bounds, FloorMarker, World
 from drivers.mount import OPTICAL_TO_SENSOR, Mount
 from sitl.camera_sim import SimCameraSettings, SimulatedCamera
@@ -32,29 +34,33 @@ SIDE_M = 4.0
 # landmark positions (north, east m) carrying markers of the landmark's id; 250 is outside DICT_4X4_250
 MARKERS = (FloorMarker(12, (0.0, 0.0), SIDE_M, 0.0), FloorMarker(40, (12.0, 9.0), SIDE_M, 30.0),
            FloorMarker(77, (-10.0, -14.0), SIDE_M, 200.0), FloorMarker(200, (8.0, -15.0), SIDE_M, 100.0))
-WORLD = World(name="marker-landmarks", wall_angle_deg=90, bounds=Bounds((-300.0, -300.0), (300.0, 300.0)),
-              start=(0.0, 0.0, 0.0), floor_markers=MARKERS)
+
+
+def world_of(markers: tuple[FloorMarker, ...], dictionary: str = "DICT_4X4_250") -> World:
+    """A test world of large floor markers (no walls) drawn from ``dictionary``."""
+    return World(name="marker-landmarks", wall_angle_deg=90, bounds=Bounds((-300.0, -300.0), (300.0, 300.0)),
+                 start=(0.0, 0.0, 0.0), floor_markers=markers, marker_dictionary=dictionary)
+
+
+WORLD = world_of(MARKERS)
 DOWN = (0.0, -90.0, 0.0)  # mount rpy_deg: looking down, the image's top towards the body's front
 CAMERA_OFFSET_M = (0.15, -0.05, 0.1)  # the camera's origin in body FRD: the sightings start at the body origin
 SETTINGS = SimCameraSettings(hfov_deg=40.0, distortion=(-0.05, 0.01, 0.0, 0.0, 0.0), noise_sigma=2.0)
 MOUNT = Mount.from_config(MountConfig(position_m=CAMERA_OFFSET_M, rpy_deg=DOWN))
 
 
-def sighter(world_markers: tuple[FloorMarker, ...] = MARKERS,
-            **params: object) -> tuple[MarkerSighter, SimulatedCamera]:
+def sighter(world: World = WORLD, **params: object) -> tuple[MarkerSighter, SimulatedCamera]:
     calibration = SETTINGS.intrinsics()
-    world = World(name="w", wall_angle_deg=90, bounds=WORLD.bounds, start=(0.0, 0.0, 0.0),
-                  floor_markers=world_markers)
     camera = SimulatedCamera("cam", SETTINGS, calibration, MOUNT, world, truth=None)  # type: ignore[arg-type]
     marker_params = MarkerParams(SIDE_M, **params)  # type: ignore[arg-type]
     return MarkerSighter(calibration, MOUNT.rotation @ OPTICAL_TO_SENSOR, MOUNT.offset_m, marker_params, "cam"), camera
 
 
-def look(position: tuple[float, float, float], rpy_deg: tuple[float, float, float],
-         world_markers: tuple[FloorMarker, ...] = MARKERS, **params: object) -> MarkerFrame:
+def look(position: tuple[float, float, float], rpy_deg: tuple[float, float, float], world: World = WORLD,
+         **params: object) -> MarkerFrame:
     """What the sighter makes of the frame the simulated camera renders at this vehicle pose
     (NED m; roll, pitch, yaw deg), levelled with the true roll and pitch."""
-    marker_sighter, camera = sighter(world_markers, **params)
+    marker_sighter, camera = sighter(world, **params)
     roll, pitch, yaw = np.radians(rpy_deg)
     truth = TruthSample(0.0, np.array(position, dtype=float), np.zeros(3), quat_from_euler(roll, pitch, yaw))
     return marker_sighter.sightings(camera.render(1.5, truth, sequence=7), roll, pitch)
@@ -62,7 +68,7 @@ def look(position: tuple[float, float, float], rpy_deg: tuple[float, float, floa
 
 def truth_of(position: tuple[float, float, float], yaw_deg: float, marker_id: int) -> np.ndarray:
     """(range m, azimuth rad, elevation rad) of the marker's centre from the body origin."""
-    marker = next(m for m in MARKERS if m.id == marker_id)
+    marker = next(m for m in MARKERS + MORE if m.id == marker_id)
     n, e, d = position
     return observe(np.array([n, e, math.radians(yaw_deg)]), d, np.array([*marker.position, 0.0]))
 
@@ -79,15 +85,15 @@ def errors(frame: MarkerFrame, position: tuple[float, float, float], yaw_deg: fl
 
 def test_a_marker_ahead_and_right_below_has_a_positive_azimuth_a_negative_elevation_and_its_range() -> None:
     position = (-4.0, -5.0, -50.0)  # marker 12 at (0, 0) is 4 m ahead, 5 m right, 50 m below
-    frame = look(position, (0.0, 0.0, 0.0), world_markers=MARKERS[:1])
+    frame = look(position, (0.0, 0.0, 0.0), world=world_of(MARKERS[:1]))
     s = frame.sightings
     assert list(s.ids) == [12] and s.t_capture == 1.5 and s.sequence == 7 and s.sensor_id == "cam"
     assert s.azimuth_rad[0] == pytest.approx(math.atan2(5.0, 4.0), abs=1e-3)  # clockwise from the nose
     assert s.elevation_rad[0] == pytest.approx(-math.atan2(50.0, math.hypot(4.0, 5.0)), abs=1e-3)  # below
     assert s.range_m[0] == pytest.approx(math.sqrt(4 ** 2 + 5 ** 2 + 50 ** 2), abs=0.5)
-    left = look((-4.0, 5.0, -50.0), (0.0, 0.0, 0.0), world_markers=MARKERS[:1]).sightings
+    left = look((-4.0, 5.0, -50.0), (0.0, 0.0, 0.0), world=world_of(MARKERS[:1])).sightings
     assert left.azimuth_rad[0] == pytest.approx(-s.azimuth_rad[0], abs=1e-3)
-    turned = look(position, (0.0, 0.0, 20.0), world_markers=MARKERS[:1]).sightings  # nose 20 deg right
+    turned = look(position, (0.0, 0.0, 20.0), world=world_of(MARKERS[:1])).sightings  # nose 20 deg right
     assert turned.azimuth_rad[0] == pytest.approx(s.azimuth_rad[0] - math.radians(20.0), abs=1e-3)
     assert turned.elevation_rad[0] == pytest.approx(s.elevation_rad[0], abs=1e-3)
 
@@ -95,8 +101,8 @@ def test_a_marker_ahead_and_right_below_has_a_positive_azimuth_a_negative_elevat
 @pytest.mark.parametrize("rpy_deg", [(6.0, 0.0, 0.0), (0.0, -5.0, 0.0), (-4.0, 5.0, 0.0)])
 def test_rolled_or_pitched_the_same_marker_gives_the_same_level_bearings(rpy_deg: tuple[float, float, float]) -> None:
     position = (-4.0, -5.0, -50.0)
-    level = look(position, (0.0, 0.0, 0.0), world_markers=MARKERS[:1]).sightings
-    tilted = look(position, rpy_deg, world_markers=MARKERS[:1]).sightings
+    level = look(position, (0.0, 0.0, 0.0), world=world_of(MARKERS[:1])).sightings
+    tilted = look(position, rpy_deg, world=world_of(MARKERS[:1])).sightings
     # the marker moves ~35 px across the image; 1e-3 rad is 0.9 px of the 880 px focal length
     assert tilted.azimuth_rad[0] == pytest.approx(level.azimuth_rad[0], abs=1e-3)
     assert tilted.elevation_rad[0] == pytest.approx(level.elevation_rad[0], abs=1e-3)
@@ -134,8 +140,26 @@ def test_markers_outside_the_id_range_are_skipped_and_counted() -> None:
 
 def test_a_marker_id_seen_twice_is_skipped_and_counted() -> None:
     twice = (*MARKERS[:2], FloorMarker(40, (-10.0, -14.0), SIDE_M, 0.0))
-    frame = look((3.0, 2.0, -60.0), (0.0, 0.0, 0.0), world_markers=twice)
+    frame = look((3.0, 2.0, -60.0), (0.0, 0.0, 0.0), world=world_of(twice))
     assert list(frame.sightings.ids) == [12] and frame.ambiguous == 2
+
+
+MORE = (FloorMarker(300, (-6.0, 8.0), SIDE_M, 45.0), FloorMarker(640, (10.0, -8.0), SIDE_M, 0.0))
+
+
+def test_a_world_may_draw_its_markers_from_a_larger_dictionary_for_landmark_ids_beyond_250() -> None:
+    """The outdoor world's landmarks have ids 0-640: DICT_4X4_250 (the laser-dot floor's) cannot
+    carry them, DICT_4X4_1000 can (its first 250 markers are DICT_4X4_250's)."""
+    position, rpy = (0.0, 0.0, -50.0), (2.0, -3.0, 10.0)
+    world = world_of(MARKERS[:1] + MORE, "DICT_4X4_1000")
+    frame = look(position, rpy, world=world, dictionary=cv2.aruco.DICT_4X4_1000)
+    assert sorted(frame.sightings.ids) == [12, 300, 640]
+    assert np.all(np.abs(errors(frame, position, rpy[2])) < 3.0 * frame.sigmas)
+    with pytest.raises(ValueError, match=r"floor_markers\[1\]: id 300 .* DICT_4X4_250 \(ids 0-249\)"):
+        sighter(world_of(MARKERS[:1] + MORE))
+    with pytest.raises(SchemaError, match="marker_dictionary: 'DICT_4X4_2000' is not an OpenCV ArUco dictionary"):
+        load_text("name: w\nwall_angle_deg: 90\nbounds: {min: [-9, -9], max: [9, 9]}\nstart: [0, 0, 0]\n"
+                  "marker_dictionary: DICT_4X4_2000\n", World)
 
 
 def test_a_frame_without_markers_gives_an_empty_sightings_message() -> None:

@@ -42,6 +42,7 @@ from companion.frames import rotation_from_euler
 from companion.messages import Frame, LandmarkSightings
 from companion.nav.ekf_slam.model import observe
 from companion.nav.laser_dots.floor import square_object_points
+from companion.world import ARUCO_DICTIONARY
 
 SUBPIX_WINDOW_PX = 3  # half-size of the corner refinement window, px: a 4x4 marker 30 px across has 5 px cells
 # Adaptive-threshold windows every 20 px (OpenCV: 10), as floor.py's: the same sightings of the
@@ -51,20 +52,12 @@ SUBPIX_WINDOW_PX = 3  # half-size of the corner refinement window, px: a 4x4 mar
 THRESHOLD_WINDOW_STEP_PX = 20
 
 
-def aruco_dictionary(name: str) -> int:
-    """OpenCV's constant of the ArUco dictionary ``name`` (e.g. "DICT_4X4_1000"); ValueError if none."""
-    value = getattr(cv2.aruco, name, None) if name.startswith("DICT_") else None
-    if not isinstance(value, int):
-        raise ValueError(f"{name!r} is not an OpenCV ArUco dictionary (e.g. DICT_4X4_1000, DICT_APRILTAG_36h11)")
-    return value
-
-
 @dataclass(frozen=True)
 class MarkerParams:
     """What :class:`MarkerSighter` looks for and its noise model (module docstring)."""
 
     size_m: float  # side of a marker's black square, m
-    dictionary: int = cv2.aruco.DICT_4X4_250  # OpenCV DICT_ constant
+    dictionary: int = ARUCO_DICTIONARY  # OpenCV DICT_ constant
     id_range: tuple[int, int] = (0, 999999)  # lowest, highest id of a marker that is a landmark
     pixel_sigma_px: float = 0.5  # 1-sigma of a refined corner per axis, px
 

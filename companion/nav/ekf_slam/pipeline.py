@@ -56,12 +56,13 @@ from companion.health import Health, State
 from companion.messages import Estimate, Frame, GnssFix, Guidance, ImuSample, LandmarkSightings, PoseEstimate
 from companion.nav.ekf_slam.config import EkfSlamConfig, RecoveryPlannerConfig
 from companion.nav.ekf_slam.filter import EkfSlam
-from companion.nav.ekf_slam.markers import MarkerParams, MarkerSighter, aruco_dictionary
+from companion.nav.ekf_slam.markers import MarkerParams, MarkerSighter
 from companion.nav.ekf_slam.planner import PlannerOutput, RecoveryPlanner
 from companion.pipeline import PipelineContext
 from companion.plugins import register_pipeline
 from companion.schema import meta
 from companion.timing import Timings
+from companion.world import aruco_dictionary
 from drivers.mount import OPTICAL_TO_SENSOR, Mount
 
 STREAM = "ekf_slam"
