@@ -4,7 +4,10 @@
 simulations (sitl/slam_experiment.py ``make_world``: one point landmark per 1000 m^2 over
 [-150, 650] m squared, 0-5 m high) drawn once with :data:`SEED`, the base at the seed's (353.5,
 353.5) m and the take-off there: a flight out to the jam point at the origin, 500 m away, and
-back. LOCAL_NED metres (x north, y east).
+back. The base is marked as well: a landmark on the ground at the base (the landing pad's marker,
+as precision landing uses one), the last id. With one field landmark per 1000 m^2, a landing from
+the held altitude without it descends blind for its last ~50 m (the sensor's footprint holds no
+landmark there) and drifts with the wind. LOCAL_NED metres (x north, y east).
 """
 
 from __future__ import annotations
@@ -21,7 +24,8 @@ SEED = 14
 
 def outdoor_world() -> dict:
     """The world document (companion/world.py)."""
-    landmarks = make_world(np.random.default_rng(SEED)).landmarks
+    field_marks = make_world(np.random.default_rng(SEED)).landmarks
+    landmarks = np.vstack([field_marks, [[BASE_NE[0], BASE_NE[1], 0.0]]])  # the landing pad's marker last
     (n0, n1), (e0, e1) = AREA_NE
     return {
         "name": "outdoor-field",
@@ -30,7 +34,7 @@ def outdoor_world() -> dict:
         "start": [BASE_NE[0], BASE_NE[1], 225.0],
         "base": list(BASE_NE),
         "landmarks": [{"id": k, "position": [round(float(p[0]), 2), round(float(p[1]), 2)],
-                       "height_m": round(float(-p[2]), 2)} for k, p in enumerate(landmarks)],
+                       "height_m": round(float(-p[2]), 2) + 0.0} for k, p in enumerate(landmarks)],
     }
 
 

@@ -32,8 +32,9 @@ class EkfSlamConfig:
     half_fov_deg: float = field(default=20.0, metadata=meta(
         "Half angle of the downward sensor's field of view (deg; a cone about the nadir).", (1.0, 89.0)))
     min_horizontal_m: float = field(default=4.0, metadata=meta(
-        "Landmarks seen closer than this to the nadir (horizontal distance, m) are not used: the azimuth "
-        "is singular there and its linearisation wrong by more than its noise.", (0.0, 100.0)))
+        "Landmarks seen closer than this to the nadir (horizontal distance, m) update the filter as their offset "
+        "(forward, right, down) in the heading frame instead of range / azimuth / elevation (the azimuth is singular "
+        "there and its linearisation wrong by more than its noise); new ones are not added there.", (0.0, 100.0)))
     gate_chi2: float = field(default=16.27, metadata=meta(
         "Innovation gate: squared Mahalanobis distance (3 degrees of freedom; 16.27 = 99.9 %).", (1.0, 1000.0)))
     moved_after: int = field(default=5, metadata=meta(
@@ -44,6 +45,13 @@ class EkfSlamConfig:
         "against its map, and from then on its position covariance is inflated each such frame (sigma about "
         "doubled, at most 50 m).",
         (1, 1000)))
+    gnss_bias_sigma_m: float = field(default=0.5, metadata=meta(
+        "GNSS bias states: 1-sigma per axis of the slowly wandering part of a fix's error (multipath, atmosphere), "
+        "metres; the fix then measures position plus bias. Fixes fused as white noise would make the vehicle and "
+        "the map they anchor claim centimetres, and a landmark seen again after the return (the landing pad) be "
+        "refused as moved. 0: no bias states (fixes as white noise).", (0.0, 100.0)))
+    gnss_bias_tau_s: float = field(default=60.0, metadata=meta(
+        "Correlation time of the GNSS bias (first-order Gauss-Markov), seconds.", (1.0, 100000.0)))
     consistency: Literal["fej", "plain"] = field(default="fej", metadata=meta(
         "fej: first-estimates Jacobians (Huang, Mourikis, Roumeliotis 2008/2010); plain: the textbook "
         "EKF-SLAM of the seed (over-confident as the heading uncertainty grows)."))

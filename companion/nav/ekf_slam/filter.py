@@ -1,8 +1,10 @@
 """EKF-SLAM: a vehicle ``(n, e, yaw)`` at a known height (``down_m``: held, as in the seed, or
 measured and set by the caller) and 3-D point landmarks with known ids.
 
-State ``x = [n, e, yaw, l1_n, l1_e, l1_d, l2_n, ...]`` (LOCAL_NED metres, yaw clockwise from north
-in radians); ``P`` its covariance. Observations are ``(range m, azimuth rad, elevation rad)``
+State ``x = [n, e, yaw, (b_n, b_e,) l1_n, l1_e, l1_d, l2_n, ...]`` (LOCAL_NED metres, yaw clockwise
+from north in radians; ``b``: the GNSS receiver's slowly wandering bias, first-order Gauss-Markov,
+when ``gnss_bias_sigma_m`` > 0, so that the fixes anchor the map no more firmly than they can);
+``P`` its covariance. Observations are ``(range m, azimuth rad, elevation rad)``
 (:mod:`.model` for the conventions). Seed: Lee and Tahk 2010, eqs. 10-38; see :mod:`.model` for
 the equations the seed prints wrongly.
 
@@ -41,13 +43,18 @@ from companion.nav.ekf_slam.model import (
     full_observation_jacobian,
     inverse_observe,
     inverse_observe_jacobians,
+    level_offset,
+    level_offset_cov,
+    level_offset_jacobian,
     motion,
     motion_jacobians,
     observe,
+    predict_level_offset,
     wrap,
 )
 
 VEHICLE = 3  # (n, e, yaw)
+BIAS = slice(3, 5)  # the GNSS bias (n, e), m, when the filter has it: states 3 and 4
 LANDMARK = 3  # (n, e, d)
 POSITION_GATE_CHI2 = 13.82  # 99.9 % of chi-square with 2 degrees of freedom
 LOST_MIN_M = 0.5  # a lost vehicle's inflated position sigma is at least this (m) ...
@@ -61,7 +68,7 @@ class UpdateResult:
     used: list[int] = field(default_factory=list)
     augmented: list[int] = field(default_factory=list)
     rejected: list[int] = field(default_factory=list)  # by the innovation gate
-    skipped: list[int] = field(default_factory=list)  # too near the nadir, or taken as moved
+    skipped: list[int] = field(default_factory=list)  # new but too near the nadir, or taken as moved
 
 
 class EkfSlam:
@@ -72,9 +79,15 @@ class EkfSlam:
     def __init__(self, config: EkfSlamConfig, pose: Iterable[float], pose_cov: np.ndarray) -> None:
         self.config = config
         self.down_m = config.down_m
-        self.x = np.array(list(pose), dtype=float)
-        assert self.x.shape == (VEHICLE,)
-        self.P = np.array(pose_cov, dtype=float).reshape(VEHICLE, VEHICLE).copy()
+        self.bias = config.gnss_bias_sigma_m > 0.0
+        self.bias_var = config.gnss_bias_sigma_m ** 2
+        self.head = VEHICLE + (2 if self.bias else 0)  # index of the first landmark state
+        self.x = np.zeros(self.head)
+        self.x[:VEHICLE] = list(pose)
+        self.P = np.zeros((self.head, self.head))
+        self.P[:VEHICLE, :VEHICLE] = np.asarray(pose_cov, dtype=float).reshape(VEHICLE, VEHICLE)
+        if self.bias:
+            self.P[BIAS, BIAS] = np.eye(2) * self.bias_var
         self.R = np.diag(config.r_matrix())
         sigma_v2, sigma_omega2 = config.q_matrix()
         self.Q = np.diag([sigma_v2, 0.0, sigma_omega2])  # inputs (v, v_right, omega): the seed's vehicle
@@ -91,6 +104,8 @@ class EkfSlam:
         self.inflations = 0  # times the vehicle covariance was inflated for it
         self._work = np.empty((2, 0, 0))
         self.min_horizontal_m = config.min_horizontal_m
+        self.sigmas = (config.sigma_range_m, math.radians(config.sigma_azimuth_deg),
+                       math.radians(config.sigma_elevation_deg))
 
     # --- reading -----------------------------------------------------------------------------
 
@@ -142,6 +157,12 @@ class EkfSlam:
             cross[0] += f[0, 2] * cross[2]
             cross[1] += f[1, 2] * cross[2]
             p[VEHICLE:, :VEHICLE] = cross.T
+        if self.bias:  # first-order Gauss-Markov: b <- a b, variance kept at sigma^2 by the added noise
+            a = math.exp(-dt_s / self.config.gnss_bias_tau_s)
+            self.x[BIAS] *= a
+            p[BIAS, :] *= a
+            p[:, BIAS] *= a
+            p[BIAS, BIAS] += np.eye(2) * self.bias_var * (1.0 - a * a)
 
     def move_vehicle(self, offset_ne: np.ndarray) -> None:
         """Shift the vehicle's estimated position (and its FEJ prediction point) by ``offset_ne``
@@ -156,12 +177,13 @@ class EkfSlam:
         """Fuse one frame of observations ``{landmark id: (range, azimuth, elevation)}``: known
         landmarks update the state one after the other (seed eqs. 25-30, Joseph form, gated; the
         refused ones are tried once more after the accepted ones), new ids are added (seed eqs.
-        31-38) after the known ones are used."""
+        31-38) after the known ones are used; a new id nearer the nadir than
+        ``min_horizontal_m`` waits until it is seen further out."""
         result = UpdateResult()
         new_ids = []
         for lid, z in observations.items():
             z = np.asarray(z, dtype=float)
-            if lid in self.moved or z[0] * math.cos(z[2]) < self.min_horizontal_m:
+            if lid in self.moved or (lid not in self.slot and self._near_nadir(z)):
                 result.skipped.append(lid)
             elif lid not in self.slot:
                 new_ids.append((lid, z))
@@ -209,20 +231,35 @@ class EkfSlam:
         else:
             self.lost_frames = 0
 
+    def _near_nadir(self, z: np.ndarray) -> bool:
+        """Is the landmark seen at ``z`` horizontally nearer than ``min_horizontal_m``?"""
+        return z[0] * math.cos(z[2]) < self.min_horizontal_m
+
     def innovation(self, lid: int, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
-        """``(nu, H (3 x 6), S, state indices)`` of observation ``z`` of mapped landmark ``lid``."""
+        """``(nu, H (3 x 6), S, state indices)`` of observation ``z`` of mapped landmark ``lid``.
+        Near the nadir (``min_horizontal_m``), where the azimuth is singular and its linearisation
+        wrong by more than its noise, the observation is used as its offset in the heading frame
+        (:func:`.model.level_offset`, linear in the positions) with its propagated covariance:
+        a vehicle descending onto a landmark keeps it in use all the way down."""
         o = self.slot[lid]
         idx = [0, 1, 2, o, o + 1, o + 2]
         landmark = self.x[o:o + 3]
-        nu = np.asarray(z, dtype=float) - observe(self.x[:VEHICLE], self.down_m, landmark)
-        nu[1] = wrap(nu[1])
+        pose = self.x[:VEHICLE]
         if self.fej:
             first = self.first_ne[lid]
             delta = np.array([first[0] - self.prior_ne[0], first[1] - self.prior_ne[1], landmark[2] - self.down_m])
         else:
-            delta = np.array([landmark[0] - self.x[0], landmark[1] - self.x[1], landmark[2] - self.down_m])
-        h = full_observation_jacobian(delta)
-        s = h @ self.P[np.ix_(idx, idx)] @ h.T + self.R
+            delta = np.array([landmark[0] - pose[0], landmark[1] - pose[1], landmark[2] - self.down_m])
+        if self._near_nadir(z):
+            nu = level_offset(z) - predict_level_offset(pose, self.down_m, landmark)
+            h = level_offset_jacobian(float(pose[2]), delta)
+            r = level_offset_cov(z, self.sigmas)
+        else:
+            nu = np.asarray(z, dtype=float) - observe(pose, self.down_m, landmark)
+            nu[1] = wrap(nu[1])
+            h = full_observation_jacobian(delta)
+            r = self.R
+        s = h @ self.P[np.ix_(idx, idx)] @ h.T + r
         return nu, h, s, idx
 
     def _update_one(self, lid: int, z: np.ndarray) -> bool:
@@ -251,14 +288,27 @@ class EkfSlam:
 
     def update_position(self, ne: np.ndarray, cov: np.ndarray) -> bool:
         """Fuse a measurement of the vehicle's horizontal position (a GNSS fix: ``ne`` (2,) m NED,
-        ``cov`` 2 x 2 m^2): linear, so no Jacobian question; gated at the 99.9 % chi-square of 2
-        degrees of freedom (13.8). False (nothing changed) when gated out."""
+        ``cov`` 2 x 2 m^2, the receiver's whole stated error): linear, so no Jacobian question;
+        gated at the 99.9 % chi-square of 2 degrees of freedom (13.8). False (nothing changed)
+        when gated out.
+
+        With bias states (``gnss_bias_sigma_m`` > 0) the fix measures position plus bias, and only
+        the rest of its variance (at least a tenth of it) is white; without, the fix is white
+        noise (the seed's simulations have no GNSS)."""
+        cov = np.asarray(cov, dtype=float)
         nu = np.asarray(ne, dtype=float) - self.x[:2]
-        s = self.P[:2, :2] + np.asarray(cov, dtype=float)
+        hp = self.P[:2, :].copy()
+        if self.bias:
+            nu -= self.x[BIAS]
+            hp += self.P[BIAS, :]
+            cov = np.maximum(cov - np.eye(2) * self.bias_var, 0.1 * cov)
+        s = hp[:, :2] + cov
+        if self.bias:
+            s += hp[:, BIAS]
         s_inv = _inverse(s)
         if s_inv is None or float(nu @ s_inv @ nu) > POSITION_GATE_CHI2:
             return False
-        self._correct(self.P[:2, :].copy(), s, s_inv, nu)
+        self._correct(hp, s, s_inv, nu)
         return True
 
     def augment(self, lid: int, z: np.ndarray) -> None:
@@ -295,7 +345,7 @@ class EkfSlam:
         ``also_keep``: further mapped ids to keep (e.g. those in view at the new start point; not
         the seed's, which keeps none). Gate counters of dropped landmarks are kept (an id seen
         again is a new landmark of the new sub-map)."""
-        keep = list(range(VEHICLE))
+        keep = list(range(self.head))
         kept_ids = []
         for lid in ([keep_landmark] if keep_landmark is not None else []) + list(also_keep):
             if lid in self.slot and lid not in kept_ids:
@@ -305,10 +355,10 @@ class EkfSlam:
         self.x = self.x[keep].copy()
         self.P = self.P[np.ix_(keep, keep)].copy()
         if kept_ids and not keep_cross:
-            self.P[:VEHICLE, VEHICLE:] = 0.0
-            self.P[VEHICLE:, :VEHICLE] = 0.0
+            self.P[:self.head, self.head:] = 0.0
+            self.P[self.head:, :self.head] = 0.0
         self.ids = kept_ids
-        self.slot = {lid: VEHICLE + 3 * i for i, lid in enumerate(kept_ids)}
+        self.slot = {lid: self.head + 3 * i for i, lid in enumerate(kept_ids)}
         self.first_ne = {lid: self.first_ne[lid] for lid in kept_ids}
 
 

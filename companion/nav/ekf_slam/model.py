@@ -133,6 +133,59 @@ def full_observation_jacobian(delta: np.ndarray) -> np.ndarray:
     return h
 
 
+def level_offset(z: np.ndarray) -> np.ndarray:
+    """The landmark seen at ``z = (range, azimuth, elevation)`` as its offset ``(forward, right,
+    down)`` (m) from the vehicle in the vehicle's heading frame (NED turned by the yaw only): the
+    near-nadir form of an observation, where the azimuth is singular."""
+    r, phi, theta = float(z[0]), float(z[1]), float(z[2])
+    horizontal = r * math.cos(theta)
+    return np.array([horizontal * math.cos(phi), horizontal * math.sin(phi), -r * math.sin(theta)])
+
+
+def level_offset_cov(z: np.ndarray, sigmas: tuple[float, float, float]) -> np.ndarray:
+    """3 x 3 covariance (m^2) of :func:`level_offset` for the observation noise ``sigmas`` (range
+    m, azimuth rad, elevation rad) at ``z``. Range and elevation move the point radially (along the
+    horizontal bearing) and down; across the bearing its sigma is the azimuth's ``rho sigma_az``
+    but at least ``r sigma_el``: at the nadir the azimuth carries no information and a real
+    sensor's angular noise is about alike in every direction (first-order propagation otherwise)."""
+    r, phi, theta = float(z[0]), float(z[1]), float(z[2])
+    s_r, s_az, s_el = sigmas
+    ct, st = math.cos(theta), math.sin(theta)
+    # (radial, down) by (range, elevation): radial = r cos(theta), down = -r sin(theta)
+    j = np.array([[ct, -r * st], [-st, -r * ct]])
+    radial_down = j @ np.diag([s_r * s_r, s_el * s_el]) @ j.T
+    across = max(r * ct * s_az, r * s_el) ** 2
+    cp, sp = math.cos(phi), math.sin(phi)
+    basis = np.array([[cp, -sp, 0.0], [sp, cp, 0.0], [0.0, 0.0, 1.0]])  # (radial, across, down) -> (fwd, right, down)
+    local = np.array([[radial_down[0, 0], 0.0, radial_down[0, 1]],
+                      [0.0, across, 0.0],
+                      [radial_down[1, 0], 0.0, radial_down[1, 1]]])
+    return basis @ local @ basis.T
+
+
+def predict_level_offset(pose: np.ndarray, down_m: float, landmark: np.ndarray) -> np.ndarray:
+    """``(forward, right, down)`` (m) of ``landmark`` (n, e, d) from the vehicle at ``pose``
+    (n, e, yaw) and ``down_m``: :func:`level_offset`'s prediction."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    dn, de = landmark[0] - pose[0], landmark[1] - pose[1]
+    return np.array([c * dn + s * de, -s * dn + c * de, landmark[2] - down_m])
+
+
+def level_offset_jacobian(yaw_rad: float, delta: np.ndarray) -> np.ndarray:
+    """3 x 6 derivative of :func:`predict_level_offset` by ``(vehicle n, e, yaw, landmark n, e,
+    d)`` at heading ``yaw_rad`` and relative position ``delta = landmark - vehicle`` (n, e, d; m):
+    linear in the positions; by the yaw, ``(right, -forward, 0)``."""
+    c, s = math.cos(yaw_rad), math.sin(yaw_rad)
+    rot = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+    forward = c * delta[0] + s * delta[1]
+    right = -s * delta[0] + c * delta[1]
+    h = np.zeros((3, 6))
+    h[:, 0:2] = -rot[:, 0:2]
+    h[:, 2] = [right, -forward, 0.0]
+    h[:, 3:6] = rot
+    return h
+
+
 def inverse_observe(pose: np.ndarray, down_m: float, z: np.ndarray) -> np.ndarray:
     """The landmark ``(n, e, d)`` seen at ``z = (range, azimuth, elevation)`` from ``pose`` at
     ``down_m`` (seed eq. 33 in NED: ``d = d_v - r sin(theta)``)."""
