@@ -18,6 +18,8 @@ from __future__ import annotations
 import asyncio
 import logging
 
+import numpy as np
+
 from companion import clock
 from companion.health import State
 from companion.mavlink.commands import CommandFailed
@@ -33,6 +35,9 @@ OFFBOARD_PRESTREAM_S = 1.0  # PX4 refuses OFFBOARD unless setpoints already stre
 FAILSAFE_LAND_TIMEOUT_S = 120.0
 TAKEOFF_REACHED_M = 0.1  # the take-off is done within this of the altitude ...
 TAKEOFF_SETTLED_MPS = 0.1  # ... climbing no faster than this
+LAND_SETTLE_M = 0.3  # a guidance's landing waits until the estimate is within this of its point (horizontal) ...
+LAND_SETTLE_MPS = 0.2  # ... and slower than this (LAND holds where the vehicle stops: from 5 m/s, metres on)
+LAND_SETTLE_TIMEOUT_S = 30.0  # ... for at most this long, then lands where it is
 
 
 class MissionRunner:
@@ -271,6 +276,7 @@ class MissionRunner:
                 if not wish.is_finite():
                     raise MissionFailed(f"return_to_base: non-finite guidance ({wish.reason})")
                 if wish.kind == "land":
+                    await self._settle_over(wish.position_ned, wish.yaw_rad)
                     log.info("return_to_base: landing (%s)", wish.reason)
                     await self._land(LandStep(timeout_s=step.land_timeout_s))
                     return
@@ -287,6 +293,29 @@ class MissionRunner:
                 await asyncio.sleep(1.0 / ctx.control.rate_hz)
         finally:
             ctx.following_guidance = False
+
+    async def _settle_over(self, point_ned: np.ndarray, yaw_rad: float | None) -> None:
+        """Hold ``point_ned`` (LOCAL_NED m) until the companion's estimate is within
+        ``LAND_SETTLE_M`` of it horizontally and slower than ``LAND_SETTLE_MPS``, at most
+        ``LAND_SETTLE_TIMEOUT_S``: the autopilot's LAND holds the point where the vehicle comes to
+        rest, so a landing switched at cruise speed ends metres past its point."""
+        ctx = self.ctx
+        ctx.setpoints.command(Setpoint(position_ned=np.asarray(point_ned, dtype=float),
+                                       yaw_rad=ctx.yaw() if yaw_rad is None else yaw_rad))
+        give_up = clock.now() + LAND_SETTLE_TIMEOUT_S
+
+        def settled() -> bool:
+            now = ctx.measured()
+            if now is None:
+                return False
+            off = np.hypot(now.position_ned[0] - point_ned[0], now.position_ned[1] - point_ned[1])
+            return bool(off < LAND_SETTLE_M and np.linalg.norm(now.velocity_ned) < LAND_SETTLE_MPS)
+
+        await ctx.wait_for(lambda: settled() or clock.now() > give_up, LAND_SETTLE_TIMEOUT_S + 5.0,
+                           "the vehicle to settle over its landing point")
+        if not settled():
+            log.warning("return_to_base: not settled over the landing point after %.0f s: landing where it is",
+                        LAND_SETTLE_TIMEOUT_S)
 
     async def _pose_source(self, step: PoseSourceStep) -> None:
         self.ctx.select_source(step.source)

@@ -18,7 +18,8 @@
 - ``return_to_base: {timeout_s, land_timeout_s}``: hand the flight to the pipeline that can
   fly the vehicle itself (a :class:`companion.pipeline.GuidanceSource`, e.g. the EKF-SLAM return
   to base): ask it to start if it has not taken over already, fly its guidance (position
-  targets with velocity feed-forward) until it says land, then land. The pipeline ending its
+  targets with velocity feed-forward) until it says land, then hold its landing point until settled
+  over it (0.3 m, 0.2 m/s by the companion's estimate; at most 30 s) and land. The pipeline ending its
   guidance (GNSS back) ends the step and the mission goes on. While airborne, a pipeline taking
   over on its own (GNSS lost) jumps the mission to its next ``return_to_base`` step if
   ``failsafe.gnss_loss`` is ``return_to_base`` (without one, the guidance is flown to its
