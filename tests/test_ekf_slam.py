@@ -435,3 +435,20 @@ def test_fixes_with_a_wandering_bias_leave_the_vehicle_no_surer_than_the_bias_al
 
     assert 0.5 < mean_nees(0.5) < 4.0
     assert mean_nees(0.0) > 50.0
+
+
+def test_a_frame_is_weighed_with_the_noise_its_sensor_states_else_the_configs() -> None:
+    slam, truth = _filter_with_landmarks(count=4)
+    z = observe(slam.x[:3], DOWN, truth[2]) + np.array([0.5, 0.0, 0.0])
+    stated = (2.0, math.radians(0.5), math.radians(0.4))
+    _, h, s_stated, idx = slam.innovation(2, z, stated)
+    np.testing.assert_allclose(s_stated, h @ slam.P[np.ix_(idx, idx)] @ h.T + np.diag(np.square(stated)))
+    _, _, s_config, _ = slam.innovation(2, z)
+    np.testing.assert_allclose(s_config, h @ slam.P[np.ix_(idx, idx)] @ h.T + slam.R)
+    for unusable in ((0.0, 0.0, 0.0), (float("nan"), 1.0, 1.0)):  # an empty marker frame states zeros
+        np.testing.assert_allclose(slam.innovation(2, z, unusable)[2], s_config)
+    noisy, exact = _filter_with_landmarks(count=4)[0], _filter_with_landmarks(count=4)[0]
+    noisy.update({2: z}, stated)
+    exact.update({2: z})
+    moved = np.linalg.norm(noisy.x[:2] - slam.x[:2]), np.linalg.norm(exact.x[:2] - slam.x[:2])
+    assert 0.0 < moved[0] < 0.5 * moved[1]

@@ -24,11 +24,12 @@ class EkfSlamConfig:
         "Standard deviation of the yaw-rate input per motion step (deg/s): Table 1's 2 deg steering "
         "noise through Bailey's 4 m wheelbase at 5 m/s (see ekf_slam/model.py).", (0.0, 90.0)))
     sigma_range_m: float = field(default=0.2, metadata=meta(
-        "Standard deviation of a landmark's range (m; seed Table 1).", (1e-4, 100.0)))
+        "Standard deviation of a landmark's range (m; seed Table 1), for frames whose sensor states none (the SLAM "
+        "weighs a frame with the noise its sensor states).", (1e-4, 100.0)))
     sigma_azimuth_deg: float = field(default=0.16, metadata=meta(
-        "Standard deviation of a landmark's azimuth (deg; seed Table 1 'yaw bearing').", (1e-4, 30.0)))
+        "Standard deviation of a landmark's azimuth (deg; seed Table 1 'yaw bearing'), for frames stating none.", (1e-4, 30.0)))
     sigma_elevation_deg: float = field(default=0.12, metadata=meta(
-        "Standard deviation of a landmark's elevation (deg; seed Table 1 'pitch bearing').", (1e-4, 30.0)))
+        "Standard deviation of a landmark's elevation (deg; seed Table 1 'pitch bearing'), for frames stating none.", (1e-4, 30.0)))
     half_fov_deg: float = field(default=20.0, metadata=meta(
         "Half angle of the downward sensor's field of view (deg; a cone about the nadir).", (1.0, 89.0)))
     min_horizontal_m: float = field(default=4.0, metadata=meta(

@@ -33,7 +33,7 @@ from __future__ import annotations
 import math
 import statistics
 from collections import Counter
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -173,12 +173,22 @@ class EkfSlam:
 
     # --- update ------------------------------------------------------------------------------
 
-    def update(self, observations: Mapping[int, np.ndarray]) -> UpdateResult:
+    def noise(self, sigmas: Sequence[float] | None) -> tuple[tuple[float, float, float], np.ndarray]:
+        """``(sigmas, R)`` for a frame stating ``sigmas`` (range m, azimuth rad, elevation rad, the
+        sensor's 1-sigma); the config's ``sigma_*`` when it states none, or none usable."""
+        if sigmas is None or len(sigmas) != 3 or not all(math.isfinite(v) and v > 0.0 for v in sigmas):
+            return self.sigmas, self.R
+        values = (float(sigmas[0]), float(sigmas[1]), float(sigmas[2]))
+        return values, np.diag(np.square(values))
+
+    def update(self, observations: Mapping[int, np.ndarray], sigmas: Sequence[float] | None = None) -> UpdateResult:
         """Fuse one frame of observations ``{landmark id: (range, azimuth, elevation)}``: known
         landmarks update the state one after the other (seed eqs. 25-30, Joseph form, gated; the
         refused ones are tried once more after the accepted ones), new ids are added (seed eqs.
         31-38) after the known ones are used; a new id nearer the nadir than
-        ``min_horizontal_m`` waits until it is seen further out."""
+        ``min_horizontal_m`` waits until it is seen further out. ``sigmas``: the noise the frame's
+        sensor states (:meth:`noise`)."""
+        noise = self.noise(sigmas)
         result = UpdateResult()
         new_ids = []
         for lid, z in observations.items():
@@ -187,18 +197,18 @@ class EkfSlam:
                 result.skipped.append(lid)
             elif lid not in self.slot:
                 new_ids.append((lid, z))
-            elif self._update_one(lid, z):
+            elif self._update_one(lid, z, noise):
                 result.used.append(lid)
             else:
                 result.rejected.append(lid)
         if result.used and result.rejected:  # once the accepted ones have moved the vehicle, again
             refused, result.rejected = result.rejected, []
             for lid in refused:
-                (result.used if self._update_one(lid, np.asarray(observations[lid], dtype=float))
+                (result.used if self._update_one(lid, np.asarray(observations[lid], dtype=float), noise)
                  else result.rejected).append(lid)
         self._judge_rejections(result)
         for lid, z in new_ids:
-            self.augment(lid, z)
+            self.augment(lid, z, sigmas)
             result.augmented.append(lid)
         return result
 
@@ -235,7 +245,8 @@ class EkfSlam:
         """Is the landmark seen at ``z`` horizontally nearer than ``min_horizontal_m``?"""
         return z[0] * math.cos(z[2]) < self.min_horizontal_m
 
-    def innovation(self, lid: int, z: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
+    def innovation(self, lid: int, z: np.ndarray, sigmas: Sequence[float] | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[int]]:
         """``(nu, H (3 x 6), S, state indices)`` of observation ``z`` of mapped landmark ``lid``.
         Near the nadir (``min_horizontal_m``), where the azimuth is singular and its linearisation
         wrong by more than its noise, the observation is used as its offset in the heading frame
@@ -253,17 +264,17 @@ class EkfSlam:
         if self._near_nadir(z):
             nu = level_offset(z) - predict_level_offset(pose, self.down_m, landmark)
             h = level_offset_jacobian(float(pose[2]), delta)
-            r = level_offset_cov(z, self.sigmas)
+            r = level_offset_cov(z, self.noise(sigmas)[0])
         else:
             nu = np.asarray(z, dtype=float) - observe(pose, self.down_m, landmark)
             nu[1] = wrap(nu[1])
             h = full_observation_jacobian(delta)
-            r = self.R
+            r = self.noise(sigmas)[1]
         s = h @ self.P[np.ix_(idx, idx)] @ h.T + r
         return nu, h, s, idx
 
-    def _update_one(self, lid: int, z: np.ndarray) -> bool:
-        nu, h, s, idx = self.innovation(lid, z)
+    def _update_one(self, lid: int, z: np.ndarray, noise: tuple[tuple[float, float, float], np.ndarray]) -> bool:
+        nu, h, s, idx = self.innovation(lid, z, noise[0])
         s_inv = _inverse(s)
         if s_inv is None or float(nu @ s_inv @ nu) > self.config.gate_chi2:
             self.rejections[lid] += 1
@@ -311,9 +322,10 @@ class EkfSlam:
         self._correct(hp, s, s_inv, nu)
         return True
 
-    def augment(self, lid: int, z: np.ndarray) -> None:
+    def augment(self, lid: int, z: np.ndarray, sigmas: Sequence[float] | None = None) -> None:
         """Add landmark ``lid`` first seen at ``z`` (seed eqs. 31-38):
-        ``l = g(x_v, z)``, ``P_ll = Gv P_vv Gv^T + Gz R Gz^T``, ``P_lx = Gv P_vx``."""
+        ``l = g(x_v, z)``, ``P_ll = Gv P_vv Gv^T + Gz R Gz^T``, ``P_lx = Gv P_vx`` (``R`` from the
+        frame's ``sigmas``, :meth:`noise`)."""
         if lid in self.slot:
             raise ValueError(f"landmark {lid} is already mapped")
         z = np.asarray(z, dtype=float)
@@ -322,7 +334,7 @@ class EkfSlam:
         gv, gz = inverse_observe_jacobians(pose, z)
         n = self.x.shape[0]
         p_lx = gv @ self.P[:VEHICLE, :]  # 3 x n
-        p_ll = gv @ self.P[:VEHICLE, :VEHICLE] @ gv.T + gz @ self.R @ gz.T
+        p_ll = gv @ self.P[:VEHICLE, :VEHICLE] @ gv.T + gz @ self.noise(sigmas)[1] @ gz.T
         big = np.empty((n + LANDMARK, n + LANDMARK))
         big[:n, :n] = self.P
         big[n:, :n] = p_lx
