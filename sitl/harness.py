@@ -52,6 +52,7 @@ from companion.world import load_world
 log = logging.getLogger("companion.sitl")
 
 STOP_GRACE_S = 5.0
+VEHICLE_STOP_GRACE_S = 30.0  # the vehicle writes its flight log at exit: 14 MB for a ten-minute flight, seconds under load
 BRIDGE_READY_S = 15.0  # the SCIP bridge must listen on every port within this
 
 
@@ -276,8 +277,8 @@ SELF_EXIT_GRACE_S = 2.0  # after Ctrl-C, which the whole foreground group receiv
 MISSION_END_GRACE_S = 1.0  # --report without --seconds: the run ends this long (wall) after the mission
 
 
-def _terminate(proc: subprocess.Popen, name: str, interrupted: bool = False) -> int:
-    """Stop a child: SIGTERM, then SIGKILL after STOP_GRACE_S. After a Ctrl-C the child got the
+def _terminate(proc: subprocess.Popen, name: str, interrupted: bool = False, grace_s: float = STOP_GRACE_S) -> int:
+    """Stop a child: SIGTERM, then SIGKILL after ``grace_s``. After a Ctrl-C the child got the
     SIGINT too and is already stopping: give it a moment first, or SIGTERM could land just
     after it restored its default handlers and kill its exit."""
     if interrupted and proc.poll() is None:
@@ -288,9 +289,9 @@ def _terminate(proc: subprocess.Popen, name: str, interrupted: bool = False) -> 
     if proc.poll() is None:
         proc.send_signal(signal.SIGTERM)
         try:
-            return proc.wait(STOP_GRACE_S)
+            return proc.wait(grace_s)
         except subprocess.TimeoutExpired:
-            log.error("%s did not stop within %.0f s of SIGTERM; killing it", name, STOP_GRACE_S)
+            log.error("%s did not stop within %.0f s of SIGTERM; killing it", name, grace_s)
             proc.kill()
             return proc.wait()
     return proc.returncode
@@ -366,7 +367,8 @@ class Session:
         telemetry = self.listener.snapshot() if self.listener else {}
         bridge_ended_early = self.bridge is not None and self.bridge.poll() is not None
         daemon_rc = _terminate(self.daemon, "daemon", interrupted) if self.daemon is not None else 0
-        vehicle_rc = _terminate(self.vehicle, "vehicle", interrupted) if self.vehicle is not None else 0
+        vehicle_rc = (_terminate(self.vehicle, "vehicle", interrupted, VEHICLE_STOP_GRACE_S)
+                      if self.vehicle is not None else 0)
         if self.ardupilot is not None:
             vehicle_rc = self.ardupilot.stop() or 0
         if self.bridge is not None:
@@ -526,9 +528,9 @@ def run_harness(args: argparse.Namespace) -> int:
         if session.ardupilot is not None:
             session.ardupilot.write_log(vehicle_log)
         if not vehicle_log.exists():
-            print("companion sitl: no flight log, cannot score a report (an external autopilot given with "
-                  "--autopilot records no truth: use --ardupilot PATH to have the harness run ArduPilot SITL)",
-                  file=sys.stderr)
+            print("companion sitl: no flight log, cannot score a report (the vehicle was killed before writing it, "
+                  "see above; or an external autopilot given with --autopilot, which records no truth: use "
+                  "--ardupilot PATH to have the harness run ArduPilot SITL)", file=sys.stderr)
             return 1
         sim_log = json.loads(vehicle_log.read_text())
         run_cfg = load_config(session.run_config) if session.run_config is not None else cfg
