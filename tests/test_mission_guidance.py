@@ -27,11 +27,13 @@ SPEED_MPS = 0.5
 
 class GuidingTruthPipeline(TruthPipeline):
     """Truth plus noise as the pose; from ``lost_at`` (daemon s) on, or when asked, guidance:
-    fly at 0.5 m/s straight to BASE, then land within 0.1 m of it."""
+    fly at ``speed_mps`` straight to BASE, then land once within ``land_within_m`` of it."""
 
-    def __init__(self, truth: object, lost_at: float) -> None:
+    def __init__(self, truth: object, lost_at: float, speed_mps: float = SPEED_MPS, land_within_m: float = 0.1) -> None:
         super().__init__(truth, 5)
         self.lost_at = lost_at
+        self.speed_mps = speed_mps
+        self.land_within_m = land_within_m
         self.requested: str | None = None
 
     def request_guidance(self, now: float, reason: str) -> str | None:
@@ -44,20 +46,20 @@ class GuidingTruthPipeline(TruthPipeline):
             return None
         trigger = "commanded" if self.requested is not None else "gnss_lost"
         offset = BASE - sample.position_ned
-        if np.linalg.norm(offset[:2]) < 0.1:
+        if np.linalg.norm(offset[:2]) < self.land_within_m:
             return Guidance(now, "land", BASE, np.zeros(3), None, trigger, "at the base")
         along = offset / np.linalg.norm(offset)
         target = sample.position_ned + along * min(1.0, float(np.linalg.norm(offset)))
-        return Guidance(now, "fly", target, along * SPEED_MPS, None, trigger, "flying to the base")
+        return Guidance(now, "fly", target, along * self.speed_mps, None, trigger, "flying to the base")
 
 
 HOLD_LONG = [{"hold": {"seconds": 120}}]
 
 
 def fly_guided(tmp_path: Path, procs: Processes, steps: list[dict], lost_at: float, gnss_loss: str = "return_to_base",
-               seconds: float = 50, gcs: tuple[str, ...] = ()) -> tuple[object, dict]:
+               seconds: float = 50, gcs: tuple[str, ...] = (), **guide: float) -> tuple[object, dict]:
     daemon, log = fly(tmp_path, procs, steps, seconds, sections={"mission": {"failsafe": {
-        "lost_hold_s": 2.0, "gnss_loss": gnss_loss}}}, make=lambda truth: GuidingTruthPipeline(truth, lost_at),
+        "lost_hold_s": 2.0, "gnss_loss": gnss_loss}}}, make=lambda truth: GuidingTruthPipeline(truth, lost_at, **guide),
         gcs=gcs)
     return daemon, log
 
@@ -150,3 +152,14 @@ def test_a_ground_stations_return_command_to_the_companion_takes_over_and_lands_
     takeover = mission.ctx.failsafes[0]
     assert takeover["kind"] == "guidance" and "commanded" in takeover["reason"] and 8.0 < takeover["t"] < 25.0
     np.testing.assert_allclose(truth_at(log, mode_entries(log, "LAND")[0])[:2], BASE[:2], atol=GPS_TOLERANCE_M)
+
+
+def test_a_landing_asked_at_speed_first_settles_over_its_point(tmp_path: Path, procs: Processes) -> None:
+    """The guidance says land 1.5 m short of the base while flying at 2 m/s: LAND then would hold
+    where the vehicle comes to rest, past the point; the step holds the point until settled."""
+    daemon, log = fly_guided(tmp_path, procs, [{"return_to_base": {}}], lost_at=1e9, seconds=60,
+                             speed_mps=2.0, land_within_m=1.5)
+    assert daemon.mission.status == "completed", daemon.mission.snapshot()
+    land_at = mode_entries(log, "LAND")[0]
+    np.testing.assert_allclose(truth_at(log, land_at)[:2], BASE[:2], atol=GPS_TOLERANCE_M)
+    np.testing.assert_allclose(log["truth"]["pos_ned"][-1][:2], BASE[:2], atol=GPS_TOLERANCE_M)
