@@ -141,7 +141,9 @@ class LandmarkSightings:
     (``atan2(-d_down, horizontal distance)``: a landmark on the ground below the vehicle has a
     negative elevation); ``range_m`` the straight-line distance. The d's are landmark minus
     sensor in NED, metres. ``sigma`` is the sensor's stated 1-sigma noise (range m, azimuth
-    rad, elevation rad), the same for every landmark of the frame.
+    rad, elevation rad) for every landmark of the frame (the largest, when they differ);
+    ``sigmas``, if given, each landmark's own (a marker's range noise grows with its distance, its
+    azimuth's near the nadir).
     """
 
     sensor_id: str
@@ -152,11 +154,20 @@ class LandmarkSightings:
     elevation_rad: np.ndarray  # (N,) rad, above the horizontal (negative below)
     sigma: tuple[float, float, float]  # 1-sigma range m, azimuth rad, elevation rad
     sequence: int = 0  # increases by one per frame of this sensor
+    sigmas: np.ndarray | None = None  # (N, 3) each landmark's 1-sigma (as sigma), rows in the order of ids
 
     def __post_init__(self) -> None:
         n = np.shape(self.ids)
         if len(n) != 1 or any(np.shape(a) != n for a in (self.range_m, self.azimuth_rad, self.elevation_rad)):
             raise ValueError("ids, range_m, azimuth_rad and elevation_rad must be 1-D arrays of one length")
+        if self.sigmas is not None and np.shape(self.sigmas) != (n[0], 3):
+            raise ValueError("sigmas must be an (N, 3) array, one row per id")
+
+    def sigma_of(self) -> dict[int, tuple[float, float, float]] | tuple[float, float, float]:
+        """Each id's 1-sigma if the frame states them per landmark, else the frame's one."""
+        if self.sigmas is None:
+            return self.sigma
+        return {int(i): (float(r[0]), float(r[1]), float(r[2])) for i, r in zip(self.ids, self.sigmas)}
 
 
 # -- estimates --------------------------------------------------------------------------------

@@ -447,8 +447,10 @@ def test_a_frame_is_weighed_with_the_noise_its_sensor_states_else_the_configs() 
     np.testing.assert_allclose(s_config, h @ slam.P[np.ix_(idx, idx)] @ h.T + slam.R)
     for unusable in ((0.0, 0.0, 0.0), (float("nan"), 1.0, 1.0)):  # an empty marker frame states zeros
         np.testing.assert_allclose(slam.innovation(2, z, unusable)[2], s_config)
-    noisy, exact = _filter_with_landmarks(count=4)[0], _filter_with_landmarks(count=4)[0]
+    noisy, by_id, exact = (_filter_with_landmarks(count=4)[0] for _ in range(3))
     noisy.update({2: z}, stated)
+    by_id.update({2: z}, {2: stated, 3: (1.0, 1.0, 1.0)})  # a frame stating each landmark's own
     exact.update({2: z})
+    np.testing.assert_array_equal(by_id.x, noisy.x)
     moved = np.linalg.norm(noisy.x[:2] - slam.x[:2]), np.linalg.norm(exact.x[:2] - slam.x[:2])
     assert 0.0 < moved[0] < 0.5 * moved[1]

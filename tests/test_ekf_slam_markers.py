@@ -126,8 +126,8 @@ def test_rendered_markers_from_30_to_80_m_give_range_and_bearings_within_3_sigma
     for position, rpy in POSES:
         frame = look(position, rpy)
         assert len(frame.sightings.ids) >= 1 and frame.outside_id_range == frame.ambiguous == frame.failed == 0
-        normalised.append(np.abs(errors(frame, position, rpy[2])) / frame.sigmas)
-        assert np.all(frame.sigmas <= np.array(frame.sightings.sigma))  # the frame states its largest
+        normalised.append(np.abs(errors(frame, position, rpy[2])) / frame.sightings.sigmas)
+        assert np.all(frame.sightings.sigmas <= np.array(frame.sightings.sigma))  # the frame states its largest
     worst = np.concatenate(normalised)
     assert len(worst) >= 12
     assert worst.max() < 3.0, worst.max(axis=0)
@@ -154,7 +154,7 @@ def test_a_world_may_draw_its_markers_from_a_larger_dictionary_for_landmark_ids_
     world = world_of(MARKERS[:1] + MORE, "DICT_4X4_1000")
     frame = look(position, rpy, world=world, dictionary=cv2.aruco.DICT_4X4_1000)
     assert sorted(frame.sightings.ids) == [12, 300, 640]
-    assert np.all(np.abs(errors(frame, position, rpy[2])) < 3.0 * frame.sigmas)
+    assert np.all(np.abs(errors(frame, position, rpy[2])) < 3.0 * frame.sightings.sigmas)
     with pytest.raises(ValueError, match=r"floor_markers\[1\]: id 300 .* DICT_4X4_250 \(ids 0-249\)"):
         sighter(world_of(MARKERS[:1] + MORE))
     with pytest.raises(SchemaError, match="marker_dictionary: 'DICT_4X4_2000' is not an OpenCV ArUco dictionary"):
@@ -167,7 +167,7 @@ def test_a_frame_without_markers_gives_an_empty_sightings_message() -> None:
     frame = marker_sighter.sightings(Frame("cam", 2.0, np.full((480, 640, 3), 128, np.uint8), 3), 0.0, 0.0)
     s = frame.sightings
     assert len(s.ids) == len(s.range_m) == len(s.azimuth_rad) == len(s.elevation_rad) == 0
-    assert s.t_capture == 2.0 and s.sequence == 3 and s.sigma == (0.0, 0.0, 0.0) and frame.sigmas.shape == (0, 3)
+    assert s.t_capture == 2.0 and s.sequence == 3 and s.sigma == (0.0, 0.0, 0.0) and frame.sightings.sigmas.shape == (0, 3)
 
 
 # -- the pipeline --------------------------------------------------------------------------------

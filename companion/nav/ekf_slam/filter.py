@@ -181,14 +181,17 @@ class EkfSlam:
         values = (float(sigmas[0]), float(sigmas[1]), float(sigmas[2]))
         return values, np.diag(np.square(values))
 
-    def update(self, observations: Mapping[int, np.ndarray], sigmas: Sequence[float] | None = None) -> UpdateResult:
+    def update(self, observations: Mapping[int, np.ndarray],
+               sigmas: Sequence[float] | Mapping[int, Sequence[float]] | None = None) -> UpdateResult:
         """Fuse one frame of observations ``{landmark id: (range, azimuth, elevation)}``: known
         landmarks update the state one after the other (seed eqs. 25-30, Joseph form, gated; the
         refused ones are tried once more after the accepted ones), new ids are added (seed eqs.
         31-38) after the known ones are used; a new id nearer the nadir than
         ``min_horizontal_m`` waits until it is seen further out. ``sigmas``: the noise the frame's
-        sensor states (:meth:`noise`)."""
-        noise = self.noise(sigmas)
+        sensor states (:meth:`noise`), one for all or by id."""
+        def stated(lid: int) -> Sequence[float] | None:
+            return sigmas.get(lid) if isinstance(sigmas, Mapping) else sigmas
+
         result = UpdateResult()
         new_ids = []
         for lid, z in observations.items():
@@ -197,18 +200,18 @@ class EkfSlam:
                 result.skipped.append(lid)
             elif lid not in self.slot:
                 new_ids.append((lid, z))
-            elif self._update_one(lid, z, noise):
+            elif self._update_one(lid, z, stated(lid)):
                 result.used.append(lid)
             else:
                 result.rejected.append(lid)
         if result.used and result.rejected:  # once the accepted ones have moved the vehicle, again
             refused, result.rejected = result.rejected, []
             for lid in refused:
-                (result.used if self._update_one(lid, np.asarray(observations[lid], dtype=float), noise)
+                (result.used if self._update_one(lid, np.asarray(observations[lid], dtype=float), stated(lid))
                  else result.rejected).append(lid)
         self._judge_rejections(result)
         for lid, z in new_ids:
-            self.augment(lid, z, sigmas)
+            self.augment(lid, z, stated(lid))
             result.augmented.append(lid)
         return result
 
@@ -273,8 +276,8 @@ class EkfSlam:
         s = h @ self.P[np.ix_(idx, idx)] @ h.T + r
         return nu, h, s, idx
 
-    def _update_one(self, lid: int, z: np.ndarray, noise: tuple[tuple[float, float, float], np.ndarray]) -> bool:
-        nu, h, s, idx = self.innovation(lid, z, noise[0])
+    def _update_one(self, lid: int, z: np.ndarray, sigmas: Sequence[float] | None) -> bool:
+        nu, h, s, idx = self.innovation(lid, z, sigmas)
         s_inv = _inverse(s)
         if s_inv is None or float(nu @ s_inv @ nu) > self.config.gate_chi2:
             self.rejections[lid] += 1

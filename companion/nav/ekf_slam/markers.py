@@ -25,9 +25,9 @@ calibration's residual), so elevation sigma = that and azimuth sigma = that / co
 (near the nadir the azimuth is poorly defined); the range follows the marker's apparent side s
 (mean edge length, px) as ``r = f size / s``, and an edge between two corners has the error
 ``sqrt(2) pixel_sigma_px``, so range sigma = ``r * sqrt(2) * pixel_sigma_px / s``. The
-attitude's own error (roll and pitch from the caller) is not included. A frame states one sigma
-for all its landmarks (the message's convention): the largest of its markers'; an empty frame
-states zeros.
+attitude's own error (roll and pitch from the caller) is not included. The sightings carry each
+marker's sigmas (``LandmarkSightings.sigmas``) and, as the frame's one ``sigma``, the largest of
+them; an empty frame states zeros.
 """
 
 from __future__ import annotations
@@ -65,12 +65,10 @@ class MarkerParams:
 
 @dataclass(frozen=True)
 class MarkerFrame:
-    """What one frame gave: the ``sightings`` (level heading frame, body origin; module docstring),
-    each landmark's own 1-sigma (``sigmas`` (N, 3): range m, azimuth rad, elevation rad, rows in
-    the order of ``sightings.ids``) and the markers skipped by reason."""
+    """What one frame gave: the ``sightings`` (level heading frame, body origin, each landmark's
+    own 1-sigma in ``sightings.sigmas``; module docstring) and the markers skipped by reason."""
 
     sightings: LandmarkSightings
-    sigmas: np.ndarray
     outside_id_range: int = 0  # markers of ids outside MarkerParams.id_range
     ambiguous: int = 0  # markers of an id seen more than once in the frame
     failed: int = 0  # markers whose PnP failed (or put the centre behind the camera)
@@ -121,9 +119,8 @@ class MarkerSighter:
         largest = sigma_all.max(axis=0) if len(sigma_all) else np.zeros(3)
         stated = (float(largest[0]), float(largest[1]), float(largest[2]))
         sightings = LandmarkSightings(self.sensor_id, frame.t_capture, np.array(ids, dtype=int), z_all[:, 0],
-                                      z_all[:, 1], z_all[:, 2], stated, frame.sequence)
-        return MarkerFrame(sightings, sigma_all, len(detected) - len(inside), len(inside) - len(unique),
-                           len(unique) - len(ids))
+                                      z_all[:, 1], z_all[:, 2], stated, frame.sequence, sigma_all)
+        return MarkerFrame(sightings, len(detected) - len(inside), len(inside) - len(unique), len(unique) - len(ids))
 
     def _centre_optical(self, pixels: np.ndarray) -> np.ndarray | None:
         """The centre (3,) m in the optical frame of the marker with the (4, 2) corner ``pixels``

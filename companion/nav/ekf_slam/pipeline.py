@@ -391,7 +391,7 @@ class EkfSlamPipeline:
         late = self._t - frame.t_capture  # > 0: the SLAM has moved past the frame (vision latency)
         back = -self._velocity_ne * late if 0.0 < late <= MAX_LATE_FIX_S else np.zeros(2)
         self.slam.move_vehicle(back)  # the observations are used at the pose they were taken from
-        result = self.slam.update(observations, frame.sigma)  # weighed with the noise its sensor states
+        result = self.slam.update(observations, frame.sigma_of())  # weighed with the noise its sensor states
         self.slam.move_vehicle(-back)
         self.stats.landmarks_used += len(result.used)
         self.stats.landmarks_rejected += len(result.rejected)
