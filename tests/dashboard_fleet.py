@@ -56,3 +56,12 @@ def fleet_page(folder: Path, sysids: tuple[int, ...], tick: Callable[[Publishers
             publisher.close()
         for session in sessions:
             session.close()
+
+
+def show_vehicle(browser: HeadlessChromium, sysid: int) -> None:
+    """Select vehicle ``sysid`` on the page and wait until its pose is on the map (its streams rendered)."""
+    browser.wait_for(f"[...document.querySelectorAll('#vehicle-select option')].some((o) => o.value === '{sysid}')",
+                     15, f"vehicle {sysid} in the selector")
+    browser.evaluate("(() => { const s = document.getElementById('vehicle-select');"
+                     f" s.value = '{sysid}'; s.dispatchEvent(new Event('change')); }})()")
+    browser.wait_for(f"document.getElementById('vehicle').dataset.north === '{sysid}'", 10, f"vehicle {sysid}'s marker")

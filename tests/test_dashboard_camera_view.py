@@ -13,7 +13,7 @@ import pytest
 
 from companion.dashboard.headless import HeadlessChromium
 from tests.conftest import REPO
-from tests.dashboard_fleet import Publishers, fleet_page
+from tests.dashboard_fleet import Publishers, fleet_page, show_vehicle
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -62,13 +62,8 @@ class CameraPage:
     payloads: dict[int, dict]  # sysid -> the laser_dots payload it publishes (10 Hz), absent: none
 
     def show(self, sysid: int) -> None:
-        """Select vehicle ``sysid`` and wait until its pose is on the map (its streams rendered)."""
-        self.browser.wait_for(f"[...document.querySelectorAll('#vehicle-select option')].some((o) => o.value === '{sysid}')",
-                              15, f"vehicle {sysid} in the selector")
-        self.browser.evaluate("(() => { const s = document.getElementById('vehicle-select');"
-                              f" s.value = '{sysid}'; s.dispatchEvent(new Event('change')); }})()")
-        self.browser.wait_for(f"document.getElementById('vehicle').dataset.north === '{sysid}'", 10,
-                              f"vehicle {sysid}'s marker")
+        """Select vehicle ``sysid`` and wait until its streams are rendered."""
+        show_vehicle(self.browser, sysid)
 
     def publish(self, sysid: int, payload: dict) -> str:
         """Publish ``payload`` from ``sysid`` from now on; its status text once the page shows it."""
