@@ -216,13 +216,42 @@ class Scene:
 
     def __init__(self, world: World, floor_seed: int = 0) -> None:
         self.floor = floor_pyramid(floor_seed)
-        self.markers = [MarkerTexture.make(m, world.marker_dictionary) for m in check_marker_ids(world).floor_markers]
+        # Marker textures are made when a marker first comes within MAX_RANGE_M (each is ~2.7 MB and
+        # ~25 ms to make: a world with a marker at each of 641 landmarks would take 2 GB and 17 s up
+        # front), and forgotten once far behind.
+        self.floor_markers = check_marker_ids(world).floor_markers
+        self.marker_dictionary = world.marker_dictionary
+        self._textures: dict[int, MarkerTexture] = {}
+        self._marker_centres = np.array([m.position for m in self.floor_markers], float).reshape(-1, 2)
+        self._marker_reach = np.array([m.size_m * PAPER_CELLS / MARKER_CELLS / math.sqrt(2.0)
+                                       for m in self.floor_markers]) + MAX_RANGE_M
         self.faces = wall_faces(world)
         self.obstacles = world.obstacles
         # by surface label: 0 nothing, 1 floor (textured instead), then the faces, then the obstacle tops
         self.greys = np.array([SKY_GREY, FLOOR_MEAN, *(f.grey for f in self.faces), *[TOP_GREY] * len(self.obstacles)],
                               np.float32)
         self.normals = np.array([[math.nan] * 3, UP, *(f.normal for f in self.faces), *[UP] * len(self.obstacles)])
+
+    @property
+    def markers(self) -> list[MarkerTexture]:
+        """Every floor marker's texture (makes those not made yet)."""
+        return [self._texture(k) for k in range(len(self.floor_markers))]
+
+    def markers_near(self, origin: tuple[float, ...]) -> list[MarkerTexture]:
+        """The textures of the floor markers whose paper may lie within :data:`MAX_RANGE_M` of
+        ``origin`` (NED, m): no other can be drawn."""
+        if not self.floor_markers:
+            return []
+        gap = np.hypot(self._marker_centres[:, 0] - origin[0], self._marker_centres[:, 1] - origin[1])
+        near = [int(k) for k in np.flatnonzero(gap <= self._marker_reach)]
+        if len(self._textures) > 4 * len(near) + 64:  # forget those left far behind (a flight over many)
+            self._textures = {k: self._textures[k] for k in near if k in self._textures}
+        return [self._texture(k) for k in near]
+
+    def _texture(self, k: int) -> MarkerTexture:
+        if (texture := self._textures.get(k)) is None:
+            texture = self._textures[k] = MarkerTexture.make(self.floor_markers[k], self.marker_dictionary)
+        return texture
 
     def nearest_distance(self, origin: np.ndarray) -> float:
         """A lower bound of the distance (m) from ``origin`` (NED, m) to anything drawn."""
@@ -253,7 +282,7 @@ class Scene:
             footprint = np.full(dz.shape, np.float32(FLOOR_TEXEL_M))  # metres per pixel (meaningless off the floor)
             np.divide(tf * footprint_k, dz, out=footprint, where=floor)
             self._shade_floor(o, north, east, footprint, floor, image)
-            for marker in self.markers:
+            for marker in self.markers_near(o):
                 if (win := window(marker.corners())) is not None:
                     self._shade_marker(marker, o, north[win], east[win], footprint[win], floor[win], image[win])
         return image

@@ -20,6 +20,9 @@ import yaml
 from sitl.slam_experiment import AREA_NE, BASE_NE, make_world
 
 SEED = 14
+MARKER_SIZE_M = 4.0  # black square's side: 59 px across from 60 m through a 40-degree 640 px camera
+MARKER_DICTIONARY = "DICT_4X4_1000"  # 641 landmarks need more ids than the simulator's default DICT_4X4_250
+MARKER_MARGIN_M = 5.0
 
 
 def outdoor_world() -> dict:
@@ -38,10 +41,32 @@ def outdoor_world() -> dict:
     }
 
 
-def main() -> None:
-    sys.stdout.write("# The outdoor landmark field of the EKF-SLAM return to base: written by\n"
-                     "# python -m sitl.outdoor_world > config/worlds/outdoor.yaml (see that module).\n")
-    yaml.safe_dump(outdoor_world(), sys.stdout, sort_keys=False, default_flow_style=None, width=120)
+def outdoor_markers_world() -> dict:
+    """The world document of the camera path: :func:`outdoor_world` with a floor marker at every
+    landmark (module docstring)."""
+    world = outdoor_world()
+    (n0, e0), (n1, e1) = world["bounds"]["min"], world["bounds"]["max"]
+    m = MARKER_MARGIN_M
+    landmarks = [{**mark, "height_m": 0.0} for mark in world["landmarks"]]
+    return {**world, "name": "outdoor-field-markers",
+            "bounds": {"min": [n0 - m, e0 - m], "max": [n1 + m, e1 + m]},
+            "landmarks": landmarks,
+            "marker_dictionary": MARKER_DICTIONARY,
+            "floor_markers": [{"id": mark["id"], "position": list(mark["position"]), "size_m": MARKER_SIZE_M}
+                              for mark in landmarks]}
+
+
+def main(argv: list[str] | None = None) -> None:
+    markers = "--markers" in (sys.argv[1:] if argv is None else argv)
+    if markers:
+        sys.stdout.write("# The outdoor landmark field of the EKF-SLAM return to base on the camera path (a floor\n"
+                         "# marker at every landmark): written by\n"
+                         "# python -m sitl.outdoor_world --markers > config/worlds/outdoor-markers.yaml (see that module).\n")
+    else:
+        sys.stdout.write("# The outdoor landmark field of the EKF-SLAM return to base: written by\n"
+                         "# python -m sitl.outdoor_world > config/worlds/outdoor.yaml (see that module).\n")
+    world = outdoor_markers_world() if markers else outdoor_world()
+    yaml.safe_dump(world, sys.stdout, sort_keys=False, default_flow_style=None, width=120)
 
 
 if __name__ == "__main__":
