@@ -1,6 +1,6 @@
 """Timings of :class:`companion.nav.ekf_slam.filter.EkfSlam` for ``companion bench``.
 
-A map of 100 landmarks (303 states, full covariance) built by flying over a ring of them with the
+A map of 100 landmarks (305 states with the GNSS bias, full covariance) built by flying over a ring of them with the
 seed's Table 1 noise; then timed on this machine, (median, p99) ms over ``repeat`` calls: one
 prediction (40 Hz input), one update with one landmark (the issue's <= 2 ms figure), one 5 Hz
 frame of five landmarks. The timed updates use noise-free observations of the current estimate
