@@ -48,6 +48,7 @@ class Flight:
         self.k = 0
         self.gnss = True
         self.errors: list[float] = []
+        self.resets = 0  # estimates flagged as a reset
         self.guided: list[Guidance] = []
         self.imu_delay_steps = imu_delay_steps  # IMU samples reach the pipeline this many samples late
         self._imu_queue: list[ImuSample] = []
@@ -87,6 +88,7 @@ class Flight:
                 p._keep(self._frame_queue.pop(0)[1])
             if self.k % 2 == 0:  # the nav loop at 25 Hz
                 for estimate in p.step(self.t):  # scored against the truth at its capture time
+                    self.resets += estimate.reset
                     truth = self.history[int(round(estimate.t_capture / IMU_DT))]
                     self.errors.append(float(np.hypot(*(estimate.position_ned[:2] - truth[:2]))))
 
@@ -152,6 +154,22 @@ def test_fixes_the_slam_keeps_refusing_restart_it_at_gnss() -> None:
     flight.fly(3.0)
     assert flight.pipeline.stats.slam_restarts == 1
     assert max(flight.errors[-10:]) < 1.0
+    assert flight.resets == 1  # the restart's jump is sent as a reset
+
+
+def test_a_landmark_frame_that_moves_the_vehicle_a_metre_or_more_is_sent_as_one_reset() -> None:
+    """After GNSS loss the SLAM's motion input is the autopilot's velocity: a correction the
+    autopilot filtered would partly become velocity (and be integrated back), so a jump is a reset."""
+    flight = Flight(SOUTH_WEST)
+    flight.fly(30.0)
+    flight.gnss = False
+    flight.fly(10.0)
+    assert flight.resets == 0 and flight.pipeline.stats.position_resets == 0  # small corrections are filtered
+    flight.pipeline.slam.x[:2] += 2.5  # dead reckoning gone 3.5 m off during a gap in the landmarks
+    flight.fly(5.0)
+    stats = flight.pipeline.stats
+    assert stats.position_resets >= 1 and flight.resets == stats.position_resets
+    assert max(flight.errors[-20:]) < 1.0
 
 
 def test_gnss_flapping_neither_starts_a_return_on_short_gaps_nor_ends_one_on_short_returns() -> None:

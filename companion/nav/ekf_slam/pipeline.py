@@ -75,6 +75,7 @@ DOPPLER_MAX_AGE_S = 0.6  # the GNSS Doppler velocity is the motion input this lo
 MIN_FIX_SIGMA_M = 0.1  # a receiver claiming less (or 0) is taken at this
 BARO_DATUM_FIXES = 50  # the baro datum is the mean of this many fixes' heights (10 s at 5 Hz), then frozen
 ATTITUDE_HISTORY = 512  # IMU attitudes kept to level marker frames with (over a second at 400 Hz)
+JUMP_RESET_M = 1.0  # a landmark frame moving the vehicle this far is sent as a position reset (see _on_sightings)
 MAX_ATTITUDE_GAP_S = 0.1  # a marker frame without an IMU attitude this close to its capture time is dropped
 
 
@@ -190,6 +191,7 @@ class EkfSlamStats:
     landmarks_used: int = 0
     landmarks_rejected: int = 0
     landmarks_added: int = 0
+    position_resets: int = 0  # estimates sent as a reset: a landmark frame moved the vehicle JUMP_RESET_M or more
     imu_samples: int = 0
     imu_without_input: int = 0  # no autopilot attitude or velocity attached
     gnss_losses: int = 0
@@ -235,6 +237,7 @@ class EkfSlamPipeline:
         self._datum_fixes = 0
         self._usable_since: float | None = None
         self._in_view: dict[int, np.ndarray] = {}
+        self._reset_pending = False  # the next estimate is a reset (a landmark frame made the vehicle jump)
         self._attitudes: deque[tuple[float, float, float]] = deque(maxlen=ATTITUDE_HISTORY)  # (t s, roll, pitch rad)
         health.report(HEALTH, State.LOST, "waiting for a GNSS fix")
 
@@ -332,6 +335,7 @@ class EkfSlamPipeline:
         if self._euler is None:
             return  # the heading to start with comes from the autopilot
         pose_cov = np.diag([h_m * h_m, h_m * h_m, math.radians(self.cfg.start_yaw_sigma_deg) ** 2])
+        self._reset_pending = self.slam is not None  # a restart is a jump
         self.slam = EkfSlam(self.cfg.slam, [ned[0], ned[1], self._euler[2]], pose_cov)
         self._t = t
         self._gated_in_a_row = 0
@@ -390,9 +394,16 @@ class EkfSlamPipeline:
         assert self._t is not None  # set with the SLAM
         late = self._t - frame.t_capture  # > 0: the SLAM has moved past the frame (vision latency)
         back = -self._velocity_ne * late if 0.0 < late <= MAX_LATE_FIX_S else np.zeros(2)
+        before = self.slam.x[:2].copy()
         self.slam.move_vehicle(back)  # the observations are used at the pose they were taken from
         result = self.slam.update(observations, frame.sigma_of())  # weighed with the noise its sensor states
         self.slam.move_vehicle(-back)
+        if np.linalg.norm(self.slam.x[:2] - before) >= JUMP_RESET_M:
+            # Told as a reset (VISION_POSITION_ESTIMATE reset_counter), the autopilot's EKF moves its
+            # position; filtered, it would turn part of the step into velocity, and after GNSS loss
+            # that velocity is this SLAM's motion input: a loop that carried a vehicle kilometres away.
+            self._reset_pending = True
+            self.stats.position_resets += 1
         self.stats.landmarks_used += len(result.used)
         self.stats.landmarks_rejected += len(result.rejected)
         self.stats.landmarks_added += len(result.augmented)
@@ -466,7 +477,9 @@ class EkfSlamPipeline:
         cov[2, 2] = self.cfg.altitude_sigma_m ** 2
         cov[3, 3] = cov[4, 4] = math.radians(self.cfg.attitude_sigma_deg) ** 2
         roll, pitch, _ = self._euler
-        return PoseEstimate(self._t, np.array([n, e, down]), (roll, pitch, float(wrap_pi(yaw))), cov, source=self.name)
+        reset, self._reset_pending = self._reset_pending, False
+        return PoseEstimate(self._t, np.array([n, e, down]), (roll, pitch, float(wrap_pi(yaw))), cov, reset=reset,
+                            source=self.name)
 
     # -- guidance (companion.pipeline.GuidanceSource) -------------------------------------
 
