@@ -43,6 +43,9 @@ class SimLandmarkSettings:
     half_fov_deg: float = field(default=20.0, metadata=meta(
         "Half-angle of the cone around the boresight (sensor +z) in which landmarks are seen, degrees (seed: 20).",
         (0.1, 89)))
+    min_range_m: float = field(default=1.0, metadata=meta(
+        "Landmarks nearer than this are not seen (a real sensor has a minimum range; on the ground over the landing "
+        "pad a range of 0 with 0.2 m of noise would be negative), metres.", (0, 100)))
     max_range_m: float = field(default=500.0, metadata=meta("Landmarks further than this are not seen, metres.",
                                                             (1, 10000)))
     range_sigma_m: float = field(default=0.2, metadata=meta("Range noise, 1-sigma, metres (seed: 0.2).", (0, 100)))
@@ -112,7 +115,8 @@ class SimulatedLandmarkSensor(Backend[LandmarkSightings]):
         distance = np.linalg.norm(relative, axis=1)
         with np.errstate(invalid="ignore", divide="ignore"):
             cos_off = (relative @ boresight) / distance
-        seen = (distance <= self.settings.max_range_m) & (cos_off >= math.cos(math.radians(self.settings.half_fov_deg)))
+        seen = ((distance >= self.settings.min_range_m) & (distance <= self.settings.max_range_m)
+                & (cos_off >= math.cos(math.radians(self.settings.half_fov_deg))))
         return self._ids[seen], relative[seen]
 
     def sightings(self, epoch: float, sample: TruthPose) -> LandmarkSightings:

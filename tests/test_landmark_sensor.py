@@ -53,6 +53,13 @@ def test_only_landmarks_inside_the_cone_around_the_tilted_boresight_are_seen() -
     assert sorted(pitched) == [1, 2]
 
 
+def test_a_landmark_nearer_than_the_minimum_range_is_not_seen() -> None:
+    pad = [Landmark(640, (0.0, 0.0), 0.0)]
+    assert list(sensor(pad).visible(sample((0.0, 0.0, 0.0)))[0]) == []  # on the ground over the pad
+    assert list(sensor(pad).visible(sample((0.0, 0.0, -1.5)))[0]) == [640]
+    assert list(sensor(pad, min_range_m=2.0).visible(sample((0.0, 0.0, -1.5)))[0]) == []
+
+
 def test_the_noise_has_the_stated_sigmas() -> None:
     s = sensor([Landmark(1, (5.0, 3.0), 2.0)])
     truth = sensor([Landmark(1, (5.0, 3.0), 2.0)], **exact()).sightings(0.0, sample((0.0, 0.0, -100.0)))
