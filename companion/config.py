@@ -46,6 +46,9 @@ class StreamRatesConfig:
     gps2_raw: float = field(default=0.0, metadata=meta(
         "GPS2_RAW: the autopilot's second receiver (a gnss sensor with backend autopilot, instance 2).", (0, 50)))
     home_position: float = field(default=0.5, metadata=meta("HOME_POSITION.", (0, 10)))
+    pressure: float = field(default=0.0, metadata=meta(
+        "SCALED_PRESSURE: the barometric altitude attached to IMU samples when the IMU message carries none "
+        "(SCALED_IMU, RAW_IMU: ArduPilot 4.0 streams no HIGHRES_IMU); ekf_slam holds its height on it.", (0, 100)))
     estimator_status: float = field(default=2.0, metadata=meta("EKF_STATUS_REPORT (ArduPilot) / ESTIMATOR_STATUS (PX4).", (0, 50)))
     sim_state: float = field(default=0.0, metadata=meta(
         "Simulator ground truth: SIM_STATE, else SIMSTATE + SCALED_PRESSURE (simulators only; sim backends need it).",

@@ -12,7 +12,7 @@ from companion import clock
 from companion.config import MavlinkConfig, VehicleConfig
 from companion.frames import GRAVITY_MPS2
 from companion.health import Health
-from companion.mavlink.autopilot import VELOCITY_MAX_AGE_S, AutopilotState
+from companion.mavlink.autopilot import PRESSURE_MAX_AGE_S, VELOCITY_MAX_AGE_S, AutopilotState
 from companion.mavlink.link import MavlinkLink, mavlink
 from companion.mavlink.trust import OLD_CLOCK_SILENT_S
 
@@ -97,3 +97,21 @@ def test_imu_samples_carry_the_autopilots_velocity_only_while_it_is_fresh() -> N
     state = asyncio.run(main())
     np.testing.assert_allclose(state.imu[0].velocity_ned, [4.0, -5.0, 0.5])
     assert state.imu[-1].velocity_ned is None  # the velocity is older than VELOCITY_MAX_AGE_S by then
+
+
+def test_scaled_imu_samples_carry_the_barometer_only_while_scaled_pressure_is_fresh() -> None:
+    """ArduPilot 4.0 streams no HIGHRES_IMU: the SCALED_PRESSURE beside the scaled IMU gives its
+    samples their barometric altitude (ISA: 1013.25 hPa is 0 m, 898.75 hPa about 1000 m)."""
+    async def main() -> AutopilotState:
+        link = MavlinkLink(MavlinkConfig(), VehicleConfig(), "udpout:127.0.0.1:9", Health(clock.now))
+        state = AutopilotState(link)
+        state.imu_source = "SCALED_IMU"
+        link._dispatch(from_autopilot(mavlink.MAVLink_scaled_pressure_message(99_000, 898.75, 0.0, 2500)))
+        await stream_imu(link, 100_000, 3)
+        await asyncio.sleep(PRESSURE_MAX_AGE_S)
+        await stream_imu(link, 100_600, 1)
+        return state
+
+    state = asyncio.run(main())
+    assert state.imu[0].pressure_alt_m is not None and abs(state.imu[0].pressure_alt_m - 1000.0) < 1.0
+    assert state.imu[-1].pressure_alt_m is None  # the pressure is older than PRESSURE_MAX_AGE_S by then

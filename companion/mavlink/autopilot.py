@@ -22,7 +22,8 @@ land before the last kept one, or stale, and are dropped here (``imu_rejected``)
 
 The IMU comes from one message, the one the stream negotiation chose (``imu_source``:
 HIGHRES_IMU, or SCALED_IMU / RAW_IMU / SCALED_IMU2 where the firmware does not stream it);
-the scaled ones carry mG and mrad/s, converted here to m/s^2 and rad/s. Every sample goes to the
+the scaled ones carry mG and mrad/s, converted here to m/s^2 and rad/s, and no barometric
+altitude: the newest SCALED_PRESSURE (mavlink.streams.pressure) is attached to them. Every sample goes to the
 IMU listeners in order (:meth:`AutopilotState.on_imu`: the ``imu`` sensor's ``autopilot`` backend,
 drivers/imu_autopilot.py), with the newest ATTITUDE, stamped with the autopilot's own sample time
 mapped onto the daemon clock (``companion.jitter``): a stream that arrives in bursts (ArduPilot
@@ -54,6 +55,8 @@ IMU_MESSAGES = ("HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "RAW_
 IMU_QUEUE = 64  # samples kept: > 1 s at 50 Hz, far more than one nav cycle
 IMU_CLOCK_WINDOW = 50  # samples in the clock-offset minimum (1 s at 50 Hz)
 HIGHRES_PRESSURE_ALT = 1 << 11  # HIGHRES_IMU fields_updated: pressure_alt is valid
+PRESSURE_MAX_AGE_S = 0.5  # the SCALED_PRESSURE altitude attached to a scaled IMU sample is at most this old
+ISA_SEA_LEVEL_HPA = 1013.25
 VELOCITY_MAX_AGE_S = 1.0  # the autopilot velocity attached to an IMU sample is at most this old
 FAILSAFE_WORDS = ("failsafe", "ekf variance")  # in an autopilot STATUSTEXT: it acted by itself
 FAILSAFE_OVER_WORDS = ("clear", " off", "resolved")  # ... unless the text says a failsafe ended
@@ -89,6 +92,13 @@ def pressure_altitude(msg: mavlink.MAVLink_message) -> float | None:
     return float(msg.pressure_alt) if math.isfinite(msg.pressure_alt) else None
 
 
+def isa_pressure_altitude_m(pressure_hpa: float) -> float:
+    """The ISA pressure altitude (m, up, above the 1013.25 hPa level) of a static pressure (hPa),
+    as HIGHRES_IMU's ``pressure_alt``: an offset from the true altitude that the weather sets, so
+    a user takes differences (e.g. from a datum taken on the ground)."""
+    return 44330.77 * (1.0 - (pressure_hpa / ISA_SEA_LEVEL_HPA) ** 0.190263)
+
+
 @dataclass
 class Origin:
     lat: float  # degrees
@@ -118,6 +128,8 @@ class AutopilotState:
     imu_source: str | None = None  # the message the IMU is taken from (set by the stream negotiation)
     imu: deque[ImuSample] = field(default_factory=lambda: deque(maxlen=IMU_QUEUE))  # oldest first
     imu_rejected: int = 0  # IMU samples whose time stamp could not be placed (stale, or a clock jump)
+    pressure_alt_m: float | None = None  # newest SCALED_PRESSURE as ISA pressure altitude, m up
+    pressure_time: float | None = None  # daemon clock of its reception
     statustext: list[tuple[float, int, str]] = field(default_factory=list)  # (time, severity, text), the last 50
     _mode_listeners: list[Callable[[str | None, str], None]] = field(default_factory=list)
     _imu_listeners: list[Callable[[ImuSample], None]] = field(default_factory=list)
@@ -134,6 +146,7 @@ class AutopilotState:
             ("LOCAL_POSITION_NED", self._on_local_position),
             ("AUTOPILOT_VERSION", self._on_version),
             ("STATUSTEXT", self._on_statustext),
+            ("SCALED_PRESSURE", self._on_scaled_pressure),
             *((name, self._on_imu) for name in IMU_MESSAGES),
         ):
             self.link.subscribe(msg_type, handler)
@@ -256,6 +269,19 @@ class AutopilotState:
             return None
         return v
 
+    def _on_scaled_pressure(self, msg: mavlink.MAVLink_message) -> None:
+        if msg.press_abs > 0.0:
+            self.pressure_alt_m = isa_pressure_altitude_m(msg.press_abs)
+            self.pressure_time = clock.now()
+
+    def _sample_pressure_altitude(self, msg: mavlink.MAVLink_message) -> float | None:
+        """The barometric altitude attached to an IMU sample (m up): HIGHRES_IMU's own, else the
+        newest SCALED_PRESSURE if at most ``PRESSURE_MAX_AGE_S`` old (mavlink.streams.pressure)."""
+        if msg.get_type() == "HIGHRES_IMU":
+            return pressure_altitude(msg)
+        t = self.pressure_time
+        return self.pressure_alt_m if t is not None and clock.now() - t <= PRESSURE_MAX_AGE_S else None
+
     def _on_imu(self, msg: mavlink.MAVLink_message) -> None:
         if msg.get_type() != self.imu_source:
             return
@@ -264,7 +290,8 @@ class AutopilotState:
         if t is None or (self.imu and t <= self.imu[-1].t):
             self.imu_rejected += 1
             return
-        sample = ImuSample(t, accel, gyro, self.attitude_euler, self._fresh_velocity(), pressure_altitude(msg))
+        sample = ImuSample(t, accel, gyro, self.attitude_euler, self._fresh_velocity(),
+                           self._sample_pressure_altitude(msg))
         self.imu.append(sample)
         for listener in self._imu_listeners:
             listener(sample)

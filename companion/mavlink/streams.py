@@ -5,6 +5,8 @@ order of preference; an option is the message, or the messages together, that sa
 
 - IMU: HIGHRES_IMU; else SCALED_IMU, RAW_IMU (ArduPilot only: its RAW_IMU carries scaled mG and
   mrad/s, PX4's raw sensor counts), SCALED_IMU2 (ArduPilot 4.0 streams no HIGHRES_IMU);
+- barometer (off unless asked): SCALED_PRESSURE, for the scaled IMU messages that carry no
+  pressure altitude (companion/mavlink/autopilot.py attaches it to their samples);
 - simulator truth: SIM_STATE; else SIMSTATE with SCALED_PRESSURE (ArduPilot SITL before SIM_STATE:
   SIMSTATE has no altitude, the SITL barometer gives it, see ``sitl.truth``).
 
@@ -81,6 +83,7 @@ def stream_needs(rates: StreamRatesConfig, autopilot: str | None) -> list[Stream
         StreamNeed("gps_raw", rates.gps_raw, (("GPS_RAW_INT",),)),
         StreamNeed("gps2_raw", rates.gps2_raw, (("GPS2_RAW",),)),
         StreamNeed("home_position", rates.home_position, (("HOME_POSITION",),)),
+        StreamNeed("pressure", rates.pressure, (("SCALED_PRESSURE",),)),
         StreamNeed("estimator_status", rates.estimator_status,
                    (("ESTIMATOR_STATUS",),) if px4 else (("EKF_STATUS_REPORT",),)),
         StreamNeed("sim_state", rates.sim_state, (("SIM_STATE",), ("SIMSTATE", "SCALED_PRESSURE"))),

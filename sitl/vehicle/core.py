@@ -92,6 +92,7 @@ class Vehicle(RunLoopMixin, ReceivingMixin, CommandsMixin, StateTrackingMixin, M
             mav.MAVLINK_MSG_ID_HIGHRES_IMU: self._highres_imu,
             mav.MAVLINK_MSG_ID_SCALED_IMU: self._scaled_imu,
             mav.MAVLINK_MSG_ID_RAW_IMU: self._raw_imu,
+            mav.MAVLINK_MSG_ID_SCALED_PRESSURE: self._scaled_pressure,
             mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED: self._local_position_ned,
             mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: self._global_position_int,
             mav.MAVLINK_MSG_ID_GPS_RAW_INT: self._gps_raw_int,

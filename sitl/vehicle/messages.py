@@ -90,6 +90,11 @@ class MessagesMixin:
             self.t_us, *(float(v) for v in acc), *(float(v) for v in gyro), *(float(v) for v in mag),
             _pressure_hpa(alt), 0.0, alt, 25.0, 0x1BFF, 0)
 
+    def _scaled_pressure(self) -> mav.MAVLink_message:
+        """The barometer as ArduPilot sends it: absolute pressure hPa, temperature cdegC."""
+        return mav.MAVLink_scaled_pressure_message(self._time_boot_ms, _pressure_hpa(float(self.copter.baro_alt_m)),
+                                                   0.0, 2500)
+
     def _scaled_imu_fields(self) -> list[int]:
         """ArduPilot's SCALED_IMU/RAW_IMU scaling: mG, mrad/s, mgauss."""
         imu = self.copter.imu
