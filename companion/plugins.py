@@ -51,7 +51,10 @@ class PipelineEntry:
     ``check_files(cfg, section)``, if given, loads the files the section names. ``advise(cfg,
     section)``, if given, returns warnings about settings that load but may fail in flight (e.g. a
     camera too narrow for its beams): ``check-config`` prints them, the daemon logs them at start.
-    ``poses``: the pipeline produces poses (False for one that only gives attitude or range estimates)."""
+    ``poses``: the pipeline produces poses (False for one that only gives attitude or range estimates).
+    ``heading``: the yaw of its poses is a heading measurement of its own (walls, floor markers);
+    False for one that carries the autopilot's heading forward (the autopilot must then keep its
+    compass: ``companion setup-autopilot`` turns it off only when every pose source measures heading)."""
 
     name: str
     config: type
@@ -60,6 +63,7 @@ class PipelineEntry:
     poses: bool = True  # it produces pose estimates (a candidate source for the autopilot)
     module: str = ""
     advise: Callable[[Any, Any], list[str]] | None = None
+    heading: bool = True  # its poses' yaw is measured by the pipeline (not the autopilot's heading carried on)
 
 
 _BACKENDS: dict[tuple[str, str], BackendEntry] = {}
@@ -77,10 +81,13 @@ def register_backend(kind: str, backend: str, settings: type,
 
 
 def register_pipeline(name: str, config: type, check_files: Callable[[Any, Any], None] | None = None,
-                      poses: bool = True, advise: Callable[[Any, Any], list[str]] | None = None) -> Callable[[Any], Any]:
-    """Class or function decorator: ``build(section, ctx)`` makes the pipeline ``name``."""
+                      poses: bool = True, advise: Callable[[Any, Any], list[str]] | None = None,
+                      heading: bool = True) -> Callable[[Any], Any]:
+    """Class or function decorator: ``build(section, ctx)`` makes the pipeline ``name`` (the
+    arguments: :class:`PipelineEntry`)."""
     def decorate(build: Any) -> Any:
-        _add(_PIPELINES, name, PipelineEntry(name, config, build, check_files, poses, build.__module__, advise))
+        _add(_PIPELINES, name, PipelineEntry(name, config, build, check_files, poses, build.__module__, advise,
+                                             heading))
         return build
     return decorate
 

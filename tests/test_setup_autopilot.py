@@ -51,6 +51,20 @@ def test_the_companion_port_gets_mavlink_2_at_921600_when_the_config_names_it(tm
     assert diff["SERIAL2_PROTOCOL"].wanted == 2 and diff["SERIAL2_BAUD"].wanted == 921 and diff["SERIAL2_BAUD"].reboot
 
 
+def test_a_pose_source_that_carries_the_autopilots_heading_keeps_its_compass() -> None:
+    """ekf_slam follows the autopilot's heading: with the compass off, EKF2 would take its yaw from
+    the SLAM and the SLAM from EKF2, and neither would know the true heading."""
+    cfg = load_config(REPO / "config" / "sitl-outdoor.yaml")
+    params40 = {"GPS_TYPE": 1, "EK2_GPS_TYPE": 0, "VISO_TYPE": 0, "COMPASS_USE": 0, "COMPASS_USE2": 1,
+                "COMPASS_USE3": 1, "ARMING_CHECK": 1}
+    diff = {d.name: d.wanted for d in differences(requirements(COPTER_40, cfg, params40), params40)}
+    assert diff["COMPASS_USE"] == 1 and "COMPASS_USE2" not in diff and diff["EK2_GPS_TYPE"] == 3
+    params45 = {"GPS1_TYPE": 1, "VISO_TYPE": 0, "AHRS_EKF_TYPE": 3, "EK3_ENABLE": 1, "EK3_SRC1_POSXY": 3,
+                "EK3_SRC1_VELXY": 3, "EK3_SRC1_POSZ": 1, "EK3_SRC1_VELZ": 3, "EK3_SRC1_YAW": 6}
+    diff = {d.name: d.wanted for d in differences(requirements(COPTER_45, cfg, params45), params45)}
+    assert diff["EK3_SRC1_YAW"] == 1 and diff["EK3_SRC1_POSXY"] == 6
+
+
 def test_a_config_without_a_position_pipeline_needs_nothing(tmp_path: Path) -> None:
     cfg = lidar_config(tmp_path)
     cfg.pipelines.enabled.clear()

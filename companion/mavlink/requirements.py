@@ -17,10 +17,12 @@ import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
+from companion import plugins
 from companion.config import Config
 from companion.mavlink.firmware import Firmware
 
 EXTNAV = 6  # EK3_SRCn_*: ExternalNAV
+COMPASS = 1  # EK3_SRCn_YAW: Compass
 ARMING_CHECK_ALL = 1
 ARMING_CHECK_GPS = 1 << 3
 ARMING_CHECK_ALL_BITS = (1 << 16) - 2  # bits 1..15: every individual check of Copter 4.0
@@ -61,6 +63,15 @@ def uses_external_navigation(cfg: Config) -> bool:
     return bool(cfg.source_priority())
 
 
+def heading_from_companion(cfg: Config) -> bool:
+    """Every pose source measures the heading itself (walls, floor markers), so the autopilot takes
+    its yaw from the companion and its compass (unreliable indoors) is turned off. A source that
+    carries the autopilot's own heading forward (ekf_slam) needs the compass kept: with both off,
+    each would follow the other and the true heading would be known to neither (seen on ArduCopter
+    4.0 SITL: 135 degrees off from the take-off on, every landmark rotated with it)."""
+    return all(plugins.pipeline(name).heading for name in cfg.source_priority())
+
+
 def requirements(firmware: Firmware, cfg: Config, params: Mapping[str, float]) -> list[Requirement]:
     """What this config needs from this autopilot; parameters the firmware lacks are left out."""
     if not uses_external_navigation(cfg):
@@ -68,7 +79,8 @@ def requirements(firmware: Firmware, cfg: Config, params: Mapping[str, float]) -
     if firmware.autopilot == "PX4":
         wanted = _px4_external_navigation(params)
     elif firmware.autopilot == "ArduPilot":
-        wanted = (_ardupilot_companion_port(cfg.mavlink.autopilot_serial_port) + _ardupilot_external_navigation(params)
+        wanted = (_ardupilot_companion_port(cfg.mavlink.autopilot_serial_port)
+                  + _ardupilot_external_navigation(params, heading_from_companion(cfg))
                   + _ardupilot_indoor_failsafes(firmware))
     else:
         return []
@@ -85,7 +97,8 @@ def _ardupilot_companion_port(serial: int | None) -> list[Requirement]:
             Requirement(f"SERIAL{serial}_BAUD", 921, "921600 baud on the companion's port", reboot=True)]
 
 
-def _ardupilot_external_navigation(params: Mapping[str, float]) -> list[Requirement]:
+def _ardupilot_external_navigation(params: Mapping[str, float], heading: bool) -> list[Requirement]:
+    """External navigation for position (and, with ``heading``, yaw instead of the compass)."""
     gps_type = "GPS1_TYPE" if "GPS1_TYPE" in params else "GPS_TYPE"
     common = [
         Requirement("VISO_TYPE", 1, "external navigation over MAVLink (VISION_POSITION_ESTIMATE)", reboot=True),
@@ -99,15 +112,21 @@ def _ardupilot_external_navigation(params: Mapping[str, float]) -> list[Requirem
             Requirement("EK3_SRC1_VELXY", EXTNAV, "horizontal velocity from the companion (VISION_SPEED_ESTIMATE)"),
             Requirement("EK3_SRC1_POSZ", EXTNAV, "height from the companion (lidar height over the floor)"),
             Requirement("EK3_SRC1_VELZ", EXTNAV, "vertical velocity from the companion"),
-            Requirement("EK3_SRC1_YAW", EXTNAV, "heading from the companion (magnetometers are unreliable indoors)"),
-        ]
+        ] + ([Requirement("EK3_SRC1_YAW", EXTNAV, "heading from the companion (magnetometers are unreliable indoors)")]
+             if heading else [Requirement("EK3_SRC1_YAW", COMPASS, "heading from the compass: the companion's pose "
+                                          "sources carry the autopilot's heading forward")])
     return common + [  # 4.0: EKF2, external navigation when GPS is inhibited; height follows the position
         Requirement("EK2_GPS_TYPE", 3, "EKF2: no GPS, use external navigation"),
         Requirement("EK2_POSNE_M_NSE", 0.1, "4.0 ignores the estimate's covariance and takes this as its noise; "
                     "the default 1 m (for GPS) lets the EKF wander centimetres off the estimate"),
+    ] + ([
         Requirement("COMPASS_USE", 0, "EKF2 takes the heading from external navigation only without a compass"),
         Requirement("COMPASS_USE2", 0, "as COMPASS_USE"),
         Requirement("COMPASS_USE3", 0, "as COMPASS_USE"),
+    ] if heading else [
+        Requirement("COMPASS_USE", 1, "heading from the compass: the companion's pose sources carry the autopilot's "
+                    "heading forward"),
+    ]) + [
         Requirement("ARMING_CHECK", without_gps_arming_check,
                     "Copter 4.0 refuses to arm in GUIDED without GPS (\"High GPS HDOP\"): every check but GPS"),
     ]
