@@ -1,0 +1,506 @@
+"""The ``gnss_flow`` pipeline: a fixed wing's attitude and height above ground from a single-antenna
+GNSS and a forward camera (Roberts, Walker, O'Shea 2005; issue 15).
+
+Data flow (in the daemon's event loop, no I/O here):
+
+- GNSS fixes (Doppler velocity, NED m/s) -> :class:`~.pseudo_attitude.DopplerAccelerationFilter`
+  -> pseudo roll, pitch, yaw (the attitude of the velocity vector) at each frame's capture time;
+- each new pair of camera frames -> grid Lucas-Kanade flow (:func:`.flow.grid_flow`) -> undistorted
+  normalised flow -> derotated by the body rates over the frame interval (the autopilot's gyro
+  when ``imu_sensor`` is configured and has samples in the interval, else the rates of the pseudo
+  Euler angles, :func:`.pseudo_attitude.body_rates_from_euler_rates`) -> focus of expansion ->
+  the direction of travel in the body at mid-interval -> its pitch and yaw offsets (the angle of
+  attack and the drift angle) -> the true attitude: the pseudo-attitude's frame (x along the
+  velocity, z along minus the normal specific force) turned by those offsets, the seed's "pseudo
+  pitch plus the pitch offset normal to the roll, pseudo yaw plus the yaw offset tangential to it"
+  done exactly -> an :class:`AttitudeEstimate` at mid-interval (the attitude cross-check,
+  companion/crosscheck.py, against the autopilot's ATTITUDE; threshold and hold are the daemon's
+  ``pipelines.attitude_alarm_deg`` / ``attitude_alarm_s``, one alarm for every attitude source);
+- the translational flow and the GNSS speed -> depths (eqs. 9-11) -> the height above flat
+  ground (eq. 12) from the points below the horizon -> a downward :class:`RangeEstimate`
+  (DISTANCE_SENSOR) when it lies within ``agl_range_m``.
+
+Coordinated flight is what makes the pseudo-roll the airframe's roll. With an IMU, its
+accelerometer's lateral specific force over the frame interval must stay within
+``max_lateral_deg`` (:func:`.pseudo_attitude.coordination_check`); without one, the drift angle
+(the FOE's yaw offset) must stay within ``max_drift_deg``, which a strong crosswind also
+exceeds. A pair that fails is flagged (health ``nav:gnss_flow`` degraded with the reason,
+counter ``uncoordinated``, telemetry ``coordinated: false``) and gives no attitude and no range.
+
+Time: a fix is used at its ``t_capture`` (the solution's epoch as the backend stamps it) minus
+``receiver_latency_s`` (latency the backend did not remove: keep it 0 when the backend's own
+``latency_s`` is set or the backend stamps the epoch, as the simulated receiver does). A frame
+waits until a fix at or after its capture time has arrived, so the filter is queried within
+its fixes rather than predicted past them.
+
+Frames: world LOCAL_NED, body FRD, the camera placed by ``sensors.<camera>.mount``, the optical
+frame of companion/calibration.py; Euler angles ZYX rad; times on the daemon clock, s.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from companion.calibration import CameraCalibration, load_calibration
+from companion.frames import euler_from_rotation, rotation_from_euler, wrap_pi
+from companion.health import Health, State
+from companion.messages import GNSS_3D, AttitudeEstimate, Estimate, Frame, GnssFix, ImuSample, RangeEstimate
+from companion.nav.gnss_flow.flow import (FocusOfExpansion, depths, derotate, focus_of_expansion, grid_flow,
+                                          height_above_ground, normalised_flow, velocity_offsets)
+from companion.nav.gnss_flow.pseudo_attitude import (DopplerAccelerationFilter, PseudoAttitude,
+                                                     PseudoAttitudeLimits, body_rates_from_euler_rates,
+                                                     coordination_check, pseudo_attitude, pseudo_attitude_refusal,
+                                                     pseudo_euler_rates)
+from companion.pipeline import PipelineContext
+from companion.plugins import register_pipeline
+from companion.schema import meta
+from companion.timing import Timings
+from drivers.mount import OPTICAL_TO_SENSOR, Mount
+
+STREAM = "gnss_flow"
+COMPONENT = "nav:gnss_flow"
+IMU_HISTORY_S = 2.0  # IMU samples kept, s: covers a frame interval and the wait for the GNSS fix after it
+JACOBIAN_STEP = 1e-6  # central-difference step of the attitude covariance, rad and normalised units
+
+
+@dataclass
+class GnssFlowConfig:
+    """``pipelines.gnss_flow``: a fixed wing's attitude and height above ground from GNSS and optic flow (Roberts et al.)."""
+
+    gnss: str = field(metadata=meta("Name (in `sensors`) of the GNSS receiver (kind gnss, with Doppler velocity)."))
+    camera: str = field(metadata=meta("Name (in `sensors`) of the forward-looking camera (kind camera)."))
+    calibration: str = field(metadata=meta(
+        "The camera's intrinsics (OpenCV or ROS YAML, relative to this file), for the frames' resolution."))
+    imu_sensor: str | None = field(default=None, metadata=meta(
+        "Name (in `sensors`) of the autopilot's IMU (kind imu), optional: its gyro derotates the flow and its "
+        "accelerometer checks the coordination; null: GNSS-derived body rates and the drift-angle check."))
+    grid: tuple[int, int] = field(default=(45, 45), metadata=meta(
+        "Flow grid, [columns, rows] of points spread over the image (seed: 45 x 45).", (2, 200)))
+    lk_window_px: int = field(default=21, metadata=meta("Lucas-Kanade window side, pixels (odd).", (5, 101)))
+    lk_levels: int = field(default=3, metadata=meta("Lucas-Kanade pyramid levels above the image.", (0, 8)))
+    fb_max_px: float = field(default=0.5, metadata=meta(
+        "A grid point whose forward-backward tracking error exceeds this is dropped, pixels.", (0.01, 10)))
+    foe_min_flow_px: float = field(default=1.0, metadata=meta(
+        "Translational flow vectors shorter than this are not used for the focus of expansion (the far ground's: "
+        "their directions are tracking noise), pixels.", (0, 50)))
+    foe_threshold_deg: float = field(default=5.0, metadata=meta(
+        "A translational flow vector within this angle of its line from the focus of expansion is a RANSAC "
+        "inlier, degrees.", (0.1, 45)))
+    receiver_latency_s: float = field(default=0.0, metadata=meta(
+        "GNSS receiver latency the backend did not remove: a fix is used at t_capture minus this, s (0 when the "
+        "backend's latency_s is set or it stamps the solution's epoch, as `backend: sim` does).", (0, 2)))
+    speed_sigma_mps: float = field(default=0.1, metadata=meta(
+        "1-sigma of a Doppler velocity component when the receiver does not report its speed accuracy, m/s.",
+        (0.001, 10)))
+    rate_baseline_s: float = field(default=1.0, metadata=meta(
+        "Without IMU samples: the pseudo Euler rates are differenced over this span of fixes, s. The flow's focus "
+        "of expansion is very sensitive to a roll-rate error (1 deg/s turns the far ground's flow lines by tens of "
+        "degrees), and the pseudo-roll's noise differenced over a frame interval gives several deg/s; longer is "
+        "smoother and lags a roll-in by half of it.", (0.05, 5)))
+    jerk_psd: float = field(default=0.5, metadata=meta(
+        "White-jerk spectral density of the Doppler acceleration filter, m^2/s^5: lower is smoother but lags "
+        "a roll-in more (pseudo_attitude.DopplerAccelerationFilter).", (0.001, 1000)))
+    min_fix_type: int = field(default=GNSS_3D, metadata=meta(
+        "A fix is used from this MAVLink GPS_FIX_TYPE on (3 = 3-D), unless it reports jamming.", (2, 6)))
+    min_speed_mps: float = field(default=5.0, metadata=meta(
+        "Below this ground speed the course, and so the attitude, is undefined: nothing is given, m/s.", (0.5, 100)))
+    max_lateral_deg: float = field(default=3.0, metadata=meta(
+        "With an IMU: a lateral specific force beyond this angle from the body's -z (a slip or skid) flags the "
+        "frame pair uncoordinated, degrees.", (0.1, 45)))
+    max_drift_deg: float = field(default=10.0, metadata=meta(
+        "Without an IMU: a drift angle (the FOE's yaw offset) beyond this flags the pair uncoordinated, degrees; "
+        "a crosswind's crab counts too.", (0.1, 60)))
+    min_depression_deg: float = field(default=5.0, metadata=meta(
+        "Flow points at least this far below the horizon are ground for the height above it, degrees.", (0.5, 89)))
+    agl_range_m: tuple[float, float] = field(default=(1.0, 100.0), metadata=meta(
+        "Heights above ground sent as DISTANCE_SENSOR (also its min and max distance), m.", (0.1, 1000)))
+    agl_sigma_fraction: float = field(default=0.1, metadata=meta(
+        "1-sigma of the height above ground stated to the autopilot, as a fraction of it.", (0.001, 1)))
+    flow_vectors_shown: int = field(default=200, metadata=meta(
+        "Flow vectors on telemetry per frame pair, at most (every k-th valid one).", (0, 10000)))
+
+    def validate(self) -> tuple[str, str] | None:
+        low, high = self.agl_range_m
+        if low >= high:
+            return "agl_range_m", "give [lowest, highest] with lowest < highest"
+        if self.lk_window_px % 2 == 0:
+            return "lk_window_px", "must be odd"
+        return None
+
+    def sensor_inputs(self) -> dict[str, str]:
+        imu = {} if self.imu_sensor is None else {"imu_sensor": "imu"}
+        return {"gnss": "gnss", "camera": "camera", **imu}
+
+    def moved(self, raw: dict[str, Any], offset: tuple[float, float], move_map: Callable[[str], str]) -> dict[str, Any]:
+        """Unchanged: nothing in this section is a position."""
+        return raw
+
+
+@dataclass
+class GnssFlowStats:
+    fixes: int = 0  # GNSS fixes fed to the acceleration filter
+    fixes_refused: int = 0  # no 3-D fix, no Doppler velocity, jamming, or out of time order
+    frames: int = 0  # camera frames received
+    flows: int = 0  # frame pairs whose flow gave a focus of expansion
+    attitudes: int = 0  # attitude estimates given
+    ranges: int = 0  # height-above-ground range estimates given
+    uncoordinated: int = 0  # pairs flagged as an uncoordinated manoeuvre (no attitude given)
+    refused: dict[str, int] = field(default_factory=dict)  # frame pairs without an attitude, per reason
+
+
+@dataclass(frozen=True)
+class _Stamped:
+    """A frame with the pseudo-attitude at its capture time (None where undefined)."""
+
+    frame: Frame
+    grey: np.ndarray
+    pseudo: PseudoAttitude | None
+    speed_mps: float  # GNSS ground-relative speed, 3-D, m/s (NaN without an estimate)
+    refusal: str  # why ``pseudo`` is None ("" when it is not)
+
+
+@dataclass(frozen=True)
+class PairResult:
+    """What one frame pair gave (telemetry)."""
+
+    t_capture: float  # the attitude's time, mid-interval, s
+    pseudo_euler_rad: tuple[float, float, float]  # at t_capture
+    points_px: np.ndarray  # (N, 2) valid flow start points, px
+    flows_px: np.ndarray  # (N, 2) their flows, px
+    status: str = ""
+    rates_source: str = ""  # "imu" or "gnss" ("" when not reached)
+    foe: FocusOfExpansion | None = None
+    offsets_rad: tuple[float, float] | None = None  # (pitch offset, drift angle)
+    coordinated: bool | None = None
+    lateral_rad: float | None = None  # the coordination check's angle (IMU lateral angle, or the drift angle)
+    euler_rad: tuple[float, float, float] | None = None
+    depth_m: np.ndarray | None = None  # (N,) per valid point, NaN where unobservable
+    agl_m: float | None = None
+
+
+def true_euler(pseudo_rad: np.ndarray, foe_n: np.ndarray, forward: float,
+               cam_to_body: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
+    """(roll, pitch, yaw) rad of body FRD in NED, and the (pitch offset, drift angle) rad, from the
+    pseudo Euler angles ``pseudo_rad`` (3,) (the frame whose x is the velocity and whose -z the
+    normal specific force) and the focus of expansion ``foe_n`` (2,) (normalised coordinates of the
+    camera ``cam_to_body``; ``forward`` +1 when the flow expands from it, -1 when it converges).
+
+    The velocity in the body is ``(cos a cos b, sin b, sin a cos b)`` (a the pitch offset, b the
+    drift angle, :func:`.flow.velocity_offsets`), so body = pseudo frame turned by the
+    wind-to-body rotation (:func:`wind_to_body`): ``R_nb = R_nw C_bw^T``.
+    Level and wings level this is pitch = flight path + a, yaw = course - b."""
+    direction = forward * np.append(foe_n, 1.0) / math.hypot(foe_n[0], foe_n[1], 1.0)
+    a, b = velocity_offsets(direction, cam_to_body)
+    r_nb = rotation_from_euler(*(float(x) for x in pseudo_rad)) @ wind_to_body(a, b).T
+    return np.array(euler_from_rotation(r_nb)), (a, b)
+
+
+def wind_to_body(pitch_offset: float, drift: float) -> np.ndarray:
+    """``C_bw`` (3x3, ``v_body = C_bw @ v_wind``) for the velocity at ``pitch_offset`` (a) below
+    the nose and ``drift`` (b) to its right, both rad: ``R_y(-a) R_z(b)`` (aerodynamic convention),
+    whose first column is the velocity's direction in the body ``(cos a cos b, sin b, sin a cos b)``."""
+    ca, sa, cb, sb = math.cos(pitch_offset), math.sin(pitch_offset), math.cos(drift), math.sin(drift)
+    return np.array([[ca * cb, -ca * sb, -sa], [sb, cb, 0.0], [sa * cb, -sa * sb, ca]])
+
+
+def true_euler_covariance(pseudo: PseudoAttitude, foe: FocusOfExpansion, forward: float,
+                          cam_to_body: np.ndarray) -> np.ndarray:
+    """(3, 3) rad^2: the pseudo-attitude's and the FOE's covariances (independent) through a
+    central-difference Jacobian of :func:`true_euler`."""
+    x = np.array([pseudo.roll, pseudo.pitch, pseudo.yaw, *foe.point_n])
+    cov_in = np.zeros((5, 5))
+    cov_in[:3, :3] = pseudo.covariance
+    cov_in[3:, 3:] = foe.covariance_n
+    jacobian = np.zeros((3, 5))
+    for i in range(5):
+        dx = np.zeros(5)
+        dx[i] = JACOBIAN_STEP
+        plus = true_euler(x[:3] + dx[:3], x[3:] + dx[3:], forward, cam_to_body)[0]
+        minus = true_euler(x[:3] - dx[:3], x[3:] - dx[3:], forward, cam_to_body)[0]
+        jacobian[:, i] = [wrap_pi(float(d)) / (2 * JACOBIAN_STEP) for d in plus - minus]
+    cov = jacobian @ cov_in @ jacobian.T
+    return 0.5 * (cov + cov.T)
+
+
+def midway(earlier: PseudoAttitude, later: PseudoAttitude) -> PseudoAttitude:
+    """The pseudo-attitude half way between two (angles interpolated, yaw and roll wrapped;
+    the covariance averaged)."""
+    return PseudoAttitude(0.5 * (earlier.time_s + later.time_s),
+                          wrap_pi(earlier.roll + 0.5 * wrap_pi(later.roll - earlier.roll)),
+                          0.5 * (earlier.pitch + later.pitch),
+                          wrap_pi(earlier.yaw + 0.5 * wrap_pi(later.yaw - earlier.yaw)),
+                          0.5 * (earlier.covariance + later.covariance))
+
+
+class GnssFlowPipeline:
+    """GNSS + optic-flow attitude and height above ground; see the module docstring."""
+
+    name = "gnss_flow"
+    telemetry_streams = (STREAM,)
+
+    def __init__(self, cfg: GnssFlowConfig, calibration: CameraCalibration, camera_mount: Mount,
+                 health: Health) -> None:
+        self.cfg = cfg
+        self.calibration = calibration
+        self.health = health
+        self.cam_to_body = camera_mount.rotation @ OPTICAL_TO_SENSOR  # v_body = cam_to_body @ v_optical
+        self.filter = DopplerAccelerationFilter(jerk_psd=cfg.jerk_psd)
+        self.limits = PseudoAttitudeLimits(min_ground_speed_mps=cfg.min_speed_mps)
+        self.stats = GnssFlowStats()
+        self.timings = {"gnss_flow": Timings()}
+        self._fixes: deque[tuple[float, GnssFix]] = deque()  # (latency-corrected epoch s, fix), in arrival order
+        self._newest_epoch = -math.inf  # of any fix received, s
+        self._frames: deque[Frame] = deque()  # waiting for a fix at or after their capture
+        self._imu: deque[ImuSample] = deque()
+        self._pseudo_history: deque[PseudoAttitude] = deque()  # at the fixes of the last rate_baseline_s
+        self._previous: _Stamped | None = None
+        self._offsets = (0.0, 0.0)  # the newest pair's (pitch offset, drift) rad: the GNSS rates' frame
+        self.last_result: PairResult | None = None
+        self._published: PairResult | None = None
+        health.report(COMPONENT, State.LOST, "waiting for GNSS fixes and frames")
+
+    # -- inputs (driver callbacks) ------------------------------------------------------
+
+    def subscriptions(self) -> dict[str, Callable[[Any], None]]:
+        subs: dict[str, Callable[[Any], None]] = {self.cfg.gnss: self.on_fix, self.cfg.camera: self.on_frame}
+        if self.cfg.imu_sensor is not None:
+            subs[self.cfg.imu_sensor] = self.on_imu
+        return subs
+
+    def on_fix(self, fix: GnssFix) -> None:
+        epoch = fix.t_capture - self.cfg.receiver_latency_s
+        self._fixes.append((epoch, fix))
+        self._newest_epoch = max(self._newest_epoch, epoch)
+
+    def on_frame(self, frame: Frame) -> None:
+        self.stats.frames += 1
+        self._frames.append(frame)
+
+    def on_imu(self, sample: ImuSample) -> None:
+        self._imu.append(sample)
+        while self._imu and self._imu[0].t < sample.t - IMU_HISTORY_S:
+            self._imu.popleft()
+
+    # -- the nav cycle --------------------------------------------------------------------
+
+    def step(self, now: float) -> list[Estimate]:
+        """Advance to daemon time ``now`` (s): the attitude and range estimates of the frames
+        whose GNSS is in (see the module docstring)."""
+        started = time.perf_counter()
+        out: list[Estimate] = []
+        while self._frames and self._frames[0].t_capture <= self._newest_epoch:
+            frame = self._frames.popleft()
+            self._feed_fixes(frame.t_capture)
+            out += self._process(frame)
+        if not self._frames:  # nothing waits for the filter to stay before a fix
+            self._feed_fixes(math.inf)
+        elif now - self._frames[0].t_capture > self.filter.max_gap_s:  # no GNSS for it: drop the wait
+            self._refuse(f"no GNSS fix within {self.filter.max_gap_s:g} s of the frame")
+            self._frames.clear()
+            self._previous = None
+        if out or self._frames:
+            self.timings["gnss_flow"].add((time.perf_counter() - started) * 1e3)
+        return out
+
+    def _feed_fixes(self, until: float) -> None:
+        """Fuse the fixes with an epoch up to ``until`` (s) into the acceleration filter."""
+        keep: deque[tuple[float, GnssFix]] = deque()
+        for epoch, fix in self._fixes:
+            if epoch > until:
+                keep.append((epoch, fix))
+                continue
+            v = fix.velocity_ned_mps
+            usable = (fix.fix_type >= self.cfg.min_fix_type and not fix.jamming and v is not None
+                      and bool(np.all(np.isfinite(v))))
+            sigma = fix.speed_acc_mps if fix.speed_acc_mps is not None else self.cfg.speed_sigma_mps
+            if usable and self.filter.update(epoch, np.asarray(v, dtype=float), sigma):
+                self.stats.fixes += 1
+                self._remember(epoch)
+            else:
+                self.stats.fixes_refused += 1
+        self._fixes = keep
+
+    def _remember(self, epoch: float) -> None:
+        """Keep the pseudo-attitude at a fused fix's ``epoch`` (s) for the rates' baseline."""
+        estimate = self.filter.estimate(epoch)
+        pseudo = None if estimate is None else pseudo_attitude(estimate, self.limits)
+        if pseudo is None:
+            self._pseudo_history.clear()
+            return
+        self._pseudo_history.append(pseudo)
+        while len(self._pseudo_history) > 2 and self._pseudo_history[1].time_s <= epoch - self.cfg.rate_baseline_s:
+            self._pseudo_history.popleft()
+
+    def _stamp(self, frame: Frame) -> _Stamped:
+        """The frame (grey) with the pseudo-attitude and speed at its capture time."""
+        image = frame.image if frame.image.ndim == 2 else cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
+        last = self.filter.last_fix_time_s
+        # a frame captured before the newest fused fix (it arrived late): the estimate at that fix
+        estimate = None if last is None else self.filter.estimate(max(frame.t_capture, last))
+        if estimate is None:
+            return _Stamped(frame, image, None, math.nan, "no GNSS velocity")
+        refusal = pseudo_attitude_refusal(estimate.velocity_ned, estimate.acceleration_ned, self.limits)
+        return _Stamped(frame, image, None if refusal else pseudo_attitude(estimate, self.limits),
+                        float(np.linalg.norm(estimate.velocity_ned)), refusal or "")
+
+    def _refuse(self, reason: str) -> None:
+        key = reason.split(":")[0]
+        self.stats.refused[key] = self.stats.refused.get(key, 0) + 1
+        self.health.report(COMPONENT, State.DEGRADED, reason)
+
+    def _process(self, frame: Frame) -> list[Estimate]:
+        current = self._stamp(frame)
+        previous, self._previous = self._previous, current
+        if previous is None or previous.grey.shape != current.grey.shape:
+            return []
+        dt = current.frame.t_capture - previous.frame.t_capture
+        if previous.pseudo is None or current.pseudo is None:
+            self._refuse(f"no pseudo-attitude: {previous.refusal or current.refusal}")
+            return []
+        if dt <= 0:
+            self._refuse("frames out of time order")
+            return []
+        result, estimates = self._pair(previous, current, dt)
+        self.last_result = result
+        return estimates
+
+    def _rates(self, t0: float, t1: float, mid: PseudoAttitude) -> tuple[np.ndarray, str, np.ndarray | None] | None:
+        """(body rates p, q, r rad/s over [t0, t1] s, their source, the mean IMU specific force
+        body FRD m/s^2 over it or None without IMU samples in it), or None without either source
+        (the first fixes after a gap). Without IMU samples: the pseudo
+        Euler rates over ``rate_baseline_s`` up to ``mid`` (differences over a frame interval are
+        the Doppler noise's, amplified) turned into the pseudo frame's rates at ``mid``'s angles,
+        then into the body's by the newest pair's velocity offsets."""
+        inside = [s for s in self._imu if t0 <= s.t <= t1]
+        if inside:
+            return (np.mean([s.gyro_body for s in inside], axis=0), "imu",
+                    np.mean([s.accel_body for s in inside], axis=0))
+        earlier = self._pseudo_history[0] if self._pseudo_history else None
+        if earlier is None or earlier.time_s >= mid.time_s:
+            return None
+        rates = pseudo_euler_rates(earlier, mid)
+        return wind_to_body(*self._offsets) @ body_rates_from_euler_rates(mid.roll, mid.pitch, rates), "gnss", None
+
+    def _pair(self, previous: _Stamped, current: _Stamped, dt: float) -> tuple[PairResult, list[Estimate]]:
+        """The flow of one frame pair and what it gives (see the module docstring)."""
+        cfg = self.cfg
+        assert previous.pseudo is not None and current.pseudo is not None  # checked by the caller
+        mid = midway(previous.pseudo, current.pseudo)
+        flow = grid_flow(previous.grey, current.grey, tuple(cfg.grid), cfg.lk_window_px, cfg.lk_levels, cfg.fb_max_px)
+        points_px, flows_px = flow.points_px[flow.valid], flow.flows_px[flow.valid]
+        pseudo_euler = (mid.roll, mid.pitch, mid.yaw)
+        base = PairResult(mid.time_s, pseudo_euler, points_px, flows_px)
+        points_n, flows_n = normalised_flow(points_px, flows_px, self.calibration)
+        body_rates = self._rates(previous.frame.t_capture, current.frame.t_capture, mid)
+        if body_rates is None:
+            reason = "no body rates: no IMU samples in the frame interval and no GNSS rate baseline"
+            self._refuse(reason)
+            return dataclasses.replace(base, status=reason), []
+        rates, rates_source, specific_force = body_rates
+        translational = derotate(points_n, flows_n, rates, dt, self.cam_to_body)
+        foe = focus_of_expansion(points_n, translational, threshold_deg=cfg.foe_threshold_deg,
+                                 min_flow=cfg.foe_min_flow_px / self.calibration.K[0, 0])
+        if foe is None:
+            reason = f"no focus of expansion: {len(points_n)} flow vectors tracked"
+            self._refuse(reason)
+            return dataclasses.replace(base, status=reason, rates_source=rates_source), []
+        self.stats.flows += 1
+        # the body at mid-interval: turned by half the interval's rotation from the earlier one's
+        half_turn, _ = cv2.Rodrigues(np.asarray(rates, dtype=float) * dt / 2)  # v_body_earlier = half_turn @ v_body_mid
+        cam_to_mid_body = half_turn.T @ self.cam_to_body
+        forward = 1.0 if foe.direction_cam[2] > 0 else -1.0
+        euler, offsets = true_euler(np.array(pseudo_euler), foe.point_n, forward, cam_to_mid_body)
+        self._offsets = offsets
+        if specific_force is not None:
+            coordinated, lateral = coordination_check(specific_force, math.radians(cfg.max_lateral_deg))
+        else:
+            lateral = offsets[1]
+            coordinated = abs(lateral) <= math.radians(cfg.max_drift_deg)
+        depth = depths(points_n, translational, foe.direction_cam, current.speed_mps, dt)
+        result = dataclasses.replace(base, rates_source=rates_source, foe=foe, offsets_rad=offsets,
+                                     coordinated=coordinated, lateral_rad=lateral, depth_m=depth)
+        if not coordinated:
+            self.stats.uncoordinated += 1
+            reason = (f"uncoordinated manoeuvre: {'lateral specific force' if specific_force is not None else 'drift'}"
+                      f" {math.degrees(lateral):.1f} deg")
+            self._refuse(reason)
+            return dataclasses.replace(result, status=reason), []
+        t_euler = tuple(float(a) for a in euler)
+        cov = true_euler_covariance(mid, foe, forward, cam_to_mid_body)
+        estimates: list[Estimate] = [AttitudeEstimate(mid.time_s, t_euler, cov, source=self.name)]
+        self.stats.attitudes += 1
+        cam_to_level = rotation_from_euler(*t_euler) @ cam_to_mid_body  # the earlier camera's attitude
+        agl = height_above_ground(points_n + translational, depth, cam_to_level, cfg.min_depression_deg)
+        status = "attitude"
+        low, high = cfg.agl_range_m
+        if agl is not None and low <= agl <= high:
+            cos_tilt = math.cos(t_euler[0]) * math.cos(t_euler[1])  # body down axis against the vertical
+            distance = agl / cos_tilt
+            estimates.append(RangeEstimate(current.frame.t_capture, distance, (cfg.agl_sigma_fraction * distance) ** 2,
+                                           min_m=low, max_m=high, source=self.name))
+            self.stats.ranges += 1
+            status = "attitude and height above ground"
+        self.health.report(COMPONENT, State.OK, status)
+        return dataclasses.replace(result, status=status, euler_rad=t_euler, agl_m=agl), estimates
+
+    # -- telemetry --------------------------------------------------------------------------
+
+    def snapshot(self) -> dict:
+        """Counters for telemetry."""
+        return dataclasses.asdict(self.stats)
+
+    def telemetry(self, static_due: bool) -> dict[str, dict[str, Any]]:
+        """The newest frame pair's flow, FOE, depths and attitudes (once per pair)."""
+        r = self.last_result
+        if r is None or r is self._published:
+            return {}
+        self._published = r
+        step = max(1, math.ceil(len(r.points_px) / self.cfg.flow_vectors_shown)) if self.cfg.flow_vectors_shown else 0
+        shown = slice(None, None, step) if step else slice(0, 0)
+        foe_px = None
+        if r.foe is not None:
+            foe_px = self.calibration.project(np.append(r.foe.point_n, 1.0)[None, :])[0]
+        depth = None if r.depth_m is None else r.depth_m[np.isfinite(r.depth_m)]
+        return {STREAM: {
+            "t_capture": r.t_capture, "status": r.status, "rates_source": r.rates_source,
+            "image_size": (self.calibration.width, self.calibration.height),
+            "flow_points_px": r.points_px[shown], "flow_px": r.flows_px[shown], "flow_count": len(r.points_px),
+            "foe_n": None if r.foe is None else r.foe.point_n, "foe_px": foe_px,
+            "foe_inlier_fraction": None if r.foe is None else r.foe.inlier_fraction,
+            "foe_rms_deg": None if r.foe is None else r.foe.rms_angle_deg,
+            "pitch_offset_rad": None if r.offsets_rad is None else r.offsets_rad[0],
+            "drift_angle_rad": None if r.offsets_rad is None else r.offsets_rad[1],
+            "coordinated": r.coordinated, "lateral_rad": r.lateral_rad,
+            "pseudo_euler_rad": r.pseudo_euler_rad, "euler_rad": r.euler_rad,
+            "depth_m": None if depth is None or not len(depth) else {
+                "count": len(depth), "min": float(depth.min()), "median": float(np.median(depth)),
+                "max": float(depth.max())},
+            "agl_m": r.agl_m,
+        }}
+
+    def operating_area(self) -> None:
+        """Unbounded: GNSS works anywhere."""
+        return None
+
+
+def _load(ctx_load: Callable[..., Any], section: GnssFlowConfig) -> CameraCalibration:
+    return ctx_load("pipelines.gnss_flow.calibration", section.calibration, load_calibration)
+
+
+def _check_files(cfg: Any, section: GnssFlowConfig) -> None:
+    _load(cfg.load_referenced, section)
+
+
+@register_pipeline("gnss_flow", GnssFlowConfig, check_files=_check_files, poses=False)
+def _build(section: GnssFlowConfig, ctx: PipelineContext) -> GnssFlowPipeline:
+    mount = Mount.from_config(ctx.config.sensors[section.camera].mount)
+    return GnssFlowPipeline(section, _load(ctx.load, section), mount, ctx.health)

@@ -1,0 +1,211 @@
+"""The ``gnss_flow`` pipeline through its handlers and ``step``: synthetic GNSS fixes of a
+coordinated turn and camera frames rendered (cv2.warpPerspective) of a textured flat ground from
+the true camera poses.
+
+Scenario: 25 m/s level turn banked 20 deg at 40 m above the ground, angle of attack 3 deg, a
+forward camera pitched 30 deg down (90 x 74 deg field of view, 320 x 240; the horizon in view, untextured sky above it), frames at
+30 Hz, fixes at 10 Hz (0.02 m/s Doppler noise). Frames: NED world (ground at D = 0), body FRD.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from companion.calibration import CameraCalibration
+from companion.config import ConfigError, load_config
+from companion.frames import GRAVITY_MPS2, rotation_from_euler, wrap_pi
+from companion.health import Health, State
+from companion.messages import GNSS_3D, AttitudeEstimate, Frame, GnssFix, ImuSample, RangeEstimate
+from companion.nav.gnss_flow.pipeline import GnssFlowConfig, GnssFlowPipeline
+from drivers.mount import OPTICAL_TO_SENSOR, Mount
+
+SPEED = 25.0  # m/s
+BANK = math.radians(20.0)
+ALPHA = math.radians(3.0)  # angle of attack (still air)
+HEIGHT = 40.0  # m above the ground
+TURN_RATE = GRAVITY_MPS2 * math.tan(BANK) / SPEED  # rad/s, coordinated
+WIDTH, HEIGHT_PX = 320, 240
+FX = (WIDTH / 2) / math.tan(math.radians(45.0))  # 90 deg horizontal field of view
+CALIBRATION = CameraCalibration(WIDTH, HEIGHT_PX, np.array([[FX, 0, (WIDTH - 1) / 2], [0, FX, (HEIGHT_PX - 1) / 2],
+                                                           [0, 0, 1]]), np.zeros(5))
+MOUNT = Mount(rotation_from_euler(0.0, math.radians(-30.0), 0.0), np.zeros(3))  # forward, 30 deg down
+SUPERSAMPLE = 4
+SKY = 200  # grey level above the horizon (no texture: not tracked)
+FRAME_DT = 1 / 30
+FIX_DT = 0.1
+TEXTURE_M_PER_PX = 0.25
+TEXTURE_PX = 2400
+# roll, pitch, yaw against truth: derotated by the IMU's gyro, or by the GNSS-derived rates (whose
+# roll-rate error over the 1 s baseline turns the far ground's flow lines: the drift angle suffers)
+TOLERANCE_DEG = {"imu": 0.5, "gnss": 1.5}
+AGL_TOLERANCE = 0.10  # relative
+
+
+def texture() -> np.ndarray:
+    """Smoothed random ground texture, uint8, seeded."""
+    rng = np.random.default_rng(3)
+    noise = rng.normal(128.0, 60.0, (TEXTURE_PX, TEXTURE_PX)).astype(np.float32)
+    return np.clip(cv2.GaussianBlur(noise, (0, 0), 3.0) * 4 - 3 * 128, 0, 255).astype(np.uint8)
+
+
+GROUND = texture()
+
+
+def course(t: float) -> float:
+    return TURN_RATE * t
+
+
+def velocity(t: float) -> np.ndarray:
+    return SPEED * np.array([math.cos(course(t)), math.sin(course(t)), 0.0])
+
+
+def position(t: float) -> np.ndarray:
+    radius = SPEED / TURN_RATE
+    return np.array([radius * math.sin(course(t)), radius * (1 - math.cos(course(t))), -HEIGHT])
+
+
+def body_to_ned(t: float, slip_rad: float = 0.0, roll_error_rad: float = 0.0) -> np.ndarray:
+    """The airframe: the velocity's frame (bank, no climb, course) pitched up by the angle of
+    attack; ``slip_rad`` yaws the nose left of the velocity and ``roll_error_rad`` rolls it off the
+    bank (an uncoordinated manoeuvre: the specific force no longer in the body's x-z plane)."""
+    wind = rotation_from_euler(BANK + roll_error_rad, 0.0, course(t))
+    return wind @ rotation_from_euler(0.0, 0.0, -slip_rad) @ rotation_from_euler(0.0, ALPHA, 0.0)
+
+
+def render(t: float, **attitude: float) -> np.ndarray:
+    """The camera's image of the textured ground at time ``t`` (s), rendered at ``SUPERSAMPLE``
+    times the resolution and averaged down (no aliasing of the far ground)."""
+    cam_to_ned = body_to_ned(t, **attitude) @ MOUNT.rotation @ OPTICAL_TO_SENSOR
+    r_cn = cam_to_ned.T
+    translation = -r_cn @ position(t)
+    k = CALIBRATION.K.copy()
+    k[:2] *= SUPERSAMPLE
+    k[:2, 2] += (SUPERSAMPLE - 1) / 2  # pixel centres at integers
+    ground_to_image = k @ np.column_stack((r_cn[:, 0], r_cn[:, 1], translation))
+    half = TEXTURE_PX * TEXTURE_M_PER_PX / 2  # the texture centred beside the turn's start
+    texture_to_ground = np.array([[0.0, TEXTURE_M_PER_PX, -half + 60.0], [TEXTURE_M_PER_PX, 0.0, -half + 60.0],
+                                  [0.0, 0.0, 1.0]])  # (column, row) -> (north, east)
+    size = (WIDTH * SUPERSAMPLE, HEIGHT_PX * SUPERSAMPLE)
+    image = cv2.warpPerspective(GROUND, ground_to_image @ texture_to_ground, size, flags=cv2.INTER_LINEAR,
+                                borderMode=cv2.BORDER_REFLECT)
+    u, v = np.meshgrid(np.arange(size[0]), np.arange(size[1]))
+    rays = np.stack((u, v, np.ones_like(u)), axis=-1) @ np.linalg.inv(k).T
+    image[rays @ cam_to_ned[2] <= 0] = SKY  # at or above the horizon (the homography mirrors the ground there)
+    return cv2.resize(image, (WIDTH, HEIGHT_PX), interpolation=cv2.INTER_AREA)
+
+
+def imu_sample(t: float, **attitude: float) -> ImuSample:
+    """The autopilot's IMU: the specific force and turn rate of the body of :func:`body_to_ned`."""
+    r_nb = body_to_ned(t, **attitude)
+    accel_ned = SPEED * TURN_RATE * np.array([-math.sin(course(t)), math.cos(course(t)), 0.0])
+    specific_force = r_nb.T @ (accel_ned - np.array([0.0, 0.0, GRAVITY_MPS2]))
+    return ImuSample(t, specific_force, r_nb.T @ np.array([0.0, 0.0, TURN_RATE]))
+
+
+def run(pipeline: GnssFlowPipeline, frames: int = 5, imu: bool = False,
+        **attitude: float) -> list[AttitudeEstimate | RangeEstimate]:
+    """Fixes from 5 s before the first frame to after the last, the frames, the IMU at 100 Hz if
+    ``imu``, fed in order of arrival (a fix 0.1 s after its epoch) with a nav cycle per frame."""
+    rng = np.random.default_rng(0)
+    fix_times = np.arange(-5.0, frames * FRAME_DT + 0.5, FIX_DT)
+    events = [(t + 0.1, "fix", t) for t in fix_times]
+    events += [(i * FRAME_DT + 0.005, "frame", i * FRAME_DT) for i in range(frames)]
+    if imu:
+        events += [(t, "imu", t) for t in np.arange(-0.5, frames * FRAME_DT + 0.5, 0.01)]
+    out = []
+    for arrival, kind, t in sorted(events):
+        if kind == "fix":
+            v = velocity(t) + rng.normal(0.0, 0.02, 3)
+            pipeline.on_fix(GnssFix("gps", t, GNSS_3D, 0.0, 0.0, 0.0, velocity_ned_mps=v, speed_acc_mps=0.02))
+        elif kind == "frame":
+            pipeline.on_frame(Frame("cam", t, render(t, **attitude), sequence=round(t / FRAME_DT)))
+        else:
+            pipeline.on_imu(imu_sample(t, **attitude))
+        out += pipeline.step(arrival)
+    return out
+
+
+def make(**settings: object) -> tuple[GnssFlowPipeline, Health]:
+    health = Health(lambda: 0.0)
+    cfg = GnssFlowConfig(gnss="gps", camera="cam", calibration="unused.yaml", **settings)
+    return GnssFlowPipeline(cfg, CALIBRATION, MOUNT, health), health
+
+
+def check_attitudes(estimates: list, tolerance_deg: float) -> list[AttitudeEstimate]:
+    attitudes = [e for e in estimates if isinstance(e, AttitudeEstimate)]
+    assert attitudes
+    for a in attitudes:
+        truth = np.degrees(euler_of(body_to_ned(a.t_capture)))
+        error = [math.degrees(wrap_pi(math.radians(x - y))) for x, y in zip(np.degrees(a.euler_rad), truth)]
+        assert np.all(np.abs(error) < tolerance_deg), (error, a.t_capture)
+        assert np.all(np.isfinite(a.covariance)) and np.all(np.diag(a.covariance) > 0)
+    return attitudes
+
+
+def euler_of(r: np.ndarray) -> np.ndarray:
+    from companion.frames import euler_from_rotation
+
+    return np.array(euler_from_rotation(r))
+
+
+@pytest.mark.parametrize("imu", [False, True], ids=["gnss_rates", "imu"])
+def test_a_coordinated_turn_gives_the_attitude_and_the_height_above_ground(imu: bool) -> None:
+    pipeline, health = make(imu_sensor="imu" if imu else None)
+    estimates = run(pipeline, imu=imu)
+    attitudes = check_attitudes(estimates, TOLERANCE_DEG["imu" if imu else "gnss"])
+    assert len(attitudes) == 4  # every pair of the five frames
+    ranges = [e for e in estimates if isinstance(e, RangeEstimate)]
+    assert len(ranges) == 4
+    for r in ranges:
+        tilt = math.cos(BANK) * math.cos(ALPHA)  # along the body's down axis to flat ground
+        assert r.orientation == "down" and abs(r.distance_m * tilt - HEIGHT) < AGL_TOLERANCE * HEIGHT
+        assert math.isfinite(r.variance_m2) and r.variance_m2 > 0
+    for e in estimates:  # nothing NaN but the covariance's unobserved entries (none here)
+        values = [e.distance_m] if isinstance(e, RangeEstimate) else list(e.euler_rad)
+        assert all(math.isfinite(v) for v in values)
+    assert pipeline.stats.uncoordinated == 0 and pipeline.stats.attitudes == 4
+    assert health.get("nav:gnss_flow").state == State.OK
+    telemetry = pipeline.telemetry(False)["gnss_flow"]
+    assert telemetry["rates_source"] == ("imu" if imu else "gnss")
+    assert telemetry["coordinated"] is True and telemetry["foe_px"] is not None
+    assert abs(telemetry["pitch_offset_rad"] - ALPHA) < math.radians(TOLERANCE_DEG["imu" if imu else "gnss"])
+    assert len(telemetry["flow_px"]) <= 200 and telemetry["depth_m"]["count"] > 100
+    assert pipeline.telemetry(False) == {}  # once per pair
+
+
+def test_an_uncoordinated_turn_is_flagged_and_gives_no_attitude() -> None:
+    """Skidding: the airframe rolled 10 deg less than the lift's bank and yawed 4 deg: the IMU's
+    lateral specific force flags every pair."""
+    pipeline, health = make(imu_sensor="imu")
+    estimates = run(pipeline, imu=True, slip_rad=math.radians(4.0), roll_error_rad=math.radians(-10.0))
+    assert not [e for e in estimates if isinstance(e, AttitudeEstimate)]
+    assert pipeline.stats.uncoordinated == 4
+    component = health.get("nav:gnss_flow")
+    assert component.state == State.DEGRADED and "uncoordinated" in component.reason
+    assert pipeline.telemetry(False)["gnss_flow"]["coordinated"] is False
+
+
+def test_without_an_imu_a_large_drift_angle_is_flagged() -> None:
+    pipeline, health = make(max_drift_deg=3.0)
+    estimates = run(pipeline, frames=3, slip_rad=math.radians(6.0))
+    assert estimates == [] and pipeline.stats.uncoordinated == 2
+    assert "drift" in health.get("nav:gnss_flow").reason
+
+
+def test_a_camera_that_names_a_sensor_of_another_kind_is_refused(tmp_path: Path) -> None:
+    config = tmp_path / "c.yaml"
+    config.write_text(
+        "origin: {lat: 1.0, lon: 2.0, alt: 3.0}\n"
+        "sensors:\n"
+        "  gps: {kind: gnss, backend: autopilot}\n"
+        "  imu: {kind: imu, backend: autopilot}\n"
+        "pipelines:\n"
+        "  gnss_flow: {gnss: gps, camera: imu, calibration: cam.yaml}\n")
+    with pytest.raises(ConfigError) as exc:
+        load_config(config)
+    assert "pipelines.gnss_flow.camera" in str(exc.value) and "not a camera" in str(exc.value)
