@@ -36,6 +36,8 @@ from companion.frames import euler_from_quat, ned_from_geodetic, quat_from_euler
 from companion.mavlink.link import MavlinkLink, mavlink
 
 HISTORY_S = 2.0
+SIMSTATE_VELOCITY_FIT_S = 0.5  # SIMSTATE velocity: the slope of the positions received over this span
+SIMSTATE_VELOCITY_MIN_SPAN_S = 0.2  # ... once they span at least this (else zero: just started)
 SIM_STATE_PREFERRED_S = 1.0  # a SIM_STATE this recent makes SIMSTATE redundant
 
 # ArduPilot's AP_Baro::SimpleAtmosphere (troposphere), as its SITL barometer uses it.
@@ -82,7 +84,7 @@ class TruthLike(Protocol):
 class TruthSample:
     t: float  # daemon clock, seconds
     position_ned: np.ndarray  # m
-    velocity_ned: np.ndarray  # m/s (from SIMSTATE: differenced 1.1 cm-quantized positions, noisy)
+    velocity_ned: np.ndarray  # m/s (from SIMSTATE: fitted to the positions of the last 0.5 s, see _simstate_velocity)
     quat: np.ndarray  # [w, x, y, z], body FRD -> NED
 
 
@@ -152,6 +154,20 @@ class TruthSource:
         if self._sim_state_t is not None and now - self._sim_state_t < SIM_STATE_PREFERRED_S:
             return
         position = ned_from_geodetic(msg.lat * 1e-7, msg.lng * 1e-7, self._baro_alt, self._origin)
-        previous = self.latest
-        velocity = np.zeros(3) if previous is None or now <= previous.t else (position - previous.position_ned) / (now - previous.t)
-        self._add(TruthSample(now, position, velocity, quat_from_euler(msg.roll, msg.pitch, msg.yaw)))
+        self._add(TruthSample(now, position, self._simstate_velocity(now, position),
+                              quat_from_euler(msg.roll, msg.pitch, msg.yaw)))
+
+    def _simstate_velocity(self, now: float, position: np.ndarray) -> np.ndarray:
+        """NED m/s at ``now``: the least-squares slope of the SIMSTATE positions received over the
+        last :data:`SIMSTATE_VELOCITY_FIT_S` (with this one). SIMSTATE carries no velocity and no
+        time stamp: the difference of two positions over their arrival times, which a TCP link
+        delivers in bursts microseconds apart, gave thousands of m/s (a simulated GNSS Doppler
+        built on it threw the EKF-SLAM kilometres off on ArduCopter SITL); the slope over half a
+        second averages the burst timing out, at the cost of a quarter-second lag."""
+        recent = [s for s in self._samples if now - s.t <= SIMSTATE_VELOCITY_FIT_S]
+        if not recent or now - recent[0].t < SIMSTATE_VELOCITY_MIN_SPAN_S:
+            return np.zeros(3)
+        t = np.array([s.t for s in recent] + [now])
+        p = np.vstack([s.position_ned for s in recent] + [position])
+        dt = t - t.mean()
+        return (dt @ (p - p.mean(axis=0))) / float(dt @ dt)
