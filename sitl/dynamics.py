@@ -78,6 +78,30 @@ class WindConfig:
     gust_tau_s: float = 2.0
 
 
+class AirMass:
+    """The air velocity of a :class:`WindConfig` (NED m/s): the mean plus the gusts, stepped in time.
+
+    ``gust`` is the current gust per NED axis, m/s; :meth:`step` advances it by ``dt`` seconds
+    and returns the air velocity (vn, ve, vd).
+    """
+
+    def __init__(self, wind: WindConfig, noise: GaussianStream) -> None:
+        self.config = wind
+        self._noise = noise
+        self.gust = [0.0, 0.0, 0.0]
+
+    def step(self, dt: float) -> tuple[float, float, float]:
+        """Advance the Ornstein-Uhlenbeck gusts by ``dt`` s; the air velocity, NED m/s."""
+        wind = self.config
+        decay = dt / wind.gust_tau_s
+        kick = wind.gust_std_mps * math.sqrt(2.0 * decay)
+        g, draw = self.gust, self._noise.draw
+        for i in range(3):
+            g[i] += -g[i] * decay + kick * draw()
+        mean = wind.mean_ned_mps
+        return mean[0] + g[0], mean[1] + g[1], mean[2] + g[2]
+
+
 class QuadrotorDynamics:
     """Truth state and its integration (semi-implicit Euler, renormalised quaternion).
 
@@ -97,8 +121,7 @@ class QuadrotorDynamics:
         start_yaw_rad: float = 0.0,
     ) -> None:
         self.airframe = airframe or AirframeParams()
-        self.wind = wind or WindConfig()
-        self._noise = noise
+        self.air = AirMass(wind or WindConfig(), noise)
         a = self.airframe
         self._k_thrust = a.max_thrust_per_motor_n / a.max_rotor_speed_rad_s**2
         self.px, self.py, self.pz = (float(v) for v in start_ned)
@@ -108,7 +131,6 @@ class QuadrotorDynamics:
         self.wx = self.wy = self.wz = 0.0
         self.fx, self.fy, self.fz = 0.0, 0.0, -GRAVITY_MPS2
         self.rotor_speed = [0.0, 0.0, 0.0, 0.0]
-        self.gust = [0.0, 0.0, 0.0]
         self.resting = self.pz >= 0.0
 
     # ------------------------------------------------------------------ snapshots
@@ -168,15 +190,6 @@ class QuadrotorDynamics:
         tz = a.yaw_torque_per_thrust_m * (f[0] + f[1] - f[2] - f[3])
         return thrust, tx, ty, tz
 
-    def _update_gust(self, dt: float) -> None:
-        """Ornstein-Uhlenbeck gust velocity, m/s per NED axis."""
-        wind = self.wind
-        decay = dt / wind.gust_tau_s
-        kick = wind.gust_std_mps * math.sqrt(2.0 * decay)
-        g, draw = self.gust, self._noise.draw
-        for i in range(3):
-            g[i] += -g[i] * decay + kick * draw()
-
     def _linear_acceleration(self, dt: float, thrust: float) -> tuple[float, float, float]:
         """NED acceleration (m/s^2) from thrust, drag and gravity, ignoring the floor.
 
@@ -189,11 +202,10 @@ class QuadrotorDynamics:
         r02 = 2 * (x * z + w * y)
         r12 = 2 * (y * z - w * x)
         r22 = 1 - 2 * (x * x + y * y)
-        self._update_gust(dt)
-        mean, g = self.wind.mean_ned_mps, self.gust
-        rx = self.vx - mean[0] - g[0]
-        ry = self.vy - mean[1] - g[1]
-        rz = self.vz - mean[2] - g[2]
+        wn, we, wd = self.air.step(dt)
+        rx = self.vx - wn
+        ry = self.vy - we
+        rz = self.vz - wd
         c = a.drag_linear_n_per_mps + a.drag_quadratic_n_per_mps2 * math.sqrt(rx * rx + ry * ry + rz * rz)
         inv_m = 1.0 / a.mass_kg
         self._force = (-thrust * r02 - c * rx, -thrust * r12 - c * ry, -thrust * r22 - c * rz)

@@ -1,4 +1,4 @@
-"""Simulated autopilot sensors: IMU, barometer, compass and GPS (seeded noise, no I/O).
+"""Simulated autopilot sensors: IMU, barometer, compass, GPS and airspeed (seeded noise, no I/O).
 
 Each sensor reads the truth of :class:`sitl.dynamics.QuadrotorDynamics` and adds the errors
 that make the autopilot's own estimate differ from the truth. Units: m, m/s, m/s^2, rad,
@@ -168,3 +168,18 @@ class Gps:
         lat, lon, alt = geodetic_from_ned(noisy, self.anchor)
         vel = np.array([v + self._velocity_noise * draw() for v in vel_ned])
         return GpsSample(t, 3, lat, lon, alt, vel, 2.0 * self._std[0], 2.0 * self._std[2], 14)
+
+
+class Airspeed:
+    """Pitot airspeed, m/s: the true airspeed + a fixed calibration error + white noise, never negative."""
+
+    def __init__(self, noise: GaussianStream, *, bias_std_mps: float = 0.3, noise_mps: float = 0.2) -> None:
+        self._noise = noise
+        self.bias_mps = bias_std_mps * noise.draw()
+        self.noise_mps = noise_mps
+        self.airspeed_mps = 0.0
+
+    def sample(self, true_airspeed_mps: float) -> float:
+        """Read the airspeed, m/s."""
+        self.airspeed_mps = max(0.0, true_airspeed_mps + self.bias_mps + self.noise_mps * self._noise.draw())
+        return self.airspeed_mps

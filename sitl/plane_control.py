@@ -1,0 +1,366 @@
+"""ArduPlane-like flight controller of the simulated fixed wing (plain floats, no I/O).
+
+It acts on the autopilot's own estimate (:class:`sitl.estimator.Estimator`), the IMU and the
+airspeed sensor, never on the truth, and sets a :class:`sitl.fixedwing.FixedWingCommand`.
+Frames: NED (m, m/s) in the EKF frame, body FRD, angles in rad; heights are -z.
+
+Modes use ArduPlane custom_mode numbers. There are no pilot sticks: MANUAL holds neutral rates
+at trim throttle, STABILIZE and FBWA hold the wings level at trim pitch and throttle, CIRCLE
+banks at a third of the roll limit holding its entry height.
+
+- TAKEOFF, or MAV_CMD_NAV_TAKEOFF in GUIDED: full throttle along the heading of the runway
+  (the heading when it starts), rotate at TKOFF_ROTATE_SPD, climb wings level to the height,
+  then loiter (around the GUIDED target if one came meanwhile, else where the climb ended).
+- GUIDED: a position target (SET_POSITION_TARGET_LOCAL_NED with a position) is a loiter circle
+  of WP_LOITER_RAD around it at its height, as ArduPlane flies a guided waypoint; velocity-
+  and acceleration-only targets are refused.
+- LOITER: circle where the mode was entered; RTL: loiter over home at RTL_ALTITUDE.
+- AUTO is the landing that :meth:`PlaneController.land` starts (there are no missions):
+  loiter down to the final-approach point, fly the glide slope to home, flare, brake, disarm
+  LAND_DISARMDELAY after stopping.
+"""
+
+from __future__ import annotations
+
+import math
+
+from companion.frames import wrap_pi
+from sitl.estimator import SEVERITY_CRITICAL, SEVERITY_INFO, Estimator, StatusQueue
+from sitl.fixedwing import FixedWingCommand
+from sitl.flight_control import (
+    IGNORE_YAW, MAV_FRAME_BODY_NED, MAV_FRAME_BODY_OFFSET_NED, MAV_FRAME_LOCAL_NED, SUPPORTED_FRAMES, TARGET_KINDS)
+from sitl.plane_guidance import PlaneLimits, Tecs, attitude_rates, bank_for_course, line_course, orbit_course
+
+MANUAL, CIRCLE, STABILIZE, FBWA, AUTO, RTL, LOITER, TAKEOFF, GUIDED = 0, 1, 2, 5, 10, 11, 12, 13, 15
+MODE_NAMES = {MANUAL: "MANUAL", CIRCLE: "CIRCLE", STABILIZE: "STABILIZE", FBWA: "FBWA", AUTO: "AUTO", RTL: "RTL",
+              LOITER: "LOITER", TAKEOFF: "TAKEOFF", GUIDED: "GUIDED"}
+POSITION_MODES = frozenset({AUTO, RTL, LOITER, TAKEOFF, GUIDED})
+ARMABLE_MODES = frozenset({MANUAL, STABILIZE, FBWA, TAKEOFF, GUIDED, LOITER})
+LANDED_SPEED_MPS = 1.0
+
+
+class PlaneController:
+    """Mode logic, arming, take-off, landing, GUIDED targets and the control laws.
+
+    Public state like :class:`sitl.flight_control.FlightController`: ``mode``, ``armed``,
+    ``landed``, ``home_ned``, ``home_locked``, ``nonfinite_rejected``; ``rudder_rad_s`` is a
+    yaw-rate offset added to the turn coordination (a deliberate sideslip; 0 = coordinated).
+    """
+
+    def __init__(self, *, status: StatusQueue, estimator: Estimator, limits: PlaneLimits | None = None) -> None:
+        self.status = status
+        self.est = estimator
+        self.limits = limits or PlaneLimits()
+        self.tecs = Tecs(self.limits)
+        self.mode = MANUAL
+        self.armed = False
+        self.landed = True
+        self.home_ned: tuple[float, float, float] | None = None
+        self.home_locked = False
+        self.nonfinite_rejected = 0
+        self.rudder_rad_s = 0.0
+        self.t = 0.0
+        self._phase = ""  # "takeoff", "loiter", "level", "circle", "neutral"; AUTO: "to_final", "final", "flare", "rollout"
+        self._centre = (0.0, 0.0)
+        self._height_d = 0.0
+        self._airspeed_d = self.limits.airspeed_cruise_mps
+        self._runway_yaw = 0.0
+        self._ground_height = 0.0
+        self._pending: tuple[float, float, float] | None = None  # GUIDED target received during the take-off
+        self._final_start = (0.0, 0.0)
+        self._stopped_since: float | None = None
+
+    @property
+    def mode_name(self) -> str:
+        """ArduPlane name of the current mode."""
+        return MODE_NAMES[self.mode]
+
+    # ------------------------------------------------------------------ commands
+    def set_mode(self, mode: int) -> tuple[bool, str]:
+        """Change mode; refused for unknown modes, AUTO (no mission) and position modes without a position."""
+        if mode not in MODE_NAMES:
+            return False, f"Unsupported mode {mode}"
+        if mode == AUTO:
+            return False, "Mode change to AUTO failed: no mission"
+        if mode in POSITION_MODES and not self.est.pos_valid:
+            return False, f"Mode change to {MODE_NAMES[mode]} failed: requires position"
+        if mode == RTL and self.home_ned is None:
+            return False, "Mode change to RTL failed: no home"
+        self._enter_mode(mode)
+        return True, ""
+
+    def arm(self, force: bool = False) -> tuple[bool, str]:
+        """Arm after ArduPilot-like checks (``force`` skips them); arming in TAKEOFF starts the take-off."""
+        if self.armed:
+            return True, "Already armed"
+        if not force:
+            reason = self._arming_failure()
+            if reason:
+                self.status.push(SEVERITY_CRITICAL, reason)
+                return False, reason
+        self.armed = True
+        self.landed = True
+        self._ground_height = self._height()
+        if not self.home_locked and self.est.pos_valid:
+            self.home_ned = self._position()
+        self.status.push(SEVERITY_INFO, "Arming motors")
+        self._enter_mode(self.mode)
+        return True, ""
+
+    def disarm(self, force: bool = False) -> tuple[bool, str]:
+        """Disarm; refused in flight unless ``force``."""
+        if not self.armed:
+            return True, "Already disarmed"
+        if not self.landed and not force:
+            return False, "Disarm: vehicle not landed"
+        self._disarm()
+        return True, ""
+
+    def takeoff(self, altitude_m: float) -> tuple[bool, str]:
+        """Take off to ``altitude_m`` above home; GUIDED or TAKEOFF, armed, on the ground, with a position."""
+        if not math.isfinite(altitude_m):
+            self.nonfinite_rejected += 1
+            return False, "Takeoff: altitude not finite"
+        if self.mode not in (GUIDED, TAKEOFF):
+            return False, "Takeoff: mode is not GUIDED"
+        if not self.armed:
+            return False, "Takeoff: not armed"
+        if not self.landed:
+            return False, "Takeoff: already flying"
+        if altitude_m <= 0.0 or not self.est.pos_valid:
+            return False, "Takeoff: altitude must be positive and a position known"
+        self._start_takeoff(altitude_m)
+        return True, ""
+
+    def land(self) -> tuple[bool, str]:
+        """Land at home (mode AUTO): final approach, glide slope, flare; in flight with a home only."""
+        if not self.armed or self.landed:
+            return False, "Land: not flying"
+        if self.home_ned is None or not self.est.pos_valid:
+            return False, "Land: requires position and home"
+        home = self.home_ned
+        n, e = self._position()[:2]
+        bearing = math.atan2(home[1] - e, home[0] - n)
+        length = self.limits.land_final_m
+        self.mode = AUTO
+        self._final_start = (home[0] - length * math.cos(bearing), home[1] - length * math.sin(bearing))
+        self._centre = self._final_start
+        self._height_d = -home[2] + length * math.tan(self.limits.land_glide_rad)
+        self._airspeed_d = self.limits.airspeed_cruise_mps
+        self._phase = "to_final"
+        self.status.push(SEVERITY_INFO, "Landing approach started")
+        return True, ""
+
+    def start_in_flight(self) -> None:
+        """Begin airborne: armed, in GUIDED, loitering where the estimate is, at its height."""
+        self.armed = True
+        self.landed = False
+        self._ground_height = 0.0
+        self.mode = GUIDED
+        n, e, _ = self._position()
+        self._loiter_at((n, e), self._height())
+
+    def set_position_target(self, frame: int, type_mask: int, pos: tuple[float, float, float],
+                            vel: tuple[float, float, float], acc: tuple[float, float, float],
+                            yaw: float, yaw_rate: float) -> bool:
+        """SET_POSITION_TARGET_LOCAL_NED with a position: loiter around it at its height; False when ignored."""
+        del vel, acc, yaw_rate  # a fixed wing flies to the point; speeds and yaw are its own
+        kind = TARGET_KINDS.get(type_mask & 0x3FF)
+        if self.mode != GUIDED or frame not in SUPPORTED_FRAMES or kind is None or "pos" not in kind:
+            return False
+        values = tuple(float(v) for v in pos) + (() if type_mask & IGNORE_YAW else (float(yaw),))
+        if not all(math.isfinite(v) for v in values):
+            self.nonfinite_rejected += 1
+            return False
+        p = tuple(float(v) for v in pos)
+        if frame in (MAV_FRAME_BODY_NED, MAV_FRAME_BODY_OFFSET_NED):
+            h = self.est.ahrs.yaw
+            p = (p[0] * math.cos(h) - p[1] * math.sin(h), p[0] * math.sin(h) + p[1] * math.cos(h), p[2])
+        if frame != MAV_FRAME_LOCAL_NED:
+            here = self._position()
+            p = (p[0] + here[0], p[1] + here[1], p[2] + here[2])
+        if self._phase == "takeoff" or self.landed:
+            self._pending = p
+        else:
+            self._loiter_at((p[0], p[1]), -p[2])
+        return True
+
+    # ------------------------------------------------------------------ per-step
+    def update(self, t: float, dt: float, gyro: tuple[float, float, float], accel_x: float,
+               airspeed: float) -> FixedWingCommand:
+        """Supervisor and control laws for one step from the IMU gyro (rad/s), its forward specific
+        force (m/s^2) and the measured airspeed (m/s)."""
+        self.t = t
+        if not self.armed:
+            self.landed = True
+            if self.home_ned is None and self.est.pos_valid:
+                self.home_ned = self._position()
+            return FixedWingCommand(brake=1.0)
+        if self._phase == "takeoff":
+            return self._fly_takeoff(dt, gyro, accel_x, airspeed)
+        if self.landed:
+            self.tecs.reset()
+            stopped = self._stopped_since
+            if self.mode == AUTO and stopped is not None and t - stopped > self.limits.land_disarm_delay_s:
+                self._disarm()
+            return FixedWingCommand(brake=1.0)
+        if self.mode == AUTO:
+            self._advance_landing()
+        return self._fly(dt, gyro, accel_x, airspeed)
+
+    def _fly(self, dt: float, gyro: tuple[float, float, float], accel_x: float, airspeed: float) -> FixedWingCommand:
+        lim, ahrs = self.limits, self.est.ahrs
+        if self._phase == "neutral":
+            return FixedWingCommand(throttle=lim.throttle_trim)
+        if self._phase == "rollout":
+            roll_d, pitch_d, throttle = 0.0, 0.0, 0.0
+        else:
+            roll_d = self._bank_demand()
+            throttle, pitch_d = self.tecs.update(dt, self._height(), -self.est.axes[2].v, airspeed, accel_x,
+                                                 ahrs.pitch, self._height_d, self._airspeed_d,
+                                                 climb_ff=self._glide_rate(), climb_d=self._climb_override())
+            if self._phase == "level":
+                pitch_d, throttle = 0.03, lim.throttle_trim
+            elif self._phase == "flare":
+                throttle = 0.0
+        p, q, r = attitude_rates(roll_d, pitch_d, ahrs.roll, ahrs.pitch, gyro, airspeed, self.rudder_rad_s)
+        return FixedWingCommand(throttle=throttle, roll_rate=p, pitch_rate=q, yaw_rate=r,
+                                brake=1.0 if self._phase == "rollout" else 0.0)
+
+    def _bank_demand(self) -> float:
+        """Bank angle (rad) of the current lateral guidance."""
+        lim = self.limits
+        if self._phase in ("level", "flare"):
+            return 0.0
+        if self._phase == "circle":
+            return lim.roll_limit_rad / 3.0
+        n, e = self.est.axes[0], self.est.axes[1]
+        course, speed = math.atan2(e.v, n.v), math.hypot(n.v, e.v)
+        if self._phase == "final":
+            course_d, _ = line_course(n.p, e.p, self._final_start, self.home_ned[:2])
+            return bank_for_course(course_d, course, speed, 0.0, lim.loiter_radius_m, lim.roll_limit_rad)
+        course_d, centripetal = orbit_course(n.p, e.p, self._centre, lim.loiter_radius_m)
+        return bank_for_course(course_d, course, speed, centripetal, lim.loiter_radius_m, lim.roll_limit_rad)
+
+    def _glide_rate(self) -> float:
+        """Climb rate (m/s, negative) of the glide-slope height demand on the final approach, else 0."""
+        if self._phase != "final":
+            return 0.0
+        n, e = self.est.axes[0], self.est.axes[1]
+        return -math.hypot(n.v, e.v) * math.tan(self.limits.land_glide_rad)
+
+    def _climb_override(self) -> float | None:
+        """Climb-rate demand (m/s) where the phase fixes it (flare), else None (height demand)."""
+        return -self.limits.land_flare_sink_mps if self._phase == "flare" else None
+
+    # ------------------------------------------------------------------ take-off
+    def _start_takeoff(self, altitude_m: float) -> None:
+        ground = -self.home_ned[2] if self.home_ned is not None else self._ground_height
+        self._phase = "takeoff"
+        self._height_d = ground + altitude_m
+        self._runway_yaw = self.est.ahrs.yaw
+        self._pending = None
+        self.landed = False
+        self.tecs.reset()
+        self.status.push(SEVERITY_INFO, f"Takeoff to {altitude_m:.0f} m")
+
+    def _fly_takeoff(self, dt: float, gyro: tuple[float, float, float], accel_x: float,
+                     airspeed: float) -> FixedWingCommand:
+        """Full throttle on the runway heading, rotate, climb wings level; then loiter."""
+        lim, ahrs = self.limits, self.est.ahrs
+        height = self._height()
+        if height >= self._height_d - 2.0:
+            self.status.push(SEVERITY_INFO, "Takeoff complete")
+            n, e = self._position()[:2]
+            target = self._pending
+            self._pending = None
+            if target is not None:
+                self._loiter_at((target[0], target[1]), -target[2])
+            else:
+                self._loiter_at((n, e), self._height_d)
+            return self._fly(dt, gyro, accel_x, airspeed)
+        heading_error = wrap_pi(self._runway_yaw - ahrs.yaw)
+        pitch_d = lim.takeoff_pitch_rad if airspeed >= lim.takeoff_rotate_mps else 0.0
+        p, q, r = attitude_rates(0.0, pitch_d, ahrs.roll, ahrs.pitch, gyro, airspeed)
+        return FixedWingCommand(throttle=1.0, roll_rate=p, pitch_rate=q, yaw_rate=r + 1.0 * heading_error)
+
+    # ------------------------------------------------------------------ landing
+    def _advance_landing(self) -> None:
+        """AUTO landing phases: to the final-approach point, glide slope, flare, roll-out to a stop."""
+        lim = self.limits
+        n, e, d = self.est.axes
+        home = self.home_ned
+        if self._phase == "to_final":
+            level = abs(self._height() - self._height_d) < 3.0
+            to_home = math.atan2(home[1] - e.p, home[0] - n.p)
+            aligned = abs(wrap_pi(math.atan2(e.v, n.v) - to_home)) < math.radians(20.0)
+            near = math.hypot(n.p - self._centre[0], e.p - self._centre[1]) < 1.5 * lim.loiter_radius_m
+            if level and aligned and near:
+                self._phase = "final"
+                self._final_start = (n.p, e.p)
+                self._airspeed_d = lim.airspeed_approach_mps
+        elif self._phase == "final":
+            _, to_go = line_course(n.p, e.p, self._final_start, home[:2])
+            self._height_d = -home[2] + max(0.0, to_go) * math.tan(lim.land_glide_rad)
+            if self._height() - (-home[2]) < lim.land_flare_alt_m:
+                self._phase = "flare"
+                self.status.push(SEVERITY_INFO, "Flare")
+        elif self._phase in ("flare", "rollout"):
+            self._phase = "rollout" if abs(d.v) < 0.2 and self._height() - (-home[2]) < 0.5 else self._phase
+            if math.hypot(n.v, e.v) < LANDED_SPEED_MPS:
+                self._stopped_since = self.t
+                self.landed = True
+                self.status.push(SEVERITY_INFO, "Landed")
+
+    # ------------------------------------------------------------------ helpers
+    def _enter_mode(self, mode: int) -> None:
+        """Switch mode and set what the mode flies from here."""
+        self.mode = mode
+        if self._phase == "takeoff" and mode in (GUIDED, TAKEOFF):
+            return  # the climb-out goes on
+        self._stopped_since = None
+        n, e = self._position()[:2]
+        if mode == MANUAL:
+            self._phase = "neutral"
+        elif mode in (STABILIZE, FBWA):
+            self._phase = "level"
+        elif mode == CIRCLE:
+            self._phase, self._height_d = "circle", self._height()
+        elif mode == RTL:
+            home = self.home_ned
+            self._loiter_at((home[0], home[1]), -home[2] + self.limits.rtl_alt_m)
+        elif mode == TAKEOFF and self.armed and self.landed:
+            self._start_takeoff(self.limits.takeoff_alt_m)
+        else:  # LOITER, GUIDED, TAKEOFF in flight: circle here at this height
+            self._loiter_at((n, e), self._height())
+
+    def _loiter_at(self, centre: tuple[float, float], height: float) -> None:
+        self._phase = "loiter"
+        self._centre = centre
+        self._height_d = height
+        self._airspeed_d = self.limits.airspeed_cruise_mps
+
+    def _arming_failure(self) -> str:
+        """Reason arming is refused, or '' if the checks pass."""
+        if not self.landed:
+            return "Arm: vehicle not landed"
+        if self.mode not in ARMABLE_MODES:
+            return f"Arm: Mode {MODE_NAMES[self.mode]} not armable"
+        if self.mode in POSITION_MODES and not self.est.pos_valid:
+            return "PreArm: Need Position Estimate"
+        return ""
+
+    def _disarm(self) -> None:
+        self.armed = False
+        self.landed = True
+        self._phase = ""
+        self._stopped_since = None
+        self.status.push(SEVERITY_INFO, "Disarming motors")
+
+    def _position(self) -> tuple[float, float, float]:
+        n, e, d = self.est.axes
+        return n.p, e.p, d.p
+
+    def _height(self) -> float:
+        """Estimated height, m above the EKF origin (-z)."""
+        return -self.est.axes[2].p
