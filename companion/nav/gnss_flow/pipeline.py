@@ -5,10 +5,12 @@ Data flow (in the daemon's event loop, no I/O here):
 
 - GNSS fixes (Doppler velocity, NED m/s) -> :class:`~.pseudo_attitude.DopplerAccelerationFilter`
   -> pseudo roll, pitch, yaw (the attitude of the velocity vector) at each frame's capture time;
-- each new pair of camera frames -> grid Lucas-Kanade flow (:func:`.flow.grid_flow`) -> undistorted
-  normalised flow -> derotated by the body rates over the frame interval (the autopilot's gyro
-  when ``imu_sensor`` is configured and has samples in the interval, else the rates of the pseudo
-  Euler angles, :func:`.pseudo_attitude.body_rates_from_euler_rates`) -> focus of expansion ->
+- each new pair of camera frames (at most ``pair_rate_hz``) -> grid Lucas-Kanade flow
+  (:func:`.flow.grid_flow`) -> undistorted normalised flow -> derotated by the body rates over the
+  frame interval (the autopilot's gyro when ``imu_sensor`` is configured and has samples in the
+  interval, else the rates of the pseudo Euler angles over ``rate_baseline_s``,
+  :func:`.pseudo_attitude.body_rates_from_euler_rates`, their spin about the direction of travel
+  then re-estimated from the flow, :func:`spin_about_travel`) -> focus of expansion ->
   the direction of travel in the body at mid-interval -> its pitch and yaw offsets (the angle of
   attack and the drift angle) -> the true attitude: the pseudo-attitude's frame (x along the
   velocity, z along minus the normal specific force) turned by those offsets, the seed's "pseudo
@@ -69,6 +71,7 @@ from drivers.mount import OPTICAL_TO_SENSOR, Mount
 STREAM = "gnss_flow"
 COMPONENT = "nav:gnss_flow"
 IMU_HISTORY_S = 2.0  # IMU samples kept, s: covers a frame interval and the wait for the GNSS fix after it
+FRAME_SLACK = 0.1  # a frame up to this fraction of 1 / pair_rate_hz early is used (capture-time jitter)
 JACOBIAN_STEP = 1e-6  # central-difference step of the attitude covariance, rad and normalised units
 
 
@@ -83,9 +86,16 @@ class GnssFlowConfig:
     imu_sensor: str | None = field(default=None, metadata=meta(
         "Name (in `sensors`) of the autopilot's IMU (kind imu), optional: its gyro derotates the flow and its "
         "accelerometer checks the coordination; null: GNSS-derived body rates and the drift-angle check."))
+    pair_rate_hz: float = field(default=10.0, metadata=meta(
+        "Frames are used at most this often (the others are skipped): one flow per interval, each costing a "
+        "grid_flow (`companion bench`) in the nav loop; a longer interval gives the far ground more flow.",
+        (0.5, 100)))
     grid: tuple[int, int] = field(default=(45, 45), metadata=meta(
         "Flow grid, [columns, rows] of points spread over the image (seed: 45 x 45).", (2, 200)))
-    lk_window_px: int = field(default=21, metadata=meta("Lucas-Kanade window side, pixels (odd).", (5, 101)))
+    lk_window_px: int = field(default=15, metadata=meta(
+        "Lucas-Kanade window side, pixels (odd): a larger one biases the ground's flow, whose expansion varies "
+        "across the window (21 px put the angle of attack 0.6 deg low in tests/test_gnss_flow_pipeline.py, 15 "
+        "px 0.2 deg).", (5, 101)))
     lk_levels: int = field(default=3, metadata=meta("Lucas-Kanade pyramid levels above the image.", (0, 8)))
     fb_max_px: float = field(default=0.5, metadata=meta(
         "A grid point whose forward-backward tracking error exceeds this is dropped, pixels.", (0.01, 10)))
@@ -106,6 +116,9 @@ class GnssFlowConfig:
         "of expansion is very sensitive to a roll-rate error (1 deg/s turns the far ground's flow lines by tens of "
         "degrees), and the pseudo-roll's noise differenced over a frame interval gives several deg/s; longer is "
         "smoother and lags a roll-in by half of it.", (0.05, 5)))
+    spin_sweeps: int = field(default=2, metadata=meta(
+        "With GNSS-derived rates: times the turn rate about the direction of travel is re-estimated from the "
+        "flow's spiral around the focus of expansion (the pseudo roll rate's error), 0 = never.", (0, 10)))
     jerk_psd: float = field(default=0.5, metadata=meta(
         "White-jerk spectral density of the Doppler acceleration filter, m^2/s^5: lower is smoother but lags "
         "a roll-in more (pseudo_attitude.DopplerAccelerationFilter).", (0.001, 1000)))
@@ -150,6 +163,7 @@ class GnssFlowStats:
     fixes: int = 0  # GNSS fixes fed to the acceleration filter
     fixes_refused: int = 0  # no 3-D fix, no Doppler velocity, jamming, or out of time order
     frames: int = 0  # camera frames received
+    skipped_frames: int = 0  # within 1 / pair_rate_hz of the previous frame used
     flows: int = 0  # frame pairs whose flow gave a focus of expansion
     attitudes: int = 0  # attitude estimates given
     ranges: int = 0  # height-above-ground range estimates given
@@ -231,6 +245,32 @@ def true_euler_covariance(pseudo: PseudoAttitude, foe: FocusOfExpansion, forward
     return 0.5 * (cov + cov.T)
 
 
+def spin_about_travel(points_n: np.ndarray, flows_n: np.ndarray, translational: np.ndarray,
+                      foe: FocusOfExpansion, rates: np.ndarray, dt: float, cam_to_body: np.ndarray) -> float:
+    """The turn rate (rad/s) about the direction of travel that the derotation by ``rates`` (body
+    FRD rad/s over ``dt`` s) missed, from the flow itself: such a spin adds flow across every line
+    from the FOE (the flow lines spiral), the more so the farther the ground, where a shift of the
+    FOE turns the near lines most. Linearised least squares on the sines of the inliers' angles
+    to their lines from the FOE, for the spin and the FOE's shift together (the shift is left to
+    the next :func:`.flow.focus_of_expansion`). ``points_n``, ``flows_n`` and ``translational``
+    (its derotation by ``rates``) (N, 2) normalised; the camera ``cam_to_body``."""
+    inl = foe.inliers
+    points, flows = points_n[inl], translational[inl]
+
+    def sines(foe_n: np.ndarray, flow: np.ndarray) -> np.ndarray:
+        radial = points - foe_n
+        cross = radial[:, 0] * flow[:, 1] - radial[:, 1] * flow[:, 0]
+        return cross / (np.linalg.norm(radial, axis=1) * np.linalg.norm(flows, axis=1))
+
+    step = 1e-3  # rad/s and normalised units: the sines are linear in both to well below this
+    axis = cam_to_body @ foe.direction_cam  # body FRD
+    spun = derotate(points, flows_n[inl], rates + step * axis, dt, cam_to_body)
+    base = sines(foe.point_n, flows)
+    columns = [sines(foe.point_n, spun) - base] + [sines(foe.point_n + d, flows) - base for d in np.eye(2) * step]
+    solution, *_ = np.linalg.lstsq(np.column_stack(columns) / step, -base, rcond=None)
+    return float(solution[0])
+
+
 def midway(earlier: PseudoAttitude, later: PseudoAttitude) -> PseudoAttitude:
     """The pseudo-attitude half way between two (angles interpolated, yaw and roll wrapped;
     the covariance averaged)."""
@@ -260,6 +300,7 @@ class GnssFlowPipeline:
         self._fixes: deque[tuple[float, GnssFix]] = deque()  # (latency-corrected epoch s, fix), in arrival order
         self._newest_epoch = -math.inf  # of any fix received, s
         self._frames: deque[Frame] = deque()  # waiting for a fix at or after their capture
+        self._last_frame_s = -math.inf  # capture time of the newest frame kept, s
         self._imu: deque[ImuSample] = deque()
         self._pseudo_history: deque[PseudoAttitude] = deque()  # at the fixes of the last rate_baseline_s
         self._previous: _Stamped | None = None
@@ -283,6 +324,10 @@ class GnssFlowPipeline:
 
     def on_frame(self, frame: Frame) -> None:
         self.stats.frames += 1
+        if frame.t_capture - self._last_frame_s < (1 - FRAME_SLACK) / self.cfg.pair_rate_hz:
+            self.stats.skipped_frames += 1
+            return
+        self._last_frame_s = frame.t_capture
         self._frames.append(frame)
 
     def on_imu(self, sample: ImuSample) -> None:
@@ -390,6 +435,10 @@ class GnssFlowPipeline:
         rates = pseudo_euler_rates(earlier, mid)
         return wind_to_body(*self._offsets) @ body_rates_from_euler_rates(mid.roll, mid.pitch, rates), "gnss", None
 
+    def _foe(self, points_n: np.ndarray, translational: np.ndarray) -> FocusOfExpansion | None:
+        return focus_of_expansion(points_n, translational, threshold_deg=self.cfg.foe_threshold_deg,
+                                  min_flow=self.cfg.foe_min_flow_px / self.calibration.K[0, 0])
+
     def _pair(self, previous: _Stamped, current: _Stamped, dt: float) -> tuple[PairResult, list[Estimate]]:
         """The flow of one frame pair and what it gives (see the module docstring)."""
         cfg = self.cfg
@@ -398,7 +447,8 @@ class GnssFlowPipeline:
         flow = grid_flow(previous.grey, current.grey, tuple(cfg.grid), cfg.lk_window_px, cfg.lk_levels, cfg.fb_max_px)
         points_px, flows_px = flow.points_px[flow.valid], flow.flows_px[flow.valid]
         pseudo_euler = (mid.roll, mid.pitch, mid.yaw)
-        base = PairResult(mid.time_s, pseudo_euler, points_px, flows_px)
+        t_mid = 0.5 * (previous.frame.t_capture + current.frame.t_capture)  # mid's own time differs for a late frame
+        base = PairResult(t_mid, pseudo_euler, points_px, flows_px)
         points_n, flows_n = normalised_flow(points_px, flows_px, self.calibration)
         body_rates = self._rates(previous.frame.t_capture, current.frame.t_capture, mid)
         if body_rates is None:
@@ -407,8 +457,14 @@ class GnssFlowPipeline:
             return dataclasses.replace(base, status=reason), []
         rates, rates_source, specific_force = body_rates
         translational = derotate(points_n, flows_n, rates, dt, self.cam_to_body)
-        foe = focus_of_expansion(points_n, translational, threshold_deg=cfg.foe_threshold_deg,
-                                 min_flow=cfg.foe_min_flow_px / self.calibration.K[0, 0])
+        foe = self._foe(points_n, translational)
+        for _ in range(cfg.spin_sweeps if rates_source == "gnss" else 0):
+            if foe is None:
+                break
+            rates = rates + spin_about_travel(points_n, flows_n, translational, foe, rates, dt,
+                                              self.cam_to_body) * (self.cam_to_body @ foe.direction_cam)
+            translational = derotate(points_n, flows_n, rates, dt, self.cam_to_body)
+            foe = self._foe(points_n, translational)
         if foe is None:
             reason = f"no focus of expansion: {len(points_n)} flow vectors tracked"
             self._refuse(reason)
@@ -436,7 +492,7 @@ class GnssFlowPipeline:
             return dataclasses.replace(result, status=reason), []
         t_euler = tuple(float(a) for a in euler)
         cov = true_euler_covariance(mid, foe, forward, cam_to_mid_body)
-        estimates: list[Estimate] = [AttitudeEstimate(mid.time_s, t_euler, cov, source=self.name)]
+        estimates: list[Estimate] = [AttitudeEstimate(t_mid, t_euler, cov, source=self.name)]
         self.stats.attitudes += 1
         cam_to_level = rotation_from_euler(*t_euler) @ cam_to_mid_body  # the earlier camera's attitude
         agl = height_above_ground(points_n + translational, depth, cam_to_level, cfg.min_depression_deg)
