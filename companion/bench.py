@@ -89,13 +89,15 @@ def _row(name: str, median: float, p99: float) -> None:
 
 def run_bench(repeat: int) -> int:
     """Print every stage's median and p99 in ms: link, telemetry, SITL, lidar pipeline, laser-dot
-    pipeline (and its accuracy beside the markers-alone pose), fusion;
+    pipeline (and its accuracy beside the markers-alone pose), EKF-SLAM, GNSS + optic flow (and the
+    flow's accuracy), fusion, control;
     then the dashboard's publish-to-browser latency and CPU."""
     from companion.control.bench_control import control_figures, run_control_bench
     from companion.dashboard.bench import print_dashboard_figures
     from companion.nav.bench_fusion import run_fusion_bench
     from companion.nav.bench_stages import run_stage_bench
     from companion.nav.ekf_slam.bench_slam import run_slam_bench
+    from companion.nav.gnss_flow.bench_flow import run_flow_bench
     from companion.nav.laser_dots.bench_dots import run_dots_bench
 
     print(f"companion bench: {repeat} calls per stage, Python {platform.python_version()}, "
@@ -115,6 +117,12 @@ def run_bench(repeat: int) -> int:
     print("EKF-SLAM (a map of 100 landmarks, 303 states; issue 14: update <= 2 ms median):")
     for name, (median, p99) in run_slam_bench(repeat).items():
         _row(name, median, p99)
+    print("GNSS + optic flow (forward 90x90 deg camera, 100 m AGL, 20 m/s, 10 Hz; issue 15: LK <= 12 ms median):")
+    flow_stages, flow_accuracy = run_flow_bench(repeat)
+    for name, (median, p99) in flow_stages.items():
+        _row(name, median, p99)
+    for name, text in flow_accuracy.items():
+        print(f"  {name}: {text}")
     print("fusion (50 Hz Kalman filter):")
     for name, (median, p99) in run_fusion_bench(repeat).items():
         _row(name, median, p99)
