@@ -3,8 +3,9 @@ coordinated turn and camera frames rendered (cv2.warpPerspective) of a textured 
 the true camera poses.
 
 Scenario: 25 m/s level turn banked 20 deg at 40 m above the ground, angle of attack 3 deg, a
-forward camera pitched 30 deg down (90 x 74 deg field of view, 320 x 240; the horizon in view, untextured sky above it), frames at
-30 Hz, fixes at 10 Hz (0.02 m/s Doppler noise). Frames: NED world (ground at D = 0), body FRD.
+forward camera pitched 30 deg down (90 x 74 deg field of view, 320 x 240; the horizon in view,
+untextured sky above it), frames at 30 Hz (the pipeline uses every third), fixes at 10 Hz
+(0.02 m/s Doppler noise). Frames: NED world (ground at D = 0), body FRD.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import pytest
 
 from companion.calibration import CameraCalibration
 from companion.config import ConfigError, load_config
-from companion.frames import GRAVITY_MPS2, rotation_from_euler, wrap_pi
+from companion.frames import GRAVITY_MPS2, euler_from_rotation, rotation_from_euler, wrap_pi
 from companion.health import Health, State
 from companion.messages import GNSS_3D, AttitudeEstimate, Frame, GnssFix, ImuSample, RangeEstimate
 from companion.nav.gnss_flow.pipeline import GnssFlowConfig, GnssFlowPipeline
@@ -124,7 +125,8 @@ def run(pipeline: GnssFlowPipeline, frames: int = 13, imu: bool = False, stamp_l
     for arrival, kind, t in sorted(events):
         if kind == "fix":
             v = velocity(t) + rng.normal(0.0, 0.02, 3)
-            pipeline.on_fix(GnssFix("gps", t + stamp_late_s, GNSS_3D, 0.0, 0.0, 0.0, velocity_ned_mps=v, speed_acc_mps=0.02))
+            pipeline.on_fix(GnssFix("gps", t + stamp_late_s, GNSS_3D, 0.0, 0.0, 0.0, velocity_ned_mps=v,
+                                    speed_acc_mps=0.02))
         elif kind == "frame":
             pipeline.on_frame(Frame("cam", t, render(t, **attitude), sequence=round(t / FRAME_DT)))
         else:
@@ -143,17 +145,11 @@ def check_attitudes(estimates: list, tolerance_deg: float) -> list[AttitudeEstim
     attitudes = [e for e in estimates if isinstance(e, AttitudeEstimate)]
     assert attitudes
     for a in attitudes:
-        truth = np.degrees(euler_of(body_to_ned(a.t_capture)))
+        truth = np.degrees(euler_from_rotation(body_to_ned(a.t_capture)))
         error = [math.degrees(wrap_pi(math.radians(x - y))) for x, y in zip(np.degrees(a.euler_rad), truth)]
         assert np.all(np.abs(error) < tolerance_deg), (error, a.t_capture)
         assert np.all(np.isfinite(a.covariance)) and np.all(np.diag(a.covariance) > 0)
     return attitudes
-
-
-def euler_of(r: np.ndarray) -> np.ndarray:
-    from companion.frames import euler_from_rotation
-
-    return np.array(euler_from_rotation(r))
 
 
 @pytest.mark.parametrize("imu", [False, True], ids=["gnss_rates", "imu"])
@@ -166,10 +162,10 @@ def test_a_coordinated_turn_gives_the_attitude_and_the_height_above_ground(imu: 
     ranges = [e for e in estimates if isinstance(e, RangeEstimate)]
     assert len(ranges) == 4
     for r in ranges:
-        tilt = math.cos(BANK) * math.cos(ALPHA)  # along the body's down axis to flat ground
+        tilt = body_to_ned(r.t_capture)[2, 2]  # along the body's down axis to flat ground
         assert r.orientation == "down" and abs(r.distance_m * tilt - HEIGHT) < AGL_TOLERANCE * HEIGHT
         assert math.isfinite(r.variance_m2) and r.variance_m2 > 0
-    for e in estimates:  # nothing NaN but the covariance's unobserved entries (none here)
+    for e in estimates:  # nothing NaN
         values = [e.distance_m] if isinstance(e, RangeEstimate) else list(e.euler_rad)
         assert all(math.isfinite(v) for v in values)
     assert pipeline.stats.uncoordinated == 0 and pipeline.stats.attitudes == 4
@@ -228,3 +224,15 @@ def test_receiver_latency_is_compensated() -> None:
     yaw = [e.euler_rad[2] for e in (reference[0], compensated[0], late[0])]
     assert abs(yaw[1] - yaw[0]) < 1e-9
     assert abs(math.degrees(yaw[2] - yaw[0])) > 0.5
+
+
+def test_frames_of_another_size_than_the_calibration_are_refused_and_no_pairs_lose_the_health() -> None:
+    pipeline, health = make()
+    for t in np.arange(-2.0, 0.01, FIX_DT):
+        pipeline.on_fix(GnssFix("gps", t, GNSS_3D, 0.0, 0.0, 0.0, velocity_ned_mps=velocity(t), speed_acc_mps=0.02))
+    for t in (0.0, 0.1):
+        pipeline.on_frame(Frame("cam", t - 0.1, np.zeros((HEIGHT_PX // 2, WIDTH // 2), np.uint8)))
+    assert pipeline.step(0.1) == []
+    assert "calibration is for 320x240" in health.get("nav:gnss_flow").reason
+    pipeline.step(2.5)
+    assert health.get("nav:gnss_flow").state == State.LOST

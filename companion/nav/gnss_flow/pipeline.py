@@ -72,12 +72,13 @@ STREAM = "gnss_flow"
 COMPONENT = "nav:gnss_flow"
 IMU_HISTORY_S = 2.0  # IMU samples kept, s: covers a frame interval and the wait for the GNSS fix after it
 FRAME_SLACK = 0.1  # a frame up to this fraction of 1 / pair_rate_hz early is used (capture-time jitter)
+LOST_AFTER_S = 2.0  # no frame pair processed for this long (no frames, or no GNSS): health lost, s
 JACOBIAN_STEP = 1e-6  # central-difference step of the attitude covariance, rad and normalised units
 
 
 @dataclass
 class GnssFlowConfig:
-    """``pipelines.gnss_flow``: a fixed wing's attitude and height above ground from GNSS and optic flow (Roberts et al.)."""
+    """``pipelines.gnss_flow``: a fixed wing's attitude and height above ground from GNSS and optic flow."""
 
     gnss: str = field(metadata=meta("Name (in `sensors`) of the GNSS receiver (kind gnss, with Doppler velocity)."))
     camera: str = field(metadata=meta("Name (in `sensors`) of the forward-looking camera (kind camera)."))
@@ -299,6 +300,7 @@ class GnssFlowPipeline:
         self._newest_epoch = -math.inf  # of any fix received, s
         self._frames: deque[Frame] = deque()  # waiting for a fix at or after their capture
         self._last_frame_s = -math.inf  # capture time of the newest frame kept, s
+        self._last_pair_s: float | None = None  # capture time of the newest pair's later frame, s
         self._imu: deque[ImuSample] = deque()
         self._pseudo_history: deque[PseudoAttitude] = deque()  # at the fixes of the last rate_baseline_s
         self._previous: _Stamped | None = None
@@ -350,6 +352,8 @@ class GnssFlowPipeline:
             self._refuse(f"no GNSS fix within {self.filter.max_gap_s:g} s of the frame")
             self._frames.clear()
             self._previous = None
+        if self._last_pair_s is not None and now - self._last_pair_s > LOST_AFTER_S:
+            self.health.report(COMPONENT, State.LOST, f"no frame pair with GNSS for {LOST_AFTER_S:g} s")
         if out or self._frames:
             self.timings["gnss_flow"].add((time.perf_counter() - started) * 1e3)
         return out
@@ -403,7 +407,13 @@ class GnssFlowPipeline:
     def _process(self, frame: Frame) -> list[Estimate]:
         current = self._stamp(frame)
         previous, self._previous = self._previous, current
-        if previous is None or previous.grey.shape != current.grey.shape:
+        if previous is None:
+            return []
+        self._last_pair_s = current.frame.t_capture
+        size = current.grey.shape[::-1]
+        if size != (self.calibration.width, self.calibration.height) or previous.grey.shape != current.grey.shape:
+            self._refuse(f"frame size {size[0]}x{size[1]}: the calibration is for "
+                         f"{self.calibration.width}x{self.calibration.height}")
             return []
         dt = current.frame.t_capture - previous.frame.t_capture
         if previous.pseudo is None or current.pseudo is None:
