@@ -11,20 +11,24 @@ untextured sky above it), frames at 30 Hz (the pipeline uses every third), fixes
 from __future__ import annotations
 
 import math
+import shutil
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
+from companion import plugins
 from companion.calibration import CameraCalibration
 from companion.config import ConfigError, load_config
 from companion.frames import GRAVITY_MPS2, euler_from_rotation, rotation_from_euler, wrap_pi
 from companion.health import Health, State
 from companion.messages import GNSS_3D, AttitudeEstimate, Frame, GnssFix, ImuSample, RangeEstimate
 from companion.nav.gnss_flow.pipeline import GnssFlowConfig, GnssFlowPipeline
+from companion.pipeline import PipelineContext
 from drivers.mount import OPTICAL_TO_SENSOR, Mount
 
+REPO = Path(__file__).resolve().parent.parent
 SPEED = 25.0  # m/s
 BANK = math.radians(20.0)
 ALPHA = math.radians(3.0)  # angle of attack (still air)
@@ -197,18 +201,34 @@ def test_without_an_imu_a_large_drift_angle_is_flagged() -> None:
     assert "drift" in health.get("nav:gnss_flow").reason
 
 
-def test_a_camera_that_names_a_sensor_of_another_kind_is_refused(tmp_path: Path) -> None:
+SENSORS = ("origin: {lat: 1.0, lon: 2.0, alt: 3.0}\n"
+           "sensors:\n"
+           "  gps: {kind: gnss, backend: autopilot}\n"
+           "  imu: {kind: imu, backend: autopilot}\n"
+           "  cam: {kind: camera, backend: real, settings: {device: 0}, mount: {rpy_deg: [0, -30, 0]}}\n")
+
+
+def test_the_registry_builds_it_from_a_config(tmp_path: Path) -> None:
+    shutil.copy(REPO / "config" / "cameras" / "down-60-640.yaml", tmp_path / "cam.yaml")
     config = tmp_path / "c.yaml"
-    config.write_text(
-        "origin: {lat: 1.0, lon: 2.0, alt: 3.0}\n"
-        "sensors:\n"
-        "  gps: {kind: gnss, backend: autopilot}\n"
-        "  imu: {kind: imu, backend: autopilot}\n"
-        "pipelines:\n"
-        "  gnss_flow: {gnss: gps, camera: imu, calibration: cam.yaml}\n")
+    config.write_text(SENSORS + "pipelines:\n  gnss_flow: {gnss: gps, camera: cam, calibration: cam.yaml, imu_sensor: imu}\n")
+    cfg = load_config(config)
+    entry = plugins.pipeline("gnss_flow")
+    assert entry is not None and not entry.poses
+    pipeline = entry.build(cfg.pipelines.enabled["gnss_flow"], PipelineContext(cfg, Health(lambda: 0.0)))
+    assert set(pipeline.subscriptions()) == {"gps", "cam", "imu"}
+    assert np.allclose(pipeline.cam_to_body @ [0.0, 0.0, 1.0], [math.cos(math.radians(30)), 0.0,
+                                                                 math.sin(math.radians(30))])
+
+
+@pytest.mark.parametrize("key, value", [("camera", "imu"), ("gnss", "cam"), ("imu_sensor", "gps")])
+def test_a_sensor_of_another_kind_is_refused(tmp_path: Path, key: str, value: str) -> None:
+    section = {"gnss": "gps", "camera": "cam", "calibration": "cam.yaml", key: value}
+    config = tmp_path / "c.yaml"
+    config.write_text(SENSORS + "pipelines:\n  gnss_flow: {" + ", ".join(f"{k}: {v}" for k, v in section.items()) + "}\n")
     with pytest.raises(ConfigError) as exc:
         load_config(config)
-    assert "pipelines.gnss_flow.camera" in str(exc.value) and "not a camera" in str(exc.value)
+    assert f"pipelines.gnss_flow.{key}" in str(exc.value) and "is not a" in str(exc.value)
 
 
 def test_receiver_latency_is_compensated() -> None:
