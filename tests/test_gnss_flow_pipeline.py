@@ -211,7 +211,8 @@ SENSORS = ("origin: {lat: 1.0, lon: 2.0, alt: 3.0}\n"
 def test_the_registry_builds_it_from_a_config(tmp_path: Path) -> None:
     shutil.copy(REPO / "config" / "cameras" / "down-60-640.yaml", tmp_path / "cam.yaml")
     config = tmp_path / "c.yaml"
-    config.write_text(SENSORS + "pipelines:\n  gnss_flow: {gnss: gps, camera: cam, calibration: cam.yaml, imu_sensor: imu}\n")
+    config.write_text(SENSORS + "pipelines:\n"
+                      "  gnss_flow: {gnss: gps, camera: cam, calibration: cam.yaml, imu_sensor: imu}\n")
     cfg = load_config(config)
     entry = plugins.pipeline("gnss_flow")
     assert entry is not None and not entry.poses
@@ -225,7 +226,8 @@ def test_the_registry_builds_it_from_a_config(tmp_path: Path) -> None:
 def test_a_sensor_of_another_kind_is_refused(tmp_path: Path, key: str, value: str) -> None:
     section = {"gnss": "gps", "camera": "cam", "calibration": "cam.yaml", key: value}
     config = tmp_path / "c.yaml"
-    config.write_text(SENSORS + "pipelines:\n  gnss_flow: {" + ", ".join(f"{k}: {v}" for k, v in section.items()) + "}\n")
+    written = ", ".join(f"{k}: {v}" for k, v in section.items())
+    config.write_text(SENSORS + "pipelines:\n  gnss_flow: {" + written + "}\n")
     with pytest.raises(ConfigError) as exc:
         load_config(config)
     assert f"pipelines.gnss_flow.{key}" in str(exc.value) and "is not a" in str(exc.value)
