@@ -291,6 +291,9 @@ class SitlConfig:
     """Used only by `companion sitl` (the harness), never by the daemon on a vehicle."""
 
     world: str = field(default="worlds/arena.yaml", metadata=meta("World YAML (relative to this file)."))
+    vehicle: Literal["copter", "plane"] = field(default="copter", metadata=meta(
+        "The built-in simulated vehicle: copter = ArduCopter-like quadrotor, plane = ArduPlane-like fixed wing "
+        "(ArduPlane modes; it takes off from a runway at `start` along its heading)."))
     vehicle_url: str = field(default="udpin:127.0.0.1:14555", metadata=meta(
         "Where the simulated vehicle listens for the companion (the daemon gets the matching udpout URL)."))
     gcs_urls: list[str] = field(default_factory=lambda: ["udpout:127.0.0.1:14550"], metadata=meta(

@@ -181,7 +181,8 @@ def vehicle_command(cfg: Config, args: argparse.Namespace, log_path: Path,
            "--home", f"{cfg.origin.lat},{cfg.origin.lon},{cfg.origin.alt}",
            "--position-source", s.position_source,
            "--wind", ",".join(str(w) for w in s.wind_ned_mps), "--gust", str(s.gust_mps),
-           "--start", ",".join(str(v) for v in start), "--sysid", str(cfg.vehicle.autopilot_sysid)]
+           "--start", ",".join(str(v) for v in start), "--sysid", str(cfg.vehicle.autopilot_sysid),
+           "--vehicle", s.vehicle]
     for url in (*s.gcs_urls, *extra_gcs):
         cmd += ["--gcs", url]
     if not s.gps:

@@ -173,10 +173,8 @@ class AutopilotState:
                 raise ValueError(f"PX4 has no mode {name!r}")
             base_mode, main, sub = mavutil.px4_map[name]
             return base_mode, (main << 16) | (sub << 24)
-        by_name = {v: k for k, v in mavutil.mode_mapping_acm.items()}
-        if name not in by_name:
-            raise ValueError(f"ArduPilot Copter has no mode {name!r}")
-        return base, by_name[name]
+        firmware = self.firmware or Firmware(self.link.autopilot or "unknown", "copter")
+        return base, firmware.ardupilot_mode_number(name)
 
     # -- handlers ---------------------------------------------------------------------------
 

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
 
 VEHICLE_TYPES = {
@@ -32,6 +33,10 @@ VEHICLE_TYPES = {
 FIRMWARE_TYPES = {mavlink.FIRMWARE_VERSION_TYPE_DEV: "dev", mavlink.FIRMWARE_VERSION_TYPE_ALPHA: "alpha",
                   mavlink.FIRMWARE_VERSION_TYPE_BETA: "beta", mavlink.FIRMWARE_VERSION_TYPE_RC: "rc",
                   mavlink.FIRMWARE_VERSION_TYPE_OFFICIAL: ""}
+# ArduPilot custom_mode numbers by vehicle (ArduCopter's for anything else, as before)
+ARDUPILOT_MODES: dict[str, dict[int, str]] = {
+    "copter": mavutil.mode_mapping_acm, "plane": mavutil.mode_mapping_apm, "rover": mavutil.mode_mapping_rover,
+    "sub": mavutil.mode_mapping_sub}
 ORIGIN_FRAME_SINCE = (4, 1, 0)  # ArduPilot: LOCAL_POSITION_NED and setpoint z relative to the EKF origin
 COPTER_ACCELERATION_SINCE = (4, 1, 0)  # ArduPilot Copter: GUIDED takes pos + vel + acc targets
 
@@ -79,6 +84,14 @@ class Firmware:
         if self.autopilot != "ArduPilot" or self.version is None:
             return None
         return self.version >= COPTER_ACCELERATION_SINCE
+
+    def ardupilot_mode_number(self, name: str) -> int:
+        """ArduPilot custom_mode of mode ``name`` on this vehicle (ArduPlane's GUIDED is 15, ArduCopter's 4);
+        ValueError if it has none."""
+        by_name = {v: k for k, v in ARDUPILOT_MODES.get(self.vehicle, mavutil.mode_mapping_acm).items()}
+        if name not in by_name:
+            raise ValueError(f"ArduPilot {self.vehicle} has no mode {name!r}")
+        return by_name[name]
 
     @property
     def params_bytewise(self) -> bool:

@@ -2,7 +2,9 @@
 
 ``python -m sitl.vehicle --companion udpin:127.0.0.1:14555 [--gcs udpout:127.0.0.1:14550] ...``
 
-It wraps :class:`sitl.copter.SimulatedCopter` (physics, flight controller, estimator) and speaks
+It wraps :class:`sitl.copter.SimulatedCopter` (physics, flight controller, estimator), or with
+``--vehicle plane`` :class:`sitl.plane.SimulatedPlane` (an ArduPlane-like fixed wing: HEARTBEAT
+type MAV_TYPE_FIXED_WING, ArduPlane custom modes), and speaks
 MAVLink 2 as system ``--sysid``, component 1 (MAV_COMP_ID_AUTOPILOT1) on one pymavlink connection
 per link: the companion link and any number of ground-station links. Like ArduPilot, each link
 has its own stream intervals (SET_MESSAGE_INTERVAL, REQUEST_DATA_STREAM), commands are ACKed on

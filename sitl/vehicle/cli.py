@@ -48,6 +48,9 @@ def parse_args(argv: Sequence[str] | None = None) -> VehicleConfig:
     p.add_argument("--gust", type=float, default=None, help="gust standard deviation (m/s)")
     p.add_argument("--start", type=_floats(3), default=(0.0, 0.0, 0.0), help="start pose N,E,YAW_DEG (m, m, deg)")
     p.add_argument("--sysid", type=int, default=1)
+    p.add_argument("--vehicle", choices=("copter", "plane"), default="copter",
+                   help="airframe and autopilot: ArduCopter-like quadrotor or ArduPlane-like fixed wing (on a runway "
+                        "at --start, taking off along its heading)")
     p.add_argument("--refuse-interval", type=int, action="append", default=[], metavar="MSGID",
                    help="answer SET_MESSAGE_INTERVAL for this message id with MAV_RESULT_FAILED, as ArduPilot 4.0 does "
                         "for HIGHRES_IMU (105) and SIM_STATE (108) (repeatable)")
@@ -67,7 +70,7 @@ def parse_args(argv: Sequence[str] | None = None) -> VehicleConfig:
         companion=a.companion, gcs=tuple(a.gcs), lockstep=a.lockstep, tick_s=a.tick, seed=a.seed,
         seconds=a.seconds, log=a.log, home=a.home, gps=not a.no_gps, position_source=a.position_source,
         wind_ned_mps=a.wind, gust_mps=a.gust, start=a.start, sysid=a.sysid, legacy_streams=a.legacy_streams,
-        refuse_intervals=tuple(a.refuse_interval), signing_key=key)
+        refuse_intervals=tuple(a.refuse_interval), signing_key=key, airframe=a.vehicle)
 
 
 @contextmanager

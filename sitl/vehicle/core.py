@@ -1,4 +1,5 @@
-"""The simulated vehicle: a SimulatedCopter behind ArduPilot-like MAVLink links, put together from its parts."""
+"""The simulated vehicle: a SimulatedCopter or SimulatedPlane behind ArduPilot-like MAVLink links, put together
+from its parts."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from companion.mavlink.signing import require_signatures
 from sitl.copter import SimulatedCopter, WindConfig
+from sitl.plane import SimulatedPlane
 from sitl.flight_log import FlightLog
 from sitl.vehicle.commands import CommandsMixin
 from sitl.vehicle.link import Link
@@ -22,6 +24,7 @@ from sitl.vehicle.state import StateTrackingMixin
 SIGNING_LINK_ID = 0  # the link id in the companion link's signatures
 DEFAULT_HOME = (1.2966, 103.7764, 10.0)
 UNIX_EPOCH_LOCKSTEP_S = 1_735_689_600  # SYSTEM_TIME epoch at sim zero in lockstep: 2025-01-01T00:00Z
+AIRFRAMES: dict[str, type[SimulatedCopter] | type[SimulatedPlane]] = {"copter": SimulatedCopter, "plane": SimulatedPlane}
 
 
 @dataclass(frozen=True)
@@ -45,12 +48,14 @@ class VehicleConfig:
     legacy_streams: bool = False  # like older firmware: SET_MESSAGE_INTERVAL unknown, REQUEST_DATA_STREAM only
     refuse_intervals: tuple[int, ...] = ()  # message ids whose SET_MESSAGE_INTERVAL fails, as on ArduPilot 4.0
     signing_key: bytes | None = None  # MAVLink 2 signing on the companion link (--signing-key)
+    airframe: str = "copter"  # --vehicle: "copter" (ArduCopter-like) or "plane" (ArduPlane-like)
 
 
 class Vehicle(RunLoopMixin, ReceivingMixin, CommandsMixin, StateTrackingMixin, MessagesMixin):
-    """The simulated autopilot: a SimulatedCopter behind ArduPilot-like MAVLink links.
+    """The simulated autopilot: a SimulatedCopter or SimulatedPlane behind ArduPilot-like MAVLink links.
 
-    Its parts (sitl/vehicle/*.py) are mixins sharing this object's attributes, which are all set here.
+    Its parts (sitl/vehicle/*.py) are mixins sharing this object's attributes, which are all set here;
+    ``copter`` is the simulated vehicle whichever its airframe.
     """
 
     def __init__(self, cfg: VehicleConfig) -> None:
@@ -59,7 +64,9 @@ class Vehicle(RunLoopMixin, ReceivingMixin, CommandsMixin, StateTrackingMixin, M
         self.tick_us = int(round(cfg.tick_s * 1e6))
         if self.tick_us <= 0:
             raise ValueError("--tick must be at least 1 us")
-        self.copter = SimulatedCopter(
+        if cfg.airframe not in AIRFRAMES:
+            raise ValueError(f"--vehicle must be one of {sorted(AIRFRAMES)}, not {cfg.airframe!r}")
+        self.copter: SimulatedCopter | SimulatedPlane = AIRFRAMES[cfg.airframe](
             seed=cfg.seed, home=cfg.home, gps_enabled=cfg.gps, position_source=cfg.position_source,
             wind=_wind(cfg), start_ned=(cfg.start[0], cfg.start[1], 0.0),
             start_yaw_rad=math.radians(cfg.start[2]))

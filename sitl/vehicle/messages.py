@@ -18,8 +18,6 @@ CAPABILITIES = (
     | mav.MAV_PROTOCOL_CAPABILITY_MISSION_INT
     | mav.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
 )
-MODE_GUIDED = 4  # ArduCopter custom_mode numbers
-MODE_LAND = 9
 # Approximate geomagnetic field at the default home (Singapore), NED, gauss.
 EARTH_FIELD_NED_GAUSS = np.array([0.40, 0.0, -0.12])
 UINT16_MAX = 65535
@@ -63,13 +61,13 @@ class MessagesMixin:
     def _heartbeat(self) -> mav.MAVLink_message:
         c = self.copter
         base = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | mav.MAV_MODE_FLAG_STABILIZE_ENABLED
-        if c.mode == MODE_GUIDED:
+        if c.guided:
             base |= mav.MAV_MODE_FLAG_GUIDED_ENABLED
         if c.armed:
             base |= mav.MAV_MODE_FLAG_SAFETY_ARMED
         status = mav.MAV_STATE_ACTIVE if c.armed else mav.MAV_STATE_STANDBY
         return mav.MAVLink_heartbeat_message(
-            mav.MAV_TYPE_QUADROTOR, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, base, c.mode, status, 3)
+            c.MAV_TYPE, mav.MAV_AUTOPILOT_ARDUPILOTMEGA, base, c.mode, status, 3)
 
     def _attitude(self) -> mav.MAVLink_message:
         """Estimated attitude (rad) and IMU body rates (rad/s)."""
@@ -214,7 +212,7 @@ class MessagesMixin:
         c = self.copter
         if c.landed:
             landed = mav.MAV_LANDED_STATE_ON_GROUND
-        elif c.mode == MODE_LAND:
+        elif c.landing:
             landed = mav.MAV_LANDED_STATE_LANDING
         else:
             landed = mav.MAV_LANDED_STATE_IN_AIR
