@@ -106,6 +106,10 @@ class GnssFlowConfig:
     foe_threshold_deg: float = field(default=5.0, metadata=meta(
         "A translational flow vector within this angle of its line from the focus of expansion is a RANSAC "
         "inlier, degrees.", (0.1, 45)))
+    foe_iterations: int = field(default=50, metadata=meta(
+        "RANSAC draws of two flow lines for the focus of expansion (each votes over every flow vector; the least "
+        "squares fit on the winner's inliers follows): 50 find an inlier pair at once with half the flow outliers.",
+        (1, 1000)))
     receiver_latency_s: float = field(default=0.0, metadata=meta(
         "GNSS receiver latency the backend did not remove: a fix is used at t_capture minus this, s (0 when the "
         "backend's latency_s is set or it stamps the solution's epoch, as `backend: sim` does).", (0, 2)))
@@ -445,6 +449,7 @@ class GnssFlowPipeline:
 
     def _foe(self, points_n: np.ndarray, translational: np.ndarray) -> FocusOfExpansion | None:
         return focus_of_expansion(points_n, translational, threshold_deg=self.cfg.foe_threshold_deg,
+                                  iterations=self.cfg.foe_iterations,
                                   min_flow=self.cfg.foe_min_flow_px / self.calibration.K[0, 0])
 
     def _pair(self, previous: _Stamped, current: _Stamped, dt: float) -> tuple[PairResult, list[Estimate]]:
