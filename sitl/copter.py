@@ -7,8 +7,11 @@ What it shares with the fixed wing (sensors, estimator, snapshots, commands) is
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
+from companion.frames import GRAVITY_MPS2
 from sitl.dynamics import AirframeParams, GaussianStream, QuadrotorDynamics, WindConfig
 from sitl.flight_control import GUIDED, LAND, ControlLimits, FlightController
 from sitl.simulated_vehicle import EstimateState, GpsSample, ImuSample, SimulatedVehicle, TruthState
@@ -68,6 +71,17 @@ class SimulatedCopter(SimulatedVehicle):
     def landing(self) -> bool:
         """In LAND."""
         return self._fc.mode == LAND
+
+    @property
+    def airspeed_mps(self) -> float:
+        """What it reports as airspeed without a pitot: the estimated horizontal speed, m/s."""
+        n, e, _ = self._est.axes
+        return math.hypot(n.v, e.v)
+
+    @property
+    def throttle_percent(self) -> float:
+        """Collective thrust as a percentage, 50 at hover (from the true vertical specific force)."""
+        return 50.0 * -self._dyn.fz / GRAVITY_MPS2
 
     def land(self) -> tuple[bool, str]:
         """Switch to LAND."""

@@ -57,6 +57,7 @@ class SimulatedPlane(SimulatedVehicle):
         dyn = FixedWingDynamics(noise=streams[0], params=params, wind=wind, start_ned=start_ned,
                                 start_yaw_rad=start_yaw_rad, start_airspeed_mps=start_airspeed_mps)
         self._airspeed = Airspeed(streams[6])
+        self._last_throttle = 0.0
         self._attach(dyn, PlaneController(status=self._status, estimator=self._est, limits=limits))
         self._airspeed.sample(dyn.airspeed)
         if not dyn.on_ground:  # the autopilot was started in flight: its estimate starts at the truth
@@ -67,8 +68,9 @@ class SimulatedPlane(SimulatedVehicle):
 
     def _substep(self) -> None:
         imu, dyn = self._imu, self._dyn
-        dyn.step(self._dt, self._fc.update(self.t, self._dt, (imu.gx, imu.gy, imu.gz), imu.ax,
-                                           self._airspeed.airspeed_mps))
+        command = self._fc.update(self.t, self._dt, (imu.gx, imu.gy, imu.gz), imu.ax, self._airspeed.airspeed_mps)
+        self._last_throttle = command.throttle
+        dyn.step(self._dt, command)
         self._airspeed.sample(dyn.airspeed)
         self._sense()
 
@@ -87,6 +89,11 @@ class SimulatedPlane(SimulatedVehicle):
     def airspeed_mps(self) -> float:
         """Latest pitot reading, m/s."""
         return self._airspeed.airspeed_mps
+
+    @property
+    def throttle_percent(self) -> float:
+        """The autopilot's throttle output, %."""
+        return 100.0 * self._last_throttle
 
     @property
     def aero(self) -> tuple[float, float, float, bool]:

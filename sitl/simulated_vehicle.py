@@ -103,7 +103,8 @@ class SimulatedVehicle:
     the estimator here, the rest for the subclass.
 
     For the MAVLink process a subclass also tells ``MAV_TYPE`` (its HEARTBEAT type) and the
-    properties ``guided`` (in the mode that takes position targets) and ``landing`` (landing now).
+    properties ``guided`` (in the mode that takes position targets), ``landing`` (landing now),
+    ``airspeed_mps`` and ``throttle_percent`` (VFR_HUD).
     """
 
     MAV_TYPE: int

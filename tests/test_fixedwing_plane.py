@@ -128,6 +128,8 @@ def test_in_flight_start_and_takeoff_mode() -> None:
     assert plane.armed and not plane.landed and plane.mode == GUIDED
     plane.step(20.0)
     assert abs(plane.truth.pos_ned[2] + 80.0) < 3.0
+    assert abs(plane.airspeed_mps - plane.aero[0]) < 1.5  # the pitot
+    assert 10.0 < plane.throttle_percent < 60.0
     runway = ready(seed=5)
     assert runway.set_mode(TAKEOFF) == (True, "")
     runway.step(30.0)

@@ -201,12 +201,9 @@ class MessagesMixin:
         vn, ve, vd = (float(v) for v in est.vel_ned)
         location = self._estimated_location()
         alt = location[2] if location is not None else float(c.baro_alt_m)
-        throttle = 0
-        if c.armed and not c.landed:
-            throttle = _clamp_int(50.0 * -float(c.truth.accel_body[2]) / GRAVITY_MPS2, 0, 100)
-        speed = math.hypot(vn, ve)
+        throttle = _clamp_int(c.throttle_percent, 0, 100) if c.armed and not c.landed else 0
         heading = int(math.degrees(float(est.euler[2])) % 360.0) % 360
-        return mav.MAVLink_vfr_hud_message(speed, speed, heading, throttle, alt, -vd)
+        return mav.MAVLink_vfr_hud_message(float(c.airspeed_mps), math.hypot(vn, ve), heading, throttle, alt, -vd)
 
     def _extended_sys_state(self) -> mav.MAVLink_message:
         c = self.copter
