@@ -131,6 +131,7 @@ class Tecs:
         if climb_d is None:
             climb_d = (height_d - height) / self.tau_s + climb_ff
         climb_d = max(-lim.sink_max_mps, min(lim.climb_max_mps, climb_d))
+        airspeed_d = max(lim.airspeed_min_mps, min(lim.airspeed_max_mps, airspeed_d))
         vdot_d = max(-2.0, min(2.0, 0.4 * (airspeed_d - airspeed)))
         ste_d, ste = v * vdot_d + g * climb_d, v * self._vdot + g * climb
         ste_err = (ste_d - ste) / g

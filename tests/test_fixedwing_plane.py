@@ -144,3 +144,18 @@ def test_a_seed_gives_the_same_flight() -> None:
         plane.step(10.0)
         runs.append(plane.truth.pos_ned)
     assert np.array_equal(runs[0], runs[1])
+
+
+def test_a_rudder_offset_makes_the_flight_uncoordinated_until_it_is_removed() -> None:
+    plane = SimulatedPlane(seed=6, home=HOME, start_ned=(0.0, 0.0, -80.0), start_airspeed_mps=17.0)
+    plane.step(5.0)
+    assert abs(plane.aero[2]) < math.radians(1.0)
+    plane.set_rudder(0.15)
+    plane.step(3.0)
+    assert abs(plane.aero[2]) > math.radians(3.0)
+    assert abs(plane.truth.accel_body[1]) > 0.5  # the accelerometer feels the side force
+    plane.set_rudder(float("nan"))
+    assert plane.nonfinite_rejected == 1
+    plane.set_rudder(0.0)
+    plane.step(3.0)
+    assert abs(plane.aero[2]) < math.radians(1.0)
