@@ -54,7 +54,11 @@ class PipelineEntry:
     ``poses``: the pipeline produces poses (False for one that only gives attitude or range estimates).
     ``heading``: the yaw of its poses is a heading measurement of its own (walls, floor markers);
     False for one that carries the autopilot's heading forward (the autopilot must then keep its
-    compass: ``companion setup-autopilot`` turns it off only when every pose source measures heading)."""
+    compass: ``companion setup-autopilot`` turns it off only when every pose source measures heading).
+    ``position_sigma_m``: the typical 1-sigma of its horizontal positions, m: ArduPilot 4.0's EKF2
+    ignores the covariance sent with an estimate and takes ``EK2_POSNE_M_NSE`` instead, which
+    ``setup-autopilot`` sets to the largest of the pose sources' (an EKF told 0.1 m about a
+    GNSS-grade source was pulled about by its noise until its heading parted from its gyro)."""
 
     name: str
     config: type
@@ -64,6 +68,7 @@ class PipelineEntry:
     module: str = ""
     advise: Callable[[Any, Any], list[str]] | None = None
     heading: bool = True  # its poses' yaw is measured by the pipeline (not the autopilot's heading carried on)
+    position_sigma_m: float = 0.1  # typical 1-sigma of its horizontal positions, m
 
 
 _BACKENDS: dict[tuple[str, str], BackendEntry] = {}
@@ -82,12 +87,12 @@ def register_backend(kind: str, backend: str, settings: type,
 
 def register_pipeline(name: str, config: type, check_files: Callable[[Any, Any], None] | None = None,
                       poses: bool = True, advise: Callable[[Any, Any], list[str]] | None = None,
-                      heading: bool = True) -> Callable[[Any], Any]:
+                      heading: bool = True, position_sigma_m: float = 0.1) -> Callable[[Any], Any]:
     """Class or function decorator: ``build(section, ctx)`` makes the pipeline ``name`` (the
     arguments: :class:`PipelineEntry`)."""
     def decorate(build: Any) -> Any:
         _add(_PIPELINES, name, PipelineEntry(name, config, build, check_files, poses, build.__module__, advise,
-                                             heading))
+                                             heading, position_sigma_m))
         return build
     return decorate
 

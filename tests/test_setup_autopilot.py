@@ -24,7 +24,7 @@ def lidar_config(tmp_path: Path):  # noqa: ANN201
 
 def test_arducopter_40_gets_ekf2_external_navigation_and_keeps_every_arming_check_but_gps(tmp_path: Path) -> None:
     params = {"GPS_TYPE": 1, "EK2_GPS_TYPE": 0, "VISO_TYPE": 0, "COMPASS_USE": 1, "COMPASS_USE2": 1,
-              "COMPASS_USE3": 1, "ARMING_CHECK": 1, "FS_EKF_ACTION": 1, "FS_THR_ENABLE": 1}
+              "COMPASS_USE3": 1, "ARMING_CHECK": 1, "FS_EKF_ACTION": 1, "FS_THR_ENABLE": 1, "EK2_POSNE_M_NSE": 0.1}
     needed = requirements(COPTER_40, lidar_config(tmp_path), params)
     diff = {d.name: d for d in differences(needed, params)}
     assert set(diff) == {"GPS_TYPE", "EK2_GPS_TYPE", "VISO_TYPE", "COMPASS_USE", "COMPASS_USE2", "COMPASS_USE3",
@@ -51,14 +51,16 @@ def test_the_companion_port_gets_mavlink_2_at_921600_when_the_config_names_it(tm
     assert diff["SERIAL2_PROTOCOL"].wanted == 2 and diff["SERIAL2_BAUD"].wanted == 921 and diff["SERIAL2_BAUD"].reboot
 
 
-def test_a_pose_source_that_carries_the_autopilots_heading_keeps_its_compass() -> None:
+def test_a_gnss_grade_pose_source_keeps_the_compass_and_gets_its_noise_in_ekf2() -> None:
     """ekf_slam follows the autopilot's heading: with the compass off, EKF2 would take its yaw from
-    the SLAM and the SLAM from EKF2, and neither would know the true heading."""
+    the SLAM and the SLAM from EKF2, and neither would know the true heading. EKF2 4.0 takes its
+    position noise from EK2_POSNE_M_NSE, not the message: the SLAM's 0.7 m, not the lidar's 0.1."""
     cfg = load_config(REPO / "config" / "sitl-outdoor.yaml")
     params40 = {"GPS_TYPE": 1, "EK2_GPS_TYPE": 0, "VISO_TYPE": 0, "COMPASS_USE": 0, "COMPASS_USE2": 1,
-                "COMPASS_USE3": 1, "ARMING_CHECK": 1}
+                "COMPASS_USE3": 1, "ARMING_CHECK": 1, "EK2_POSNE_M_NSE": 0.1}
     diff = {d.name: d.wanted for d in differences(requirements(COPTER_40, cfg, params40), params40)}
     assert diff["COMPASS_USE"] == 1 and "COMPASS_USE2" not in diff and diff["EK2_GPS_TYPE"] == 3
+    assert diff["EK2_POSNE_M_NSE"] == 0.7
     params45 = {"GPS1_TYPE": 1, "VISO_TYPE": 0, "AHRS_EKF_TYPE": 3, "EK3_ENABLE": 1, "EK3_SRC1_POSXY": 3,
                 "EK3_SRC1_VELXY": 3, "EK3_SRC1_POSZ": 1, "EK3_SRC1_VELZ": 3, "EK3_SRC1_YAW": 6}
     diff = {d.name: d.wanted for d in differences(requirements(COPTER_45, cfg, params45), params45)}

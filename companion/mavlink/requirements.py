@@ -80,7 +80,7 @@ def requirements(firmware: Firmware, cfg: Config, params: Mapping[str, float]) -
         wanted = _px4_external_navigation(params)
     elif firmware.autopilot == "ArduPilot":
         wanted = (_ardupilot_companion_port(cfg.mavlink.autopilot_serial_port)
-                  + _ardupilot_external_navigation(params, heading_from_companion(cfg))
+                  + _ardupilot_external_navigation(params, heading_from_companion(cfg), position_sigma_m(cfg))
                   + _ardupilot_indoor_failsafes(firmware))
     else:
         return []
@@ -97,8 +97,15 @@ def _ardupilot_companion_port(serial: int | None) -> list[Requirement]:
             Requirement(f"SERIAL{serial}_BAUD", 921, "921600 baud on the companion's port", reboot=True)]
 
 
-def _ardupilot_external_navigation(params: Mapping[str, float], heading: bool) -> list[Requirement]:
-    """External navigation for position (and, with ``heading``, yaw instead of the compass)."""
+def position_sigma_m(cfg: Config) -> float:
+    """The largest typical position 1-sigma of the pose sources (m): what EKF2 4.0 must assume of
+    every estimate, since it ignores the covariance each one carries."""
+    return max(plugins.pipeline(name).position_sigma_m for name in cfg.source_priority())
+
+
+def _ardupilot_external_navigation(params: Mapping[str, float], heading: bool, sigma_m: float) -> list[Requirement]:
+    """External navigation for position (and, with ``heading``, yaw instead of the compass);
+    ``sigma_m``: the estimates' position noise for EKF2 (4.0)."""
     gps_type = "GPS1_TYPE" if "GPS1_TYPE" in params else "GPS_TYPE"
     common = [
         Requirement("VISO_TYPE", 1, "external navigation over MAVLink (VISION_POSITION_ESTIMATE)", reboot=True),
@@ -117,8 +124,9 @@ def _ardupilot_external_navigation(params: Mapping[str, float], heading: bool) -
                                           "sources carry the autopilot's heading forward")])
     return common + [  # 4.0: EKF2, external navigation when GPS is inhibited; height follows the position
         Requirement("EK2_GPS_TYPE", 3, "EKF2: no GPS, use external navigation"),
-        Requirement("EK2_POSNE_M_NSE", 0.1, "4.0 ignores the estimate's covariance and takes this as its noise; "
-                    "the default 1 m (for GPS) lets the EKF wander centimetres off the estimate"),
+        Requirement("EK2_POSNE_M_NSE", sigma_m, "4.0 ignores the estimate's covariance and takes this as its noise: "
+                    "the pose sources' (the default 1 m lets the EKF wander centimetres off a lidar estimate; "
+                    "0.1 m on a GNSS-grade one lets its noise turn the EKF's heading away from the gyro)"),
     ] + ([
         Requirement("COMPASS_USE", 0, "EKF2 takes the heading from external navigation only without a compass"),
         Requirement("COMPASS_USE2", 0, "as COMPASS_USE"),
