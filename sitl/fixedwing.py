@@ -268,12 +268,12 @@ class FixedWingDynamics:
         speed = self.vx * cy + self.vy * sy
         along = ax * cy + ay * sy
         resist = p.rolling_friction * az + p.brake_decel_mps2 * max(0.0, min(1.0, cmd.brake))
-        if speed > 0.0:
+        if speed > 0.0 or along > resist:  # rolling, or thrust overcomes the friction
             along -= resist
             if speed + along * dt < 0.0:  # friction stops the roll within this step
                 along = -speed / dt
-        elif along <= resist:
-            along = -speed / dt if speed < 0.0 else 0.0
+        else:  # held (or stopped, if the wind pushed it back)
+            along = -speed / dt
         speed += along * dt
         self.vx, self.vy, self.vz = speed * cy, speed * sy, 0.0
         self.px += self.vx * dt

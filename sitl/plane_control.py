@@ -69,6 +69,7 @@ class PlaneController:
         self._pending: tuple[float, float, float] | None = None  # GUIDED target received during the take-off
         self._final_start = (0.0, 0.0)
         self._stopped_since: float | None = None
+        self._still_s = 0.0
 
     @property
     def mode_name(self) -> str:
@@ -206,6 +207,8 @@ class PlaneController:
             return FixedWingCommand(brake=1.0)
         if self.mode == AUTO:
             self._advance_landing()
+        else:
+            self._detect_stop(dt)
         return self._fly(dt, gyro, accel_x, airspeed)
 
     def _fly(self, dt: float, gyro: tuple[float, float, float], accel_x: float, airspeed: float) -> FixedWingCommand:
@@ -259,7 +262,6 @@ class PlaneController:
         self._phase = "takeoff"
         self._height_d = ground + altitude_m
         self._runway_yaw = self.est.ahrs.yaw
-        self._pending = None
         self.landed = False
         self.tecs.reset()
         self.status.push(SEVERITY_INFO, f"Takeoff to {altitude_m:.0f} m")
@@ -312,6 +314,19 @@ class PlaneController:
                 self.landed = True
                 self.status.push(SEVERITY_INFO, "Landed")
 
+    def _detect_stop(self, dt: float) -> None:
+        """Outside a landing: at rest for 3 s (ground speed and climb rate below 1 and 0.3 m/s) is landed
+        (an off-field landing or a crash), so that it can be disarmed."""
+        n, e, d = self.est.axes
+        if math.hypot(n.v, e.v) < LANDED_SPEED_MPS and abs(d.v) < 0.3:
+            self._still_s += dt
+        else:
+            self._still_s = 0.0
+        if self._still_s > 3.0:
+            self.landed = True
+            self._still_s = 0.0
+            self.status.push(SEVERITY_INFO, "Landed")
+
     # ------------------------------------------------------------------ helpers
     def _enter_mode(self, mode: int) -> None:
         """Switch mode and set what the mode flies from here."""
@@ -355,6 +370,7 @@ class PlaneController:
         self.landed = True
         self._phase = ""
         self._stopped_since = None
+        self._pending = None
         self.status.push(SEVERITY_INFO, "Disarming motors")
 
     def _position(self) -> tuple[float, float, float]:

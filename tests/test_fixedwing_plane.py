@@ -159,3 +159,13 @@ def test_a_rudder_offset_makes_the_flight_uncoordinated_until_it_is_removed() ->
     plane.set_rudder(0.0)
     plane.step(3.0)
     assert abs(plane.aero[2]) < math.radians(1.0)
+
+
+def test_a_target_sent_before_the_take_off_is_flown_after_it() -> None:
+    plane = ready(seed=8)
+    assert target(plane, -150.0, 250.0, -45.0)
+    plane.takeoff(25.0)
+    plane.step(70.0)
+    pos = plane.truth.pos_ned
+    assert abs(math.hypot(pos[0] + 150.0, pos[1] - 250.0) - 40.0) < 10.0
+    assert abs(pos[2] + 45.0) < 4.0
