@@ -1,9 +1,11 @@
 """The fixed wing behind the vehicle process (``python -m sitl.vehicle --vehicle plane``) over real
-MAVLink 2 on 127.0.0.1: an ArduPlane HEARTBEAT the companion reads as a plane, and a lockstep
-flight (arm, take off, fly to a GUIDED target) driven by a stand-in companion."""
+MAVLink 2 on 127.0.0.1: an ArduPlane HEARTBEAT the companion reads as a plane (and asks for modes
+by ArduPlane's numbers), and a lockstep flight (arm, take off, fly to a GUIDED target) driven by a
+stand-in companion."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 import math
 import subprocess
@@ -13,7 +15,12 @@ from pathlib import Path
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
+from companion import clock
+from companion.config import MavlinkConfig, VehicleConfig
+from companion.health import Health
+from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.firmware import firmware_from_heartbeat
+from companion.mavlink.link import MavlinkLink
 from tests.test_sitl_vehicle import LockstepCompanion, Rig, start_vehicle  # noqa: F401 (fixture)
 
 PLANE_GUIDED = 15
@@ -71,3 +78,20 @@ def test_the_plane_arms_takes_off_and_circles_a_guided_target_over_mavlink(start
     distances = [math.hypot(p[0] - TARGET_NED[0], p[1] - TARGET_NED[1]) for _, p in last]
     assert 30.0 < min(distances) and max(distances) < 50.0  # on the 40 m loiter circle
     assert all(abs(p[2] - TARGET_NED[2]) < 4.0 for _, p in last)
+
+
+def test_the_companion_asks_an_arduplane_for_guided_by_arduplane_s_number() -> None:
+    async def main() -> tuple[tuple[int, int], tuple[int, int], str | None]:
+        link = MavlinkLink(MavlinkConfig(), VehicleConfig(), "udpout:127.0.0.1:9", Health(clock.now))
+        state = AutopilotState(link)
+        link.autopilot = "ArduPilot"
+        unknown = state.custom_mode_for("GUIDED")  # before any HEARTBEAT: ArduCopter's table, as always
+        heartbeat = mav.MAVLink_heartbeat_message(mav.MAV_TYPE_FIXED_WING, mav.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                                  mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 12, mav.MAV_STATE_ACTIVE, 3)
+        codec = mav.MAVLink(None, 1, 1)
+        link._dispatch(codec.parse_char(heartbeat.pack(codec)))
+        return unknown, state.custom_mode_for("GUIDED"), state.mode
+    unknown, plane, mode = asyncio.run(main())
+    assert unknown[1] == 4
+    assert plane == (mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, PLANE_GUIDED)
+    assert mode == "LOITER"
