@@ -3,8 +3,8 @@ truth, and the flight log they fill (the same document as the built-in vehicle's
 
 - **Tap**: the daemon connects to a loopback TCP port of the harness instead of SITL's SERIAL0;
   every byte is forwarded unchanged both ways, and parsed on the side: what the companion sent
-  (VISION_POSITION_ESTIMATE, VISION_SPEED_ESTIMATE, SET_POSITION_TARGET_LOCAL_NED, commands,
-  origin) is logged with its arrival time, as the built-in vehicle logs what it receives. The
+  (VISION_POSITION_ESTIMATE, VISION_SPEED_ESTIMATE, DISTANCE_SENSOR, SET_POSITION_TARGET_LOCAL_NED,
+  commands, origin) is logged with its arrival time, as the built-in vehicle logs what it receives. The
   tap mirrors the connection: SITL gone -> the daemon's connection is closed; the daemon
   reconnecting -> a new connection to SITL. Only the harness sees it: the daemon talks to
   ArduPilot exactly as it would on TCP.
@@ -271,6 +271,9 @@ class ArduPilotObserver:
                                          msg.reset_counter, msg.covariance)
         elif kind == "VISION_SPEED_ESTIMATE":
             self.log.add_vision_speed(t, msg.usec, (msg.x, msg.y, msg.z))
+        elif kind == "DISTANCE_SENSOR":
+            self.log.add_distance_sensor(t, msg.time_boot_ms, msg.id, msg.orientation, msg.current_distance,
+                                         msg.min_distance, msg.max_distance)
         elif kind == "SET_POSITION_TARGET_LOCAL_NED":
             self.log.add_setpoint(t, msg.coordinate_frame, msg.type_mask, (msg.x, msg.y, msg.z),
                                   (msg.vx, msg.vy, msg.vz), (msg.afx, msg.afy, msg.afz))

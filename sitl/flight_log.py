@@ -46,6 +46,10 @@ class FlightLog:
             "position_covariance": [],  # rows [xx, xy, xz, yy, yz, zz], m^2 (NaN where not sent)
         }
         self.vision_speed: dict[str, list] = {"t_rx": [], "usec": [], "vel_ned": []}
+        self.distance_sensor: dict[str, list] = {
+            "t_rx": [], "time_boot_ms": [], "id": [], "orientation": [],  # MAV_SENSOR_ROTATION
+            "distance_m": [], "min_m": [], "max_m": [],
+        }
         self.setpoints: dict[str, list] = {
             "t_rx": [], "frame": [], "type_mask": [], "pos": [], "vel": [], "acc": [],
         }
@@ -100,6 +104,19 @@ class FlightLog:
         self.vision_speed["t_rx"].append(t_rx)
         self.vision_speed["usec"].append(int(usec))
         self.vision_speed["vel_ned"].append(_vec(vel_ned))
+
+    def add_distance_sensor(self, t_rx: float, time_boot_ms: int, sensor_id: int, orientation: int,
+                            distance_cm: int, min_cm: int, max_cm: int) -> None:
+        """A DISTANCE_SENSOR as received (t_rx: sim time of reception): ``time_boot_ms`` as sent (the
+        companion puts its capture time there, ms on its clock, modulo 2^32), distances in cm."""
+        rec = self.distance_sensor
+        rec["t_rx"].append(t_rx)
+        rec["time_boot_ms"].append(int(time_boot_ms))
+        rec["id"].append(int(sensor_id))
+        rec["orientation"].append(int(orientation))
+        rec["distance_m"].append(distance_cm / 100)
+        rec["min_m"].append(min_cm / 100)
+        rec["max_m"].append(max_cm / 100)
 
     def add_setpoint(
         self,
@@ -158,6 +175,7 @@ class FlightLog:
             "vehicle_estimate": self.vehicle_estimate,
             "vision_position": self.vision_position,
             "vision_speed": self.vision_speed,
+            "distance_sensor": self.distance_sensor,
             "setpoints": self.setpoints,
             "rejected": self.rejected,
             "signing": self.signing,

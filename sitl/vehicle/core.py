@@ -125,6 +125,7 @@ class Vehicle(RunLoopMixin, ReceivingMixin, CommandsMixin, StateTrackingMixin, M
             "SET_HOME_POSITION": self._on_set_home_position,
             "VISION_POSITION_ESTIMATE": self._on_vision_position,
             "VISION_SPEED_ESTIMATE": self._on_vision_speed,
+            "DISTANCE_SENSOR": self._on_distance_sensor,
             "SET_POSITION_TARGET_LOCAL_NED": self._on_set_position_target,
         }
         self._commands: dict[int, Callable[[Link, tuple[float, ...], int | None], int]] = {

@@ -140,6 +140,11 @@ class ReceivingMixin:
         if t_capture is not None:
             self.copter.vision_speed(t_capture, np.array(vel), _covariance(msg), msg.reset_counter)
 
+    def _on_distance_sensor(self, link: Link, msg: mav.MAVLink_message) -> None:
+        """DISTANCE_SENSOR (e.g. a pipeline's height above ground): logged for the report, not flown on."""
+        self.log.add_distance_sensor(self._now(), msg.time_boot_ms, msg.id, msg.orientation, msg.current_distance,
+                                     msg.min_distance, msg.max_distance)
+
     def _vision_capture_time(self, link: Link, usec: int, t_rx: float, values: tuple[float, ...]) -> float | None:
         """Sim time of a vision sample, or None (counted) if a value is non-finite or the stamp is dropped."""
         if not finite(values):
