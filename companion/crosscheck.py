@@ -48,5 +48,6 @@ class AttitudeCrossCheck:
         elif estimate.t_capture - since >= self.hold_s:
             self.health.report(component, State.DEGRADED,
                                f"attitude differs from the autopilot's by {math.degrees(diff):.1f} deg")
-        self.publish("attitude_check", {"source": estimate.source, "euler_rad": estimate.euler_rad,
-                                        "autopilot_euler_rad": reference, "difference_deg": math.degrees(diff)})
+        self.publish("attitude_check", {"source": estimate.source, "t_capture": estimate.t_capture,
+                                        "euler_rad": estimate.euler_rad, "autopilot_euler_rad": reference,
+                                        "difference_deg": math.degrees(diff)})

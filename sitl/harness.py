@@ -2,7 +2,8 @@
 
 The harness writes a run config derived from the given one (mission, absolute paths), starts
 ``python -m sitl.vehicle`` (MAVLink on loopback UDP) and ``companion run`` (which publishes
-zenoh telemetry on loopback TCP), listens to that telemetry as a zenoh peer, and at the end
+zenoh telemetry on loopback TCP), listens to that telemetry as a zenoh peer (the last payload
+of each stream, and every ``attitude_check``: the attitude-only estimates), and at the end
 scores the run against the vehicle's ground truth (sitl/report.py).
 
 With ``--dashboard PORT`` it also starts ``companion dashboard`` on that loopback port, joined
@@ -60,13 +61,18 @@ class StartFailure(Exception):
     """A process of the run did not come up."""
 
 
+KEPT_STREAMS = ("attitude_check",)  # streams the report scores sample by sample (sitl/report.py score_attitude)
+
+
 class TelemetryListener:
-    """Keeps the last JSON payload of every stream of one vehicle, and when it came (a zenoh peer)."""
+    """Keeps the last JSON payload of every stream of one vehicle, and when it came (a zenoh peer);
+    of the ``KEPT_STREAMS``, every payload in arrival order."""
 
     def __init__(self, connect: list[str], sysid: int) -> None:
         from companion.telemetry.session import open_session
 
         self.latest: dict[str, dict] = {}
+        self.kept: dict[str, list[dict]] = {stream: [] for stream in KEPT_STREAMS}
         self.received: dict[str, float] = {}  # time.monotonic() of each stream's last payload
         self._lock = threading.Lock()
         self.session = open_session("peer", [], connect, False, False)
@@ -81,10 +87,17 @@ class TelemetryListener:
         with self._lock:
             self.latest[stream] = payload
             self.received[stream] = time.monotonic()
+            if stream in self.kept:
+                self.kept[stream].append(payload)
 
     def snapshot(self) -> dict[str, dict]:
         with self._lock:
             return dict(self.latest)
+
+    def every(self, stream: str) -> list[dict]:
+        """Every payload of ``stream`` (one of ``KEPT_STREAMS``) received so far, oldest first."""
+        with self._lock:
+            return list(self.kept[stream])
 
     def age(self, stream: str) -> float:
         """Seconds since ``stream`` last arrived (inf: never)."""
@@ -536,7 +549,7 @@ def run_harness(args: argparse.Namespace) -> int:
         sim_log = json.loads(vehicle_log.read_text())
         run_cfg = load_config(session.run_config) if session.run_config is not None else cfg
         frame = run_cfg.origin
-        base = run_cfg.load_referenced("sitl.world", run_cfg.sitl.world, load_world).base
+        world = run_cfg.load_referenced("sitl.world", run_cfg.sitl.world, load_world)
         usage = session.usage
         report = build_report(
             mission=mission_name, seconds=sim_log["sim_seconds"], lockstep=bool(args.lockstep), seed=args.seed,
@@ -544,7 +557,9 @@ def run_harness(args: argparse.Namespace) -> int:
             origin=(frame.lat, frame.lon, frame.alt),
             internal_errors=session.ardupilot.internal_errors() if session.ardupilot is not None else None,
             cpu_percent=None if usage is None else 100.0 * usage[0] / max(wall, 1e-6),
-            rss_mb=None if usage is None else usage[1], base_ne=base)
+            rss_mb=None if usage is None else usage[1], base_ne=world.base,
+            attitude_checks=session.listener.every("attitude_check") if session.listener is not None else [],
+            ground_height=world.floor_height_at)
         Path(args.report).write_text(json.dumps(report, indent=2) + "\n")
         print(json.dumps(report, indent=2), flush=True)
         print(f"companion sitl: flight log (truth, everything the autopilot received) in {vehicle_log}", flush=True)

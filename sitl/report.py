@@ -1,26 +1,41 @@
 """The flight report: the companion scored against simulator ground truth.
 
-Inputs are the vehicle's flight log (sitl/flight_log.py: truth, and every VISION_* and
-setpoint message the autopilot received) and the daemon's last telemetry snapshot. Nothing
+Inputs are the vehicle's flight log (sitl/flight_log.py: truth, and every VISION_*,
+DISTANCE_SENSOR and setpoint message the autopilot received), the daemon's last telemetry
+snapshot and every ``attitude_check`` payload it published (the attitude-only estimates). Nothing
 here trusts the estimator's own opinion of itself: estimate errors are the received
-VISION_POSITION_ESTIMATE positions minus the truth at their capture time. A field that no
-pipeline provides yet is ``None`` (JSON null), never invented.
+VISION_POSITION_ESTIMATE positions, the attitude-only estimates and the DISTANCE_SENSOR heights
+minus the truth at their capture time. A field that no pipeline provides yet is ``None`` (JSON
+null), never invented.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
 
-from companion.frames import quat_from_euler
+from companion.frames import quat_from_euler, wrap_pi
+from companion.mavlink.distance import ORIENTATION
 from companion.scoring import WRONG_RESET_M, mean_or_none, nees, nees_band
 
 SCHEMA = 1
 ORIGIN_MATCH_M = 0.5
 LOST_GAP_S = 0.3  # ArduPilot calls an external-nav source unhealthy after 300 ms
 DEGRADED_SLOWDOWN = "estimate_degraded"  # the mission's failsafe kind for "slowed down", not a stop
+# Issue 15's contract fields of the ``attitude`` block, each one statistic of one attitude source
+# (the AttitudeEstimate ``source``): the GNSS + optic-flow pipeline's synthetic-flow path is
+# "gnss_flow", its rendered-image (camera + LK) path "gnss_flow.images". Any other source is
+# scored under ``attitude.sources`` only.
+ATTITUDE_CONTRACT: dict[str, tuple[str, str]] = {
+    "euler_mean_deg": ("gnss_flow", "euler_mean_deg"),
+    "euler_std_deg": ("gnss_flow", "euler_std_deg"),
+    "images_euler_std_deg": ("gnss_flow.images", "euler_std_deg"),
+}
+AGL_CEILING_M = 50.0  # heights above ground scored up to this true height (issue 15: "below 50 m")
+AGL_FLOOR_M = 0.5  # ... and from this one: a percentage of a height near zero says nothing
 
 
 def _rms(x: np.ndarray) -> float:
@@ -84,15 +99,106 @@ def score_estimate(log: dict) -> dict[str, float | None]:
     }
 
 
+def _euler_at(t: np.ndarray, truth_t: np.ndarray, truth_euler: np.ndarray) -> np.ndarray:
+    """The true Euler angles (N, 3) rad at the times ``t`` (s), interpolated between the truth
+    samples ``truth_euler`` (M, 3) at ``truth_t``; unwrapped, so a yaw through +/-180 deg
+    interpolates the short way (not wrapped back into [-pi, pi))."""
+    return _interp_rows(t, truth_t, np.column_stack([np.unwrap(truth_euler[:, k]) for k in range(3)]))
+
+
 def attitude_errors(estimate_euler: np.ndarray, t: np.ndarray, truth_t: np.ndarray,
                     truth_euler: np.ndarray) -> np.ndarray:
     """Angle (rad) of the rotation between each estimated attitude (roll, pitch, yaw rad, (N, 3))
     and the true one at its capture time ``t`` (s): roll, pitch and yaw errors combined."""
-    true = _interp_rows(t, truth_t, np.column_stack([np.unwrap(truth_euler[:, k]) for k in range(3)]))
+    true = _euler_at(t, truth_t, truth_euler)
     est_q = np.array([quat_from_euler(*e) for e in estimate_euler]).reshape(-1, 4)
     true_q = np.array([quat_from_euler(*e) for e in true]).reshape(-1, 4)
     dot = np.abs(np.sum(est_q * true_q, axis=1))
     return 2.0 * np.arccos(np.clip(dot, 0.0, 1.0))
+
+
+def euler_error_stats(estimate_euler: np.ndarray, t: np.ndarray, log: dict) -> dict[str, Any]:
+    """Per-axis error of attitude estimates against the truth of the flight ``log``.
+
+    ``estimate_euler`` (N, 3): roll, pitch, yaw rad (body FRD in NED, ZYX), NaN for an angle the
+    estimate does not measure; ``t`` (N,): their capture times, simulation s. Each error is the
+    estimate minus the truth at its capture time, wrapped to [-180, 180) deg; estimates outside
+    the truth's time span are left out. Returns ``euler_mean_deg`` and ``euler_std_deg`` ([roll,
+    pitch, yaw] deg: the mean and the sample standard deviation (ddof 1) of those errors, an
+    axis None with too few measured values) and ``count`` (estimates scored)."""
+    truth = log["truth"]
+    tt = np.asarray(truth["t"], dtype=float)
+    inside = (t >= tt[0]) & (t <= tt[-1]) if len(tt) else np.zeros(len(t), dtype=bool)
+    if not inside.any():
+        return {"euler_mean_deg": [None] * 3, "euler_std_deg": [None] * 3, "count": 0}
+    errors = np.degrees(wrap_pi(estimate_euler[inside] - _euler_at(t[inside], tt, np.asarray(truth["euler_rad"]))))
+    measured = [axis[np.isfinite(axis)] for axis in errors.T]
+    return {"euler_mean_deg": [float(np.mean(a)) if len(a) else None for a in measured],
+            "euler_std_deg": [float(np.std(a, ddof=1)) if len(a) > 1 else None for a in measured],
+            "count": int(np.sum(inside))}
+
+
+def score_attitude(log: dict, attitude_checks: Sequence[dict]) -> dict[str, Any]:
+    """The attitude-only estimates (the daemon's ``attitude_check`` payloads, docs/telemetry.md)
+    against the truth, per source: ``sources`` {source: :func:`euler_error_stats`}, and the
+    contract's fields (ATTITUDE_CONTRACT) taken from those, None when their source made no
+    estimate. The payloads are what the daemon published: at most ``telemetry.pose_hz`` for all
+    sources together, so a sample of the estimates when they come faster."""
+    by_source: dict[str, list[dict]] = {}
+    for payload in attitude_checks:
+        by_source.setdefault(payload["source"], []).append(payload)
+    sources = {}
+    for name, payloads in sorted(by_source.items()):
+        euler = np.array([[math.nan if v is None else v for v in p["euler_rad"]] for p in payloads], dtype=float)
+        t = capture_times(log, np.array([p["t_capture"] for p in payloads], dtype=float) * 1e6)
+        sources[name] = euler_error_stats(euler, t, log)
+    block: dict[str, Any] = {field: (sources.get(source) or {}).get(stat)
+                             for field, (source, stat) in ATTITUDE_CONTRACT.items()}
+    block["sources"] = sources
+    return block
+
+
+def distance_capture_times(log: dict) -> np.ndarray:
+    """Simulation times (s) at which the received DISTANCE_SENSOR distances were measured: each
+    message's ``time_boot_ms`` is the companion's capture time (ms on the daemon clock, modulo
+    2^32), placed just before its reception by the signed difference between the two modulo 2^32."""
+    ds = log["distance_sensor"]
+    t_rx = np.asarray(ds["t_rx"], dtype=float)
+    rx_daemon_ms = np.round((t_rx + (log["clock"]["monotonic_at_sim_zero"] or 0.0)) * 1e3).astype(np.int64)
+    delay_ms = (rx_daemon_ms - np.asarray(ds["time_boot_ms"], dtype=np.int64) + 2**31) % 2**32 - 2**31
+    return t_rx - delay_ms * 1e-3
+
+
+def score_agl(log: dict, ground_height: Callable[[float, float], float]) -> tuple[float | None, int]:
+    """Height above ground error of the downward DISTANCE_SENSOR distances the autopilot received.
+
+    A downward distance is a rangefinder's, along the body z axis (ArduPilot multiplies it by the
+    cosine of its tilt; the pipelines send height / cos(tilt)). Each is taken as the height it
+    implies with the true tilt at its capture time (:func:`distance_capture_times`), distance *
+    cos(roll) cos(pitch), and compared with the true height above the ground then: minus the true
+    NED z, less ``ground_height(north, east)`` (m above the world's floor z = 0, e.g.
+    World.floor_height_at) under the true position. Returns (the RMS over the samples of (implied
+    - true height) / true height * 100, in %, or None without one; the number of samples), scoring
+    the samples whose true height is within AGL_FLOOR_M to AGL_CEILING_M. Logs without
+    DISTANCE_SENSOR records score None."""
+    ds = log.get("distance_sensor")
+    truth = log["truth"]
+    if not ds or not ds["t_rx"] or not truth["t"]:
+        return None, 0
+    down = np.asarray(ds["orientation"]) == ORIENTATION["down"]
+    t = distance_capture_times(log)[down]
+    measured = np.asarray(ds["distance_m"], dtype=float)[down]
+    tt = np.asarray(truth["t"], dtype=float)
+    inside = (t >= tt[0]) & (t <= tt[-1])
+    true_pos = _interp_rows(t[inside], tt, np.asarray(truth["pos_ned"], dtype=float)).reshape(-1, 3)
+    true_height = -true_pos[:, 2] - np.array([ground_height(n, e) for n, e, _ in true_pos])
+    scored = (true_height >= AGL_FLOOR_M) & (true_height <= AGL_CEILING_M)
+    if not scored.any():
+        return None, 0
+    roll, pitch, _ = _euler_at(t[inside][scored], tt, np.asarray(truth["euler_rad"])).T
+    implied = measured[inside][scored] * np.cos(roll) * np.cos(pitch)
+    relative = (implied - true_height[scored]) / true_height[scored]
+    return 100.0 * _rms(relative), int(np.sum(scored))
 
 
 def position_nees(errors: np.ndarray, triangles: list[list[float | None]]) -> np.ndarray:
@@ -184,9 +290,14 @@ def score_recovery(log: dict, base_ne: tuple[float, float] | None) -> dict[str, 
 def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, control_law: str, log: dict,
                  telemetry: dict[str, dict], origin: tuple[float, float, float],
                  cpu_percent: float | None, rss_mb: float | None,
+                 attitude_checks: Sequence[dict], ground_height: Callable[[float, float], float],
                  internal_errors: list[str] | None = None, base_ne: tuple[float, float] | None = None) -> dict[str, Any]:
     """The report dict (schema 1) from a vehicle log and the daemon's last telemetry.
 
+    ``attitude_checks``: every ``attitude_check`` payload the daemon published, and
+    ``ground_height`` (north, east m -> m above the floor z = 0): when there are attitude
+    estimates or scored heights above ground, the report gains ``attitude``
+    (:func:`score_attitude`, with ``agl_error_pct`` and ``agl_count`` from :func:`score_agl`).
     ``internal_errors``: what a real autopilot (ArduPilot SITL) stopped on during the run; None
     for the built-in vehicle, which has no such thing. ``base_ne``: the world's base (north,
     east m): the report gains ``recovery`` (:func:`score_recovery`)."""
@@ -233,6 +344,10 @@ def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, con
             "rss_mb": rss_mb,
         },
     }
+    agl_error_pct, agl_count = score_agl(log, ground_height)
+    if attitude_checks or agl_count:
+        report["attitude"] = {**score_attitude(log, attitude_checks), "agl_error_pct": agl_error_pct,
+                              "agl_count": agl_count}
     recovery = score_recovery(log, base_ne)
     if recovery is not None:
         report["recovery"] = recovery
