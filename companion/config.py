@@ -96,7 +96,8 @@ class MountConfig:
 
 @dataclass
 class SensorConfig:
-    kind: Literal["lidar", "camera", "imu", "gnss", "landmarks"] = field(metadata=meta("What the sensor measures."))
+    kind: Literal["lidar", "camera", "imu", "gnss", "landmarks", "flow"] = field(metadata=meta(
+        "What the sensor measures (flow: an optic-flow field in normalised image coordinates, no images)."))
     backend: str = field(metadata=meta(
         "Which backend reads it: real (the device), sim (simulated from ground truth; plugin sitl.sim_backends), "
         "replay (a recording), autopilot (the autopilot's own sensor over MAVLink), nmea (a serial NMEA "

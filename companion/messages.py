@@ -1,8 +1,9 @@
 """The typed messages between drivers, pipelines and the edges (like PX4's ``msg/``).
 
 Drivers produce sensor messages (:class:`Scan`, :class:`Frame`, :class:`ImuSample`,
-:class:`GnssFix`, :class:`LandmarkSightings`); pipelines consume them and produce estimates (:class:`PoseEstimate`,
-:class:`AttitudeEstimate`, :class:`RangeEstimate`); the estimate-source selection and the
+:class:`GnssFix`, :class:`LandmarkSightings`, :class:`FlowField`); pipelines consume them and
+produce estimates (:class:`PoseEstimate`, :class:`AttitudeEstimate`, :class:`RangeEstimate`); the
+estimate-source selection and the
 MAVLink and telemetry edges consume those. This module imports numpy only: pipelines import it
 and nothing from ``companion.mavlink``, ``companion.telemetry`` or ``sitl``.
 
@@ -168,6 +169,34 @@ class LandmarkSightings:
         if self.sigmas is None:
             return self.sigma
         return {int(i): (float(r[0]), float(r[1]), float(r[2])) for i, r in zip(self.ids, self.sigmas)}
+
+
+@dataclass(frozen=True)
+class FlowField:
+    """The image motion one flow sensor measured between two instants (an optic-flow map, as the
+    GNSS + optic-flow seed's vision model gives one): no image, no calibration needed.
+
+    Normalised image coordinates of the camera's optical frame (OpenCV's: x right, y down, z along
+    the axis; a ray (x, y, 1), so x = X / Z, y = Y / Z). The mount (``sensors.<name>.mount``) places
+    the camera's FRD sensor frame in the body frame exactly as a camera's (:class:`Frame`,
+    drivers/mount.py ``OPTICAL_TO_SENSOR``). ``points_n`` are where the grid points lie in the
+    earlier view, ``flows_n`` where they moved to in the later view minus that: a point seen at
+    ``p`` at ``t_earlier`` is seen at ``p + flow`` at ``t_capture``. Invalid points (not tracked,
+    or nothing there to track: sky) carry no meaning in ``flows_n`` (NaN allowed there).
+    """
+
+    sensor_id: str
+    t_earlier: float  # daemon clock, s: capture of the earlier view
+    t_capture: float  # daemon clock, s: capture of the later view (the message's stamp)
+    points_n: np.ndarray  # (N, 2) grid points (x, y) in the earlier view, normalised image coordinates
+    flows_n: np.ndarray  # (N, 2) their displacement to the later view, normalised image coordinates
+    valid: np.ndarray  # (N,) bool: the flow of this point was measured
+    sequence: int = 0  # increases by one per field from this sensor (gaps = lost fields)
+
+    def __post_init__(self) -> None:
+        n = np.shape(self.valid)
+        if len(n) != 1 or np.shape(self.points_n) != (n[0], 2) or np.shape(self.flows_n) != (n[0], 2):
+            raise ValueError("points_n and flows_n must be (N, 2) and valid (N,)")
 
 
 # -- estimates --------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from companion.health import Health
-from companion.messages import Frame, GnssFix, ImuSample, LandmarkSightings, Scan
+from companion.messages import FlowField, Frame, GnssFix, ImuSample, LandmarkSightings, Scan
 from drivers.base import Backend, SensorDriver
 
 
@@ -82,6 +82,19 @@ def landmarks_problem(sightings: LandmarkSightings, previous_t: float | None) ->
     return None
 
 
+def flow_problem(flow: FlowField, previous_t: float | None) -> str | None:
+    """A non-finite point or valid flow, an earlier instant not before the later one, or a bad
+    capture time (the later instant's)."""
+    problem = _time_problem(flow.t_capture, previous_t)
+    if problem is not None:
+        return problem
+    if not (math.isfinite(flow.t_earlier) and flow.t_earlier < flow.t_capture):
+        return "earlier instant non-finite or not before the capture time"
+    if not (np.all(np.isfinite(flow.points_n)) and np.all(np.isfinite(flow.flows_n[flow.valid]))):
+        return "non-finite point or flow"
+    return None
+
+
 @dataclass(frozen=True)
 class Kind:
     """A sensor kind: what its backends deliver and how the frontend checks and stamps it."""
@@ -97,6 +110,7 @@ KINDS: dict[str, Kind] = {
     "imu": Kind(ImuSample, imu_problem, lambda m: m.t),
     "gnss": Kind(GnssFix, gnss_problem, lambda m: m.t_capture),
     "landmarks": Kind(LandmarkSightings, landmarks_problem, lambda m: m.t_capture),
+    "flow": Kind(FlowField, flow_problem, lambda m: m.t_capture),
 }
 
 

@@ -182,8 +182,7 @@ class SimulatedCamera(Backend[Frame]):
 
     def camera_pose(self, pose: TruthPose) -> tuple[np.ndarray, np.ndarray]:
         """(rotation optical -> NED (3x3), camera centre in NED (3,) m) for the vehicle ``pose``."""
-        rotation, origin = self.mount.sensor_to_world(pose.position_ned, pose.quat)
-        return rotation @ OPTICAL_TO_SENSOR, origin
+        return optical_pose(self.mount, pose)
 
     def laser_hits(self, pose: TruthPose) -> tuple[np.ndarray, np.ndarray]:
         """Where the true laser beams of the vehicle at ``pose`` meet the world, as the renderer
@@ -253,6 +252,13 @@ class SimulatedCamera(Backend[Frame]):
         if rows.size == 0 or cols.size == 0:
             return None
         return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
+
+
+def optical_pose(mount: Mount, pose: TruthPose) -> tuple[np.ndarray, np.ndarray]:
+    """(rotation optical -> NED (3x3), camera centre in NED (3,) m) of a camera on ``mount`` for
+    the vehicle ``pose`` (OpenCV's optical frame, drivers/mount.py ``OPTICAL_TO_SENSOR``)."""
+    rotation, origin = mount.sensor_to_world(pose.position_ned, pose.quat)
+    return rotation @ OPTICAL_TO_SENSOR, origin
 
 
 def in_front(polygon: np.ndarray, near: float) -> np.ndarray:

@@ -19,6 +19,7 @@ from drivers.mount import Mount
 from sitl.camera_lens import check_lens
 from sitl.camera_scene import check_marker_ids
 from sitl.camera_sim import SimCameraSettings, SimulatedCamera
+from sitl.flow_sim import SimFlowSettings, SimulatedFlowSensor
 from sitl.gnss_sim import SimGnssSettings, SimulatedGnss
 from sitl.landmark_sensor import SimLandmarkSettings, SimulatedLandmarkSensor
 from sitl.lidar_sim import SimLidarSettings, SimulatedLidar
@@ -80,3 +81,9 @@ def _landmarks(name: str, settings: SimLandmarkSettings, ctx: Any) -> SimulatedL
     """The seed's vision sensor: range and bearings to the world's point landmarks in its cone."""
     mount = Mount.from_config(ctx.config.sensors[name].mount)
     return SimulatedLandmarkSensor(name, settings, mount, sim_world(ctx).landmarks, truth(ctx))
+
+
+@register_backend("flow", "sim", SimFlowSettings)
+def _flow(name: str, settings: SimFlowSettings, ctx: Any) -> SimulatedFlowSensor:
+    """The GNSS + optic-flow seed's synthetic flow map: the exact motion field over flat ground, angle noise."""
+    return SimulatedFlowSensor(name, settings, Mount.from_config(ctx.config.sensors[name].mount), truth(ctx))

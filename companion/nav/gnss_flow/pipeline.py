@@ -1,12 +1,16 @@
 """The ``gnss_flow`` pipeline: a fixed wing's attitude and height above ground from a single-antenna
-GNSS and a forward camera (Roberts, Walker, O'Shea 2005; issue 15).
+GNSS and a forward camera, or a flow sensor's flow fields (Roberts, Walker, O'Shea 2005; issue 15).
 
 Data flow (in the daemon's event loop, no I/O here):
 
 - GNSS fixes (Doppler velocity, NED m/s) -> :class:`~.pseudo_attitude.DopplerAccelerationFilter`
   -> pseudo roll, pitch, yaw (the attitude of the velocity vector) at each frame's capture time;
-- each new pair of camera frames (at most ``pair_rate_hz``) -> grid Lucas-Kanade flow
-  (:func:`.flow.grid_flow`) -> undistorted normalised flow -> derotated by the body rates over the
+- the flow of a pair of instants, normalised image coordinates, by either path (or both):
+  the camera's, each new pair of frames (at most ``pair_rate_hz``) -> grid Lucas-Kanade flow
+  (:func:`.flow.grid_flow`) -> undistorted normalised flow; or a flow sensor's (``flow``: a
+  :class:`FlowField` spans its two instants and is normalised already, e.g. the seed's synthetic
+  flow with its angle noise, sitl/flow_sim.py);
+- that flow -> derotated by the body rates over the
   frame interval (the autopilot's gyro when ``imu_sensor`` is configured and has samples in the
   interval, else the rates of the pseudo Euler angles over ``rate_baseline_s``,
   :func:`.pseudo_attitude.body_rates_from_euler_rates`, their spin about the direction of travel
@@ -22,26 +26,37 @@ Data flow (in the daemon's event loop, no I/O here):
   ground (eq. 12) from the points below the horizon -> a downward :class:`RangeEstimate`
   (DISTANCE_SENSOR) when it lies within ``agl_range_m``.
 
+Two paths, two sets of estimates: each path gives its own AttitudeEstimate and RangeEstimate from
+the one GNSS filter (and IMU), with its own ``source``: the flow sensor's ``gnss_flow``; the
+camera's ``gnss_flow``, or ``gnss_flow.images`` when a flow sensor is configured too (so a config
+with a camera only, a real vehicle's, keeps the names it had). The source names the health
+component (``nav:<source>``), the cross-check (``crosscheck:<source>``), the DISTANCE_SENSOR id and
+the telemetry stream (``gnss_flow`` / ``gnss_flow_images``), so a report scores the paths apart.
+Their capture instants are taken in time order across both paths (the filter only moves forward).
+
 Coordinated flight is what makes the pseudo-roll the airframe's roll. With an IMU, its
 accelerometer's lateral specific force over the frame interval must stay within
 ``max_lateral_deg`` (:func:`.pseudo_attitude.coordination_check`); without one, the drift angle
 (the FOE's yaw offset) must stay within ``max_drift_deg``, which a strong crosswind also
-exceeds. A pair that fails is flagged (health ``nav:gnss_flow`` degraded with the reason,
-counter ``uncoordinated``, telemetry ``coordinated: false``) and gives no attitude and no range.
+exceeds. A pair that fails is flagged (its path's health ``nav:<source>`` degraded with the
+reason, counter ``uncoordinated``, telemetry ``coordinated: false``) and gives no attitude and no
+range.
 
 Time: a fix is used at its ``t_capture`` (the solution's epoch as the backend stamps it) minus
 ``receiver_latency_s`` (latency the backend did not remove: keep it 0 when the backend's own
-``latency_s`` is set or the backend stamps the epoch, as the simulated receiver does). A frame
-waits until a fix at or after its capture time has arrived, so the filter is queried within
-its fixes rather than predicted past them.
+``latency_s`` is set or the backend stamps the epoch, as the simulated receiver does). A frame,
+or either instant of a flow field, waits until a fix at or after its capture time has arrived, so
+the filter is queried within its fixes rather than predicted past them.
 
-Frames: world LOCAL_NED, body FRD, the camera placed by ``sensors.<camera>.mount``, the optical
-frame of companion/calibration.py; Euler angles ZYX rad; times on the daemon clock, s.
+Frames: world LOCAL_NED, body FRD, the camera and the flow sensor each placed by its
+``sensors.<name>.mount``, the optical frame of companion/calibration.py; Euler angles ZYX rad;
+times on the daemon clock, s.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import heapq
 import math
 import time
 from collections import deque
@@ -55,7 +70,8 @@ import numpy as np
 from companion.calibration import CameraCalibration, load_calibration
 from companion.frames import euler_from_rotation, rotation_from_euler, wrap_pi
 from companion.health import Health, State
-from companion.messages import GNSS_3D, AttitudeEstimate, Estimate, Frame, GnssFix, ImuSample, RangeEstimate
+from companion.messages import (GNSS_3D, AttitudeEstimate, Estimate, FlowField, Frame, GnssFix, ImuSample,
+                                RangeEstimate)
 from companion.nav.gnss_flow.flow import (FocusOfExpansion, depths, derotate, focus_of_expansion, grid_flow,
                                           height_above_ground, normalised_flow, velocity_offsets)
 from companion.nav.gnss_flow.pseudo_attitude import (DopplerAccelerationFilter, PseudoAttitude,
@@ -69,7 +85,6 @@ from companion.timing import Timings
 from drivers.mount import OPTICAL_TO_SENSOR, Mount
 
 STREAM = "gnss_flow"
-COMPONENT = "nav:gnss_flow"
 IMU_HISTORY_S = 2.0  # IMU samples kept, s: covers a frame interval and the wait for the GNSS fix after it
 FRAME_SLACK = 0.1  # a frame up to this fraction of 1 / pair_rate_hz early is used (capture-time jitter)
 LOST_AFTER_S = 2.0  # no frame pair processed for this long (no frames, or no GNSS): health lost, s
@@ -81,15 +96,24 @@ class GnssFlowConfig:
     """``pipelines.gnss_flow``: a fixed wing's attitude and height above ground from GNSS and optic flow."""
 
     gnss: str = field(metadata=meta("Name (in `sensors`) of the GNSS receiver (kind gnss, with Doppler velocity)."))
-    camera: str = field(metadata=meta("Name (in `sensors`) of the forward-looking camera (kind camera)."))
-    calibration: str = field(metadata=meta(
-        "The camera's intrinsics (OpenCV or ROS YAML, relative to this file), for the frames' resolution."))
+    camera: str | None = field(default=None, metadata=meta(
+        "Name (in `sensors`) of the forward-looking camera (kind camera): the image path, grid Lucas-Kanade flow; "
+        "null: none (give `flow`). Its estimates' source is `gnss_flow`, or `gnss_flow.images` when `flow` is "
+        "given too."))
+    calibration: str | None = field(default=None, metadata=meta(
+        "The camera's intrinsics (OpenCV or ROS YAML, relative to this file), for the frames' resolution; "
+        "needed with `camera`."))
+    flow: str | None = field(default=None, metadata=meta(
+        "Name (in `sensors`) of a flow sensor (kind flow: flow fields in normalised image coordinates, e.g. the "
+        "seed's synthetic flow, `backend: sim`): the flow path, from the derotation on (no tracking, no "
+        "calibration); its estimates' source is `gnss_flow`. null: none (give `camera`)."))
     imu_sensor: str | None = field(default=None, metadata=meta(
         "Name (in `sensors`) of the autopilot's IMU (kind imu), optional: its gyro derotates the flow and its "
         "accelerometer checks the coordination; null: GNSS-derived body rates and the drift-angle check."))
     pair_rate_hz: float = field(default=10.0, metadata=meta(
-        "Frames are used at most this often (the others are skipped): one flow per interval, each costing a "
-        "grid_flow (`companion bench`) in the nav loop; a longer interval gives the far ground more flow.",
+        "Camera frames are used at most this often (the others are skipped; a flow sensor's fields all are): one "
+        "flow per interval, each costing a grid_flow (`companion bench`) in the nav loop; a longer interval gives "
+        "the far ground more flow.",
         (0.5, 100)))
     grid: tuple[int, int] = field(default=(45, 45), metadata=meta(
         "Flow grid, [columns, rows] of points spread over the image (seed: 45 x 45).", (2, 200)))
@@ -103,6 +127,9 @@ class GnssFlowConfig:
     foe_min_flow_px: float = field(default=1.0, metadata=meta(
         "Translational flow vectors shorter than this are not used for the focus of expansion (the far ground's: "
         "their directions are tracking noise), pixels.", (0, 50)))
+    foe_min_flow_n: float = field(default=2e-4, metadata=meta(
+        "The flow path's `foe_min_flow_px`: shorter translational flow vectors of a flow sensor are not used for "
+        "the focus of expansion, normalised image units (about radians near the axis).", (0, 1)))
     foe_threshold_deg: float = field(default=5.0, metadata=meta(
         "A translational flow vector within this angle of its line from the focus of expansion is a RANSAC "
         "inlier, degrees.", (0.1, 45)))
@@ -147,14 +174,18 @@ class GnssFlowConfig:
         "Flow vectors on telemetry per frame pair, at most (every k-th valid one).", (0, 10000)))
 
     def validate(self) -> tuple[str, str] | None:
+        if self.camera is None and self.flow is None:
+            return "camera", "give a camera, a flow sensor (`flow`) or both"
+        if (self.camera is None) != (self.calibration is None):
+            return "calibration", "give it with `camera`, and only then"
         low, high = self.agl_range_m
         if low >= high:
             return "agl_range_m", "give [lowest, highest] with lowest < highest"
         return None
 
     def sensor_inputs(self) -> dict[str, str]:
-        imu = {} if self.imu_sensor is None else {"imu_sensor": "imu"}
-        return {"gnss": "gnss", "camera": "camera", **imu}
+        optional = {"camera": "camera", "flow": "flow", "imu_sensor": "imu"}
+        return {"gnss": "gnss", **{key: kind for key, kind in optional.items() if getattr(self, key) is not None}}
 
     def moved(self, raw: dict[str, Any], offset: tuple[float, float], move_map: Callable[[str], str]) -> dict[str, Any]:
         """Unchanged: nothing in this section is a position."""
@@ -162,24 +193,29 @@ class GnssFlowConfig:
 
 
 @dataclass
-class GnssFlowStats:
+class GnssStats:
     fixes: int = 0  # GNSS fixes fed to the acceleration filter
     fixes_refused: int = 0  # no 3-D fix, no Doppler velocity, jamming, or out of time order
-    frames: int = 0  # camera frames received
-    skipped_frames: int = 0  # within 1 / pair_rate_hz of the previous frame used
-    flows: int = 0  # frame pairs whose flow gave a focus of expansion
+
+
+@dataclass
+class GnssFlowStats:
+    """One flow path's counters."""
+
+    frames: int = 0  # camera frames, or flow fields, received
+    skipped_frames: int = 0  # camera frames within 1 / pair_rate_hz of the previous frame used
+    flows: int = 0  # pairs whose flow gave a focus of expansion
     attitudes: int = 0  # attitude estimates given
     ranges: int = 0  # height-above-ground range estimates given
     uncoordinated: int = 0  # pairs flagged as an uncoordinated manoeuvre (no attitude given)
-    refused: dict[str, int] = field(default_factory=dict)  # frame pairs without an attitude, per reason
+    refused: dict[str, int] = field(default_factory=dict)  # pairs without an attitude, per reason
 
 
 @dataclass(frozen=True)
-class _Stamped:
-    """A frame with the pseudo-attitude at its capture time (None where undefined)."""
+class _Instant:
+    """The GNSS at one capture instant of a flow path: the pseudo-attitude (None where undefined)."""
 
-    frame: Frame
-    grey: np.ndarray
+    t: float  # daemon clock, s
     pseudo: PseudoAttitude | None
     speed_mps: float  # GNSS ground-relative speed, 3-D, m/s (NaN without an estimate)
     refusal: str  # why ``pseudo`` is None ("" when it is not)
@@ -187,12 +223,12 @@ class _Stamped:
 
 @dataclass(frozen=True)
 class PairResult:
-    """What one frame pair gave (telemetry)."""
+    """What one pair (two frames, or one flow field) gave (telemetry)."""
 
     t_capture: float  # the attitude's time, mid-interval, s
     pseudo_euler_rad: tuple[float, float, float]  # at t_capture
-    points_px: np.ndarray  # (N, 2) valid flow start points, px
-    flows_px: np.ndarray  # (N, 2) their flows, px
+    points: np.ndarray  # (N, 2) valid flow start points as measured: px (camera), normalised (flow sensor)
+    flows: np.ndarray  # (N, 2) their flows, in the same units
     status: str = ""
     rates_source: str = ""  # "imu" or "gnss" ("" when not reached)
     foe: FocusOfExpansion | None = None
@@ -284,39 +320,165 @@ def midway(earlier: PseudoAttitude, later: PseudoAttitude) -> PseudoAttitude:
                           0.5 * (earlier.covariance + later.covariance))
 
 
-class GnssFlowPipeline:
-    """GNSS + optic-flow attitude and height above ground; see the module docstring."""
+class FlowPath:
+    """One way the pipeline gets its flow, with its own estimates' ``source``, health component
+    ``nav:<source>``, telemetry stream, counters and pair in progress. A path turns the instants
+    the pipeline stamps with the GNSS (:meth:`complete`) into pairs and measures their flow
+    (:meth:`measure`); the rest of the chain is the pipeline's."""
 
-    name = "gnss_flow"
-    telemetry_streams = (STREAM,)
+    def __init__(self, source: str, cam_to_body: np.ndarray, min_flow_n: float, health: Health) -> None:
+        self.source = source
+        self.stream = source.replace(".", "_")  # a telemetry stream name is a lower-case word
+        self.component = f"nav:{source}"
+        self.cam_to_body = cam_to_body  # v_body = cam_to_body @ v_optical
+        self.min_flow_n = min_flow_n  # shortest translational flow for the FOE, normalised units
+        self.health = health
+        self.stats = GnssFlowStats()
+        self.offsets = (0.0, 0.0)  # the newest pair's (pitch offset, drift) rad: the GNSS rates' frame
+        self.last_pair_s: float | None = None  # the later instant of the newest pair, s
+        self.last_result: PairResult | None = None
+        self.published: PairResult | None = None
+        health.report(self.component, State.LOST, "waiting for GNSS fixes and flow")
 
-    def __init__(self, cfg: GnssFlowConfig, calibration: CameraCalibration, camera_mount: Mount,
+    def refuse(self, reason: str) -> None:
+        """Count a pair without an attitude and report the reason (health degraded)."""
+        key = reason.split(":")[0]
+        self.stats.refused[key] = self.stats.refused.get(key, 0) + 1
+        self.health.report(self.component, State.DEGRADED, reason)
+
+    def reset(self) -> None:
+        """Forget the pair in progress (the GNSS did not come for it)."""
+
+    def complete(self, instant: _Instant, payload: Any) -> tuple[_Instant, _Instant, Any, Any] | str | None:
+        """The pair ``instant`` (with its message part ``payload``) completes: (earlier and later
+        instants, the payloads to :meth:`measure`), or why it is refused, or None (no pair yet)."""
+        raise NotImplementedError
+
+    def measure(self, earlier: Any, later: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(points, flows) (N, 2) each in normalised image coordinates, then (points, flows) as
+        measured (for telemetry), of the valid flow of a pair."""
+        raise NotImplementedError
+
+    def telemetry_flow(self, result: PairResult, shown: slice) -> dict[str, Any]:
+        """The path's own telemetry keys: the ``shown`` flow vectors and the FOE in its units."""
+        raise NotImplementedError
+
+
+class CameraPath(FlowPath):
+    """Camera frames -> grid Lucas-Kanade flow between consecutive frames, undistorted."""
+
+    def __init__(self, source: str, cfg: GnssFlowConfig, calibration: CameraCalibration, mount: Mount,
                  health: Health) -> None:
+        super().__init__(source, mount.rotation @ OPTICAL_TO_SENSOR, cfg.foe_min_flow_px / calibration.K[0, 0],
+                         health)
         self.cfg = cfg
         self.calibration = calibration
+        self._previous: tuple[_Instant, np.ndarray] | None = None  # the newest frame's instant and grey image
+
+    def reset(self) -> None:
+        self._previous = None
+
+    def complete(self, instant: _Instant, payload: Frame) -> tuple[_Instant, _Instant, Any, Any] | str | None:
+        grey = payload.image if payload.image.ndim == 2 else cv2.cvtColor(payload.image, cv2.COLOR_BGR2GRAY)
+        previous, self._previous = self._previous, (instant, grey)
+        if previous is None:
+            return None
+        size = grey.shape[::-1]
+        if size != (self.calibration.width, self.calibration.height) or previous[1].shape != grey.shape:
+            return (f"frame size {size[0]}x{size[1]}: the calibration is for "
+                    f"{self.calibration.width}x{self.calibration.height}")
+        return previous[0], instant, previous[1], grey
+
+    def measure(self, earlier: np.ndarray, later: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        cfg = self.cfg
+        flow = grid_flow(earlier, later, grid=tuple(cfg.grid), win=cfg.lk_window_px, levels=cfg.lk_levels,
+                         fb_max_px=cfg.fb_max_px)
+        points_px, flows_px = flow.points_px[flow.valid], flow.flows_px[flow.valid]
+        return *normalised_flow(points_px, flows_px, self.calibration), points_px, flows_px
+
+    def telemetry_flow(self, result: PairResult, shown: slice) -> dict[str, Any]:
+        foe_px = None
+        if result.foe is not None:
+            foe_px = self.calibration.project(np.append(result.foe.point_n, 1.0)[None, :])[0]
+        return {"image_size": (self.calibration.width, self.calibration.height),
+                "flow_points_px": result.points[shown], "flow_px": result.flows[shown], "foe_px": foe_px}
+
+
+class FlowSensorPath(FlowPath):
+    """A flow sensor's fields (:class:`FlowField`, normalised already): each one pair."""
+
+    def __init__(self, source: str, cfg: GnssFlowConfig, mount: Mount, health: Health) -> None:
+        super().__init__(source, mount.rotation @ OPTICAL_TO_SENSOR, cfg.foe_min_flow_n, health)
+        self._earlier: _Instant | None = None  # the newest instant stamped: the next field's earlier one
+        self.last_queued_s = -math.inf  # the later instant of the newest field queued, s
+
+    def reset(self) -> None:
+        self._earlier = None
+
+    def complete(self, instant: _Instant, payload: FlowField | None) -> tuple[_Instant, _Instant, Any, Any] | None:
+        """``payload`` None: the earlier instant of a field, kept; a field: its later instant (kept
+        too: the next field's earlier instant when the fields follow each other)."""
+        earlier, self._earlier = self._earlier, instant
+        if payload is None or earlier is None or earlier.t != payload.t_earlier:  # no pair, or its start dropped
+            return None
+        return earlier, instant, None, payload
+
+    def measure(self, earlier: None, later: FlowField) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        points, flows = later.points_n[later.valid], later.flows_n[later.valid]
+        return points, flows, points, flows
+
+    def telemetry_flow(self, result: PairResult, shown: slice) -> dict[str, Any]:
+        return {"flow_points_n": result.points[shown], "flow_n": result.flows[shown]}
+
+
+class GnssFlowPipeline:
+    """GNSS + optic-flow attitude and height above ground; see the module docstring. Its paths
+    (:attr:`paths`): the flow sensor's (source ``gnss_flow``) then the camera's (``gnss_flow``, or
+    ``gnss_flow.images`` beside a flow sensor), each giving its own estimates from the one GNSS."""
+
+    name = "gnss_flow"
+
+    def __init__(self, cfg: GnssFlowConfig, calibration: CameraCalibration | None, camera_mount: Mount | None,
+                 health: Health, flow_mount: Mount | None = None) -> None:
+        """``calibration`` and ``camera_mount``: the camera's (both None without a camera);
+        ``flow_mount``: the flow sensor's (None without one)."""
+        self.cfg = cfg
         self.health = health
-        self.cam_to_body = camera_mount.rotation @ OPTICAL_TO_SENSOR  # v_body = cam_to_body @ v_optical
+        self.flow_path = None if flow_mount is None else FlowSensorPath(STREAM, cfg, flow_mount, health)
+        self.camera_path = None
+        if calibration is not None and camera_mount is not None:
+            source = STREAM if self.flow_path is None else f"{STREAM}.images"
+            self.camera_path = CameraPath(source, cfg, calibration, camera_mount, health)
+        self.paths: list[FlowPath] = [p for p in (self.flow_path, self.camera_path) if p is not None]
+        if not self.paths:
+            raise ValueError("gnss_flow needs a camera, a flow sensor or both")
+        self.telemetry_streams = tuple(p.stream for p in self.paths)
         self.filter = DopplerAccelerationFilter(jerk_psd=cfg.jerk_psd)
         self.limits = PseudoAttitudeLimits(min_ground_speed_mps=cfg.min_speed_mps)
-        self.stats = GnssFlowStats()
+        self.gnss_stats = GnssStats()
         self.timings = {"gnss_flow": Timings()}
         self._fixes: deque[tuple[float, GnssFix]] = deque()  # (latency-corrected epoch s, fix), in arrival order
         self._newest_epoch = -math.inf  # of any fix received, s
-        self._frames: deque[Frame] = deque()  # waiting for a fix at or after their capture
-        self._last_frame_s = -math.inf  # capture time of the newest frame kept, s
-        self._last_pair_s: float | None = None  # capture time of the newest pair's later frame, s
+        # capture instants waiting for a fix at or after them: (t s, arrival number, path, payload)
+        self._instants: list[tuple[float, int, FlowPath, Any]] = []
+        self._arrivals = 0
+        self._last_frame_s = -math.inf  # capture time of the newest camera frame kept, s
         self._imu: deque[ImuSample] = deque()
         self._pseudo_history: deque[PseudoAttitude] = deque()  # at the fixes of the last rate_baseline_s
-        self._previous: _Stamped | None = None
-        self._offsets = (0.0, 0.0)  # the newest pair's (pitch offset, drift) rad: the GNSS rates' frame
-        self.last_result: PairResult | None = None
-        self._published: PairResult | None = None
-        health.report(COMPONENT, State.LOST, "waiting for GNSS fixes and frames")
+
+    @property
+    def stats(self) -> GnssFlowStats:
+        """The first path's counters (the flow sensor's, else the camera's)."""
+        return self.paths[0].stats
 
     # -- inputs (driver callbacks) ------------------------------------------------------
 
     def subscriptions(self) -> dict[str, Callable[[Any], None]]:
-        subs: dict[str, Callable[[Any], None]] = {self.cfg.gnss: self.on_fix, self.cfg.camera: self.on_frame}
+        subs: dict[str, Callable[[Any], None]] = {self.cfg.gnss: self.on_fix}
+        if self.cfg.camera is not None:
+            subs[self.cfg.camera] = self.on_frame
+        if self.cfg.flow is not None:
+            subs[self.cfg.flow] = self.on_flow
         if self.cfg.imu_sensor is not None:
             subs[self.cfg.imu_sensor] = self.on_imu
         return subs
@@ -327,38 +489,55 @@ class GnssFlowPipeline:
         self._newest_epoch = max(self._newest_epoch, epoch)
 
     def on_frame(self, frame: Frame) -> None:
-        self.stats.frames += 1
+        assert self.camera_path is not None  # subscribed only with a camera
+        self.camera_path.stats.frames += 1
         if frame.t_capture - self._last_frame_s < (1 - FRAME_SLACK) / self.cfg.pair_rate_hz:
-            self.stats.skipped_frames += 1
+            self.camera_path.stats.skipped_frames += 1
             return
         self._last_frame_s = frame.t_capture
-        self._frames.append(frame)
+        self._wait(frame.t_capture, self.camera_path, frame)
+
+    def on_flow(self, flow: FlowField) -> None:
+        assert self.flow_path is not None  # subscribed only with a flow sensor
+        self.flow_path.stats.frames += 1
+        if flow.t_earlier != self.flow_path.last_queued_s:  # else stamped already, as the previous field's end
+            self._wait(flow.t_earlier, self.flow_path, None)
+        self.flow_path.last_queued_s = flow.t_capture
+        self._wait(flow.t_capture, self.flow_path, flow)
 
     def on_imu(self, sample: ImuSample) -> None:
         self._imu.append(sample)
         while self._imu and self._imu[0].t < sample.t - IMU_HISTORY_S:
             self._imu.popleft()
 
+    def _wait(self, t: float, path: FlowPath, payload: Any) -> None:
+        """Queue the capture instant ``t`` (s) of ``path`` until the GNSS has reached it."""
+        heapq.heappush(self._instants, (t, self._arrivals, path, payload))
+        self._arrivals += 1
+
     # -- the nav cycle --------------------------------------------------------------------
 
     def step(self, now: float) -> list[Estimate]:
-        """Advance to daemon time ``now`` (s): the attitude and range estimates of the frames
+        """Advance to daemon time ``now`` (s): the attitude and range estimates of the pairs
         whose GNSS is in (see the module docstring)."""
         started = time.perf_counter()
         out: list[Estimate] = []
-        while self._frames and self._frames[0].t_capture <= self._newest_epoch:
-            frame = self._frames.popleft()
-            self._feed_fixes(frame.t_capture)
-            out += self._process(frame)
-        if not self._frames:  # nothing waits for the filter to stay before a fix
+        while self._instants and self._instants[0][0] <= self._newest_epoch:
+            t, _, path, payload = heapq.heappop(self._instants)
+            self._feed_fixes(t)
+            out += self._process(path, self._stamp(t), payload)
+        if not self._instants:  # nothing waits for the filter to stay before a fix
             self._feed_fixes(math.inf)
-        elif now - self._frames[0].t_capture > self.filter.max_gap_s:  # no GNSS for it: drop the wait
-            self._refuse(f"no GNSS fix within {self.filter.max_gap_s:g} s of the frame")
-            self._frames.clear()
-            self._previous = None
-        if self._last_pair_s is not None and now - self._last_pair_s > LOST_AFTER_S:
-            self.health.report(COMPONENT, State.LOST, f"no frame pair with GNSS for {LOST_AFTER_S:g} s")
-        if out or self._frames:
+        elif now - self._instants[0][0] > self.filter.max_gap_s:  # no GNSS for them: drop the wait
+            for path in {entry[2] for entry in self._instants}:
+                path.refuse(f"no GNSS fix within {self.filter.max_gap_s:g} s of the flow")
+            self._instants.clear()
+            for path in self.paths:
+                path.reset()
+        for path in self.paths:
+            if path.last_pair_s is not None and now - path.last_pair_s > LOST_AFTER_S:
+                self.health.report(path.component, State.LOST, f"no flow pair with GNSS for {LOST_AFTER_S:g} s")
+        if out or self._instants:
             self.timings["gnss_flow"].add((time.perf_counter() - started) * 1e3)
         return out
 
@@ -374,10 +553,10 @@ class GnssFlowPipeline:
                       and bool(np.all(np.isfinite(v))))
             sigma = fix.speed_acc_mps if fix.speed_acc_mps is not None else self.cfg.speed_sigma_mps
             if usable and self.filter.update(epoch, np.asarray(v, dtype=float), sigma):
-                self.stats.fixes += 1
+                self.gnss_stats.fixes += 1
                 self._remember(epoch)
             else:
-                self.stats.fixes_refused += 1
+                self.gnss_stats.fixes_refused += 1
         self._fixes = keep
 
     def _remember(self, epoch: float) -> None:
@@ -391,52 +570,45 @@ class GnssFlowPipeline:
         while len(self._pseudo_history) > 2 and self._pseudo_history[1].time_s <= epoch - self.cfg.rate_baseline_s:
             self._pseudo_history.popleft()
 
-    def _stamp(self, frame: Frame) -> _Stamped:
-        """The frame (grey) with the pseudo-attitude and speed at its capture time."""
-        image = frame.image if frame.image.ndim == 2 else cv2.cvtColor(frame.image, cv2.COLOR_BGR2GRAY)
+    def _stamp(self, t: float) -> _Instant:
+        """The pseudo-attitude and speed at capture time ``t`` (s)."""
         last = self.filter.last_fix_time_s
-        # a frame captured before the newest fused fix (it arrived late): the estimate at that fix
-        estimate = None if last is None else self.filter.estimate(max(frame.t_capture, last))
+        # captured before the newest fused fix (it arrived late): the estimate at that fix
+        estimate = None if last is None else self.filter.estimate(max(t, last))
         if estimate is None:
-            return _Stamped(frame, image, None, math.nan, "no GNSS velocity")
+            return _Instant(t, None, math.nan, "no GNSS velocity")
         refusal = pseudo_attitude_refusal(estimate.velocity_ned, estimate.acceleration_ned, self.limits)
-        return _Stamped(frame, image, None if refusal else pseudo_attitude(estimate, self.limits),
+        return _Instant(t, None if refusal else pseudo_attitude(estimate, self.limits),
                         float(np.linalg.norm(estimate.velocity_ned)), refusal or "")
 
-    def _refuse(self, reason: str) -> None:
-        key = reason.split(":")[0]
-        self.stats.refused[key] = self.stats.refused.get(key, 0) + 1
-        self.health.report(COMPONENT, State.DEGRADED, reason)
-
-    def _process(self, frame: Frame) -> list[Estimate]:
-        current = self._stamp(frame)
-        previous, self._previous = self._previous, current
-        if previous is None:
+    def _process(self, path: FlowPath, instant: _Instant, payload: Any) -> list[Estimate]:
+        pair = path.complete(instant, payload)
+        if pair is None:
             return []
-        self._last_pair_s = current.frame.t_capture
-        size = current.grey.shape[::-1]
-        if size != (self.calibration.width, self.calibration.height) or previous.grey.shape != current.grey.shape:
-            self._refuse(f"frame size {size[0]}x{size[1]}: the calibration is for "
-                         f"{self.calibration.width}x{self.calibration.height}")
+        path.last_pair_s = instant.t
+        if isinstance(pair, str):
+            path.refuse(pair)
             return []
-        dt = current.frame.t_capture - previous.frame.t_capture
-        if previous.pseudo is None or current.pseudo is None:
-            self._refuse(f"no pseudo-attitude: {previous.refusal or current.refusal}")
+        earlier, later, earlier_payload, later_payload = pair
+        dt = later.t - earlier.t
+        if earlier.pseudo is None or later.pseudo is None:
+            path.refuse(f"no pseudo-attitude: {earlier.refusal or later.refusal}")
             return []
         if dt <= 0:
-            self._refuse("frames out of time order")
+            path.refuse("frames out of time order")
             return []
-        result, estimates = self._pair(previous, current, dt)
-        self.last_result = result
+        result, estimates = self._pair(path, earlier, later, path.measure(earlier_payload, later_payload))
+        path.last_result = result
         return estimates
 
-    def _rates(self, t0: float, t1: float, mid: PseudoAttitude) -> tuple[np.ndarray, str, np.ndarray | None] | None:
+    def _rates(self, t0: float, t1: float, mid: PseudoAttitude,
+               offsets: tuple[float, float]) -> tuple[np.ndarray, str, np.ndarray | None] | None:
         """(body rates p, q, r rad/s over [t0, t1] s, their source, the mean IMU specific force
         body FRD m/s^2 over it or None without IMU samples in it), or None without either source
         (the first fixes after a gap). Without IMU samples: the pseudo
         Euler rates over ``rate_baseline_s`` up to ``mid`` (differences over a frame interval are
         the Doppler noise's, amplified) turned into the pseudo frame's rates at ``mid``'s angles,
-        then into the body's by the newest pair's velocity offsets."""
+        then into the body's by the velocity ``offsets`` (pitch offset, drift rad) of the path's newest pair."""
         inside = [s for s in self._imu if t0 <= s.t <= t1]
         if inside:
             return (np.mean([s.gyro_body for s in inside], axis=0), "imu",
@@ -445,69 +617,68 @@ class GnssFlowPipeline:
         if earlier is None or earlier.time_s >= mid.time_s:
             return None
         rates = pseudo_euler_rates(earlier, mid)
-        return wind_to_body(*self._offsets) @ body_rates_from_euler_rates(mid.roll, mid.pitch, rates), "gnss", None
+        return wind_to_body(*offsets) @ body_rates_from_euler_rates(mid.roll, mid.pitch, rates), "gnss", None
 
-    def _foe(self, points_n: np.ndarray, translational: np.ndarray) -> FocusOfExpansion | None:
+    def _foe(self, path: FlowPath, points_n: np.ndarray, translational: np.ndarray) -> FocusOfExpansion | None:
         return focus_of_expansion(points_n, translational, threshold_deg=self.cfg.foe_threshold_deg,
-                                  iterations=self.cfg.foe_iterations,
-                                  min_flow=self.cfg.foe_min_flow_px / self.calibration.K[0, 0])
+                                  iterations=self.cfg.foe_iterations, min_flow=path.min_flow_n)
 
-    def _pair(self, previous: _Stamped, current: _Stamped, dt: float) -> tuple[PairResult, list[Estimate]]:
-        """The flow of one frame pair and what it gives (see the module docstring)."""
+    def _pair(self, path: FlowPath, earlier: _Instant, later: _Instant,
+              measured: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> tuple[PairResult, list[Estimate]]:
+        """What the ``measured`` flow (:meth:`FlowPath.measure`) of one pair gives (see the module docstring)."""
         cfg = self.cfg
-        assert previous.pseudo is not None and current.pseudo is not None  # checked by the caller
-        mid = midway(previous.pseudo, current.pseudo)
-        flow = grid_flow(previous.grey, current.grey, grid=tuple(cfg.grid), win=cfg.lk_window_px, levels=cfg.lk_levels,
-                         fb_max_px=cfg.fb_max_px)
-        points_px, flows_px = flow.points_px[flow.valid], flow.flows_px[flow.valid]
+        assert earlier.pseudo is not None and later.pseudo is not None  # checked by the caller
+        mid = midway(earlier.pseudo, later.pseudo)
+        points_n, flows_n, points, flows = measured
+        dt = later.t - earlier.t
         pseudo_euler = (mid.roll, mid.pitch, mid.yaw)
-        t_mid = 0.5 * (previous.frame.t_capture + current.frame.t_capture)  # mid's own time differs for a late frame
-        base = PairResult(t_mid, pseudo_euler, points_px, flows_px)
-        points_n, flows_n = normalised_flow(points_px, flows_px, self.calibration)
-        body_rates = self._rates(previous.frame.t_capture, current.frame.t_capture, mid)
+        t_mid = 0.5 * (earlier.t + later.t)  # mid's own time differs for a late frame
+        base = PairResult(t_mid, pseudo_euler, points, flows)
+        body_rates = self._rates(earlier.t, later.t, mid, path.offsets)
         if body_rates is None:
             reason = "no body rates: no IMU samples in the frame interval and no GNSS rate baseline"
-            self._refuse(reason)
+            path.refuse(reason)
             return dataclasses.replace(base, status=reason), []
         rates, rates_source, specific_force = body_rates
-        translational = derotate(points_n, flows_n, rates, dt, self.cam_to_body)
-        foe = self._foe(points_n, translational)
+        cam_to_body = path.cam_to_body
+        translational = derotate(points_n, flows_n, rates, dt, cam_to_body)
+        foe = self._foe(path, points_n, translational)
         for _ in range(cfg.spin_sweeps if rates_source == "gnss" else 0):
             if foe is None:
                 break
             rates = rates + spin_about_travel(points_n, flows_n, translational, foe, rates, dt,
-                                              self.cam_to_body) * (self.cam_to_body @ foe.direction_cam)
-            translational = derotate(points_n, flows_n, rates, dt, self.cam_to_body)
-            foe = self._foe(points_n, translational)
+                                              cam_to_body) * (cam_to_body @ foe.direction_cam)
+            translational = derotate(points_n, flows_n, rates, dt, cam_to_body)
+            foe = self._foe(path, points_n, translational)
         if foe is None:
-            reason = f"no focus of expansion: {len(points_n)} flow vectors tracked"
-            self._refuse(reason)
+            reason = f"no focus of expansion: {len(points_n)} flow vectors"
+            path.refuse(reason)
             return dataclasses.replace(base, status=reason, rates_source=rates_source), []
-        self.stats.flows += 1
+        path.stats.flows += 1
         # the body at mid-interval: turned by half the interval's rotation from the earlier one's
         half_turn, _ = cv2.Rodrigues(np.asarray(rates, dtype=float) * dt / 2)  # v_body_earlier = half_turn @ v_body_mid
-        cam_to_mid_body = half_turn.T @ self.cam_to_body
+        cam_to_mid_body = half_turn.T @ cam_to_body
         forward = 1.0 if foe.direction_cam[2] > 0 else -1.0
         euler, offsets = true_euler(np.array(pseudo_euler), foe.point_n, forward, cam_to_mid_body)
-        self._offsets = offsets
+        path.offsets = offsets
         if specific_force is not None:
             coordinated, lateral = coordination_check(specific_force, math.radians(cfg.max_lateral_deg))
         else:
             lateral = offsets[1]
             coordinated = abs(lateral) <= math.radians(cfg.max_drift_deg)
-        depth = depths(points_n, translational, foe.direction_cam, current.speed_mps, dt)
+        depth = depths(points_n, translational, foe.direction_cam, later.speed_mps, dt)
         result = dataclasses.replace(base, rates_source=rates_source, foe=foe, offsets_rad=offsets,
                                      coordinated=coordinated, lateral_rad=lateral, depth_m=depth)
         if not coordinated:
-            self.stats.uncoordinated += 1
+            path.stats.uncoordinated += 1
             reason = (f"uncoordinated manoeuvre: {'lateral specific force' if specific_force is not None else 'drift'}"
                       f" {math.degrees(lateral):.1f} deg")
-            self._refuse(reason)
+            path.refuse(reason)
             return dataclasses.replace(result, status=reason), []
         t_euler = tuple(float(a) for a in euler)
         cov = true_euler_covariance(mid, foe, forward, cam_to_mid_body)
-        estimates: list[Estimate] = [AttitudeEstimate(t_mid, t_euler, cov, source=self.name)]
-        self.stats.attitudes += 1
+        estimates: list[Estimate] = [AttitudeEstimate(t_mid, t_euler, cov, source=path.source)]
+        path.stats.attitudes += 1
         cam_to_level = rotation_from_euler(*t_euler) @ cam_to_mid_body  # the earlier camera's attitude
         agl = height_above_ground(points_n + translational, depth, cam_to_level, cfg.min_depression_deg)
         status = "attitude"
@@ -515,36 +686,34 @@ class GnssFlowPipeline:
         if agl is not None and low <= agl <= high:
             cos_tilt = math.cos(t_euler[0]) * math.cos(t_euler[1])  # body down axis against the vertical
             distance = agl / cos_tilt
-            estimates.append(RangeEstimate(current.frame.t_capture, distance, (cfg.agl_sigma_fraction * distance) ** 2,
-                                           min_m=low, max_m=high, source=self.name))
-            self.stats.ranges += 1
+            estimates.append(RangeEstimate(later.t, distance, (cfg.agl_sigma_fraction * distance) ** 2,
+                                           min_m=low, max_m=high, source=path.source))
+            path.stats.ranges += 1
             status = "attitude and height above ground"
-        self.health.report(COMPONENT, State.OK, status)
+        self.health.report(path.component, State.OK, status)
         return dataclasses.replace(result, status=status, euler_rad=t_euler, agl_m=agl), estimates
 
     # -- telemetry --------------------------------------------------------------------------
 
     def snapshot(self) -> dict:
-        """Counters for telemetry."""
-        return dataclasses.asdict(self.stats)
+        """Counters for telemetry: the GNSS's and the first path's, the second path's under its source."""
+        out = {**dataclasses.asdict(self.gnss_stats), **dataclasses.asdict(self.paths[0].stats)}
+        return out | {p.source: dataclasses.asdict(p.stats) for p in self.paths[1:]}
 
     def telemetry(self, static_due: bool) -> dict[str, dict[str, Any]]:
-        """The newest frame pair's flow, FOE, depths and attitudes (once per pair)."""
-        r = self.last_result
-        if r is None or r is self._published:
-            return {}
-        self._published = r
-        step = max(1, math.ceil(len(r.points_px) / self.cfg.flow_vectors_shown)) if self.cfg.flow_vectors_shown else 0
+        """Each path's newest pair's flow, FOE, depths and attitudes on its stream (once per pair)."""
+        return {path.stream: self._pair_telemetry(path, path.last_result) for path in self.paths
+                if path.last_result is not None and path.last_result is not path.published}
+
+    def _pair_telemetry(self, path: FlowPath, r: PairResult) -> dict[str, Any]:
+        path.published = r
+        step = max(1, math.ceil(len(r.points) / self.cfg.flow_vectors_shown)) if self.cfg.flow_vectors_shown else 0
         shown = slice(None, None, step) if step else slice(0, 0)
-        foe_px = None
-        if r.foe is not None:
-            foe_px = self.calibration.project(np.append(r.foe.point_n, 1.0)[None, :])[0]
         depth = None if r.depth_m is None else r.depth_m[np.isfinite(r.depth_m)]
-        return {STREAM: {
+        return {
             "t_capture": r.t_capture, "status": r.status, "rates_source": r.rates_source,
-            "image_size": (self.calibration.width, self.calibration.height),
-            "flow_points_px": r.points_px[shown], "flow_px": r.flows_px[shown], "flow_count": len(r.points_px),
-            "foe_n": None if r.foe is None else r.foe.point_n, "foe_px": foe_px,
+            **path.telemetry_flow(r, shown), "flow_count": len(r.points),
+            "foe_n": None if r.foe is None else r.foe.point_n,
             "foe_inlier_fraction": None if r.foe is None else r.foe.inlier_fraction,
             "foe_rms_deg": None if r.foe is None else r.foe.rms_angle_deg,
             "pitch_offset_rad": None if r.offsets_rad is None else r.offsets_rad[0],
@@ -555,14 +724,16 @@ class GnssFlowPipeline:
                 "count": len(depth), "min": float(depth.min()), "median": float(np.median(depth)),
                 "max": float(depth.max())},
             "agl_m": r.agl_m,
-        }}
+        }
 
     def operating_area(self) -> None:
         """Unbounded: GNSS works anywhere."""
         return None
 
 
-def _load(ctx_load: Callable[..., Any], section: GnssFlowConfig) -> CameraCalibration:
+def _load(ctx_load: Callable[..., Any], section: GnssFlowConfig) -> CameraCalibration | None:
+    if section.calibration is None:
+        return None
     return ctx_load("pipelines.gnss_flow.calibration", section.calibration, load_calibration)
 
 
@@ -572,5 +743,7 @@ def _check_files(cfg: Any, section: GnssFlowConfig) -> None:
 
 @register_pipeline("gnss_flow", GnssFlowConfig, check_files=_check_files, poses=False)
 def _build(section: GnssFlowConfig, ctx: PipelineContext) -> GnssFlowPipeline:
-    mount = Mount.from_config(ctx.config.sensors[section.camera].mount)
-    return GnssFlowPipeline(section, _load(ctx.load, section), mount, ctx.health)
+    sensors = ctx.config.sensors
+    camera_mount = None if section.camera is None else Mount.from_config(sensors[section.camera].mount)
+    flow_mount = None if section.flow is None else Mount.from_config(sensors[section.flow].mount)
+    return GnssFlowPipeline(section, _load(ctx.load, section), camera_mount, ctx.health, flow_mount)
