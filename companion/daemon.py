@@ -288,7 +288,10 @@ class Daemon:
                 self.session = open_session(t.mode, t.listen, t.connect, t.multicast_scouting, t.gossip_scouting)
             except Exception as exc:  # zenoh.ZError: bad endpoint, port in use
                 self.health.report("telemetry", State.DEGRADED, f"zenoh session failed: {exc}")
-        rates = {"pose": t.pose_hz, "velocity": t.pose_hz, "attitude_check": t.pose_hz}
+        # Not attitude_check: one stream for every attitude source, whose estimates often share an
+        # instant (two flow paths of one frame pair), where a stream's limit would refuse all but the
+        # first; each is published (the report scores them one by one), at the sources' own rates.
+        rates = {"pose": t.pose_hz, "velocity": t.pose_hz}
         # loop.time (not clock.now): the publisher's worker thread reads the clock too.
         publisher = TelemetryPublisher(self.session, self.cfg.vehicle.sysid, t.queue_size, rates,
                                        clock=asyncio.get_running_loop().time)

@@ -142,8 +142,7 @@ def score_attitude(log: dict, attitude_checks: Sequence[dict]) -> dict[str, Any]
     """The attitude-only estimates (the daemon's ``attitude_check`` payloads, docs/telemetry.md)
     against the truth, per source: ``sources`` {source: :func:`euler_error_stats`}, and the
     contract's fields (ATTITUDE_CONTRACT) taken from those, None when their source made no
-    estimate. The payloads are what the daemon published: at most ``telemetry.pose_hz`` for all
-    sources together, so a sample of the estimates when they come faster."""
+    estimate (one the autopilot's ATTITUDE was not known for yet is not published)."""
     by_source: dict[str, list[dict]] = {}
     for payload in attitude_checks:
         by_source.setdefault(payload["source"], []).append(payload)
