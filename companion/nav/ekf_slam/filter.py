@@ -134,11 +134,14 @@ class EkfSlam:
 
     # --- prediction --------------------------------------------------------------------------
 
-    def predict(self, v_mps: float, omega_rps: float, dt_s: float, v_right_mps: float | None = None) -> None:
+    def predict(self, v_mps: float, omega_rps: float, dt_s: float, v_right_mps: float | None = None,
+                speed_sigma_mps: float | None = None) -> None:
         """Propagate the vehicle by the speed and yaw-rate inputs over ``dt_s`` (seed eqs. 16-21);
         ``v_right_mps``: a measured speed across the heading (a crabbing multicopter), noisy like
         the speed along it; None: the seed's vehicle, which moves along its heading (no lateral
-        term, no lateral noise). O(n): ``P_vv = F P_vv F^T + G Q G^T``, ``P_vm = F P_vm``."""
+        term, no lateral noise). ``speed_sigma_mps``: this step's speed noise (1-sigma, m/s, white
+        per step) when the input states its own; None: the configured ``sigma_v_mps``.
+        O(n): ``P_vv = F P_vv F^T + G Q G^T``, ``P_vm = F P_vm``."""
         pose = self.x[:VEHICLE]
         lateral = 0.0 if v_right_mps is None else v_right_mps
         f, g = motion_jacobians(pose, v_mps, omega_rps, dt_s, lateral)
@@ -150,6 +153,11 @@ class EkfSlam:
         self.prior_ne = new[:2].copy()
         p = self.P
         q = self.Q_lateral if v_right_mps is not None else self.Q  # per input step (the seed's 40 Hz; the daemon's IMU rate)
+        if speed_sigma_mps is not None:
+            q = q.copy()
+            q[0, 0] = speed_sigma_mps ** 2
+            if v_right_mps is not None:
+                q[1, 1] = speed_sigma_mps ** 2
         pvv = f @ p[:VEHICLE, :VEHICLE] @ f.T + g @ q @ g.T
         p[:VEHICLE, :VEHICLE] = 0.5 * (pvv + pvv.T)
         if p.shape[0] > VEHICLE:  # F = I except its yaw column: rows n and e gain f02 / f12 times row yaw

@@ -123,6 +123,15 @@ class EkfSlamPipelineConfig:
     altitude_band_m: float = field(default=5.0, metadata=meta(
         "GNSS lost within this of slam.altitude_m (the altitude the return flies at) starts the return; lost "
         "elsewhere (on the ground, climbing) it does not, metres.", (0.1, 100)))
+    autopilot_velocity_sigma_mps: float = field(default=0.5, metadata=meta(
+        "1-sigma of the autopilot's velocity estimate as the motion input (after GNSS loss), m/s. Its error is "
+        "not white per IMU sample like the seed's commanded input: it wanders over about "
+        "autopilot_velocity_tau_s, and without GNSS the autopilot's EKF takes it partly from this very "
+        "estimate. Weighed as white noise of the same effect over that time (sigma * sqrt(2 tau / dt) per "
+        "step), so that landmark frames keep correcting the drift instead of being refused by the gate and "
+        "arriving later as jumps (seen on ArduCopter 4.0 SITL).", (0.0, 10.0)))
+    autopilot_velocity_tau_s: float = field(default=1.0, metadata=meta(
+        "Correlation time of the autopilot velocity's error, seconds.", (0.01, 100.0)))
     start_yaw_sigma_deg: float = field(default=5.0, metadata=meta(
         "1-sigma of the autopilot's heading the SLAM starts with (a compass), degrees.", (0.01, 90)))
     attitude_sigma_deg: float = field(default=1.0, metadata=meta(
@@ -355,16 +364,20 @@ class EkfSlamPipeline:
             yaw = float(self.slam.x[2])
             self._velocity_ne = np.array([u[0] * math.cos(yaw) - u[1] * math.sin(yaw),
                                           u[0] * math.sin(yaw) + u[1] * math.cos(yaw)])
-        self._predict_to(sample.t, u)
+        self._predict_to(sample.t, u, autopilot_input=gnss is None)
 
-    def _predict_to(self, t: float, u: tuple[float, float, float] | None) -> None:
+    def _predict_to(self, t: float, u: tuple[float, float, float] | None, autopilot_input: bool = False) -> None:
         """Propagate the SLAM from its time to ``t`` (s) with the input ``u`` (forward and right
-        speed, yaw rate; :func:`motion_input`); without one only the clock moves."""
+        speed, yaw rate; :func:`motion_input`); without one only the clock moves. With
+        ``autopilot_input`` the speeds are the autopilot's estimate, weighed as its correlated
+        error (``autopilot_velocity_sigma_mps`` over ``autopilot_velocity_tau_s``)."""
         if self.slam is None or self._t is None or t <= self._t:
             return
         dt, self._t = t - self._t, t
         if u is not None and dt <= MAX_IMU_GAP_S:
-            self.slam.predict(u[0], u[2], dt, v_right_mps=u[1])
+            sigma = (self.cfg.autopilot_velocity_sigma_mps * math.sqrt(2.0 * self.cfg.autopilot_velocity_tau_s / dt)
+                     if autopilot_input else None)
+            self.slam.predict(u[0], u[2], dt, v_right_mps=u[1], speed_sigma_mps=sigma)
 
     def _current_down(self) -> float | None:
         """The vehicle's NED down (m): the baro on the datum the GNSS heights gave it (smooth: a
