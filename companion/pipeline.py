@@ -33,9 +33,9 @@ class PipelineSection(Protocol):
         check refuses a name that is not a sensor of that kind."""
 
     def moved(self, raw: dict[str, Any], offset: tuple[float, float], move_map: Callable[[str], str]) -> dict[str, Any]:
-        """The section (``raw``, as written) for a local frame whose origin moved by ``offset``
-        (north, east m): its positions shifted, its maps replaced by ``move_map(path)`` (a copy in
-        the moved frame). The harness uses it to fly ArduPilot SITL, whose origin is its take-off point."""
+        """The section (``raw``, as written) for a local frame whose origin moved: ``offset``
+        (north, east m) added to each of its positions (the harness passes minus the take-off
+        point), its maps replaced by ``move_map(path)`` (a copy in the moved frame). The harness uses it to fly ArduPilot SITL, whose origin is its take-off point."""
 
 
 class Pipeline(Protocol):

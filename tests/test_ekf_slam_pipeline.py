@@ -105,6 +105,15 @@ class Flight:
 SOUTH_WEST = (-5.0 / math.sqrt(2), -5.0 / math.sqrt(2), 0.0)
 
 
+def test_in_a_frame_moved_to_the_take_off_point_the_base_moves_with_the_world() -> None:
+    """The harness flies ArduPilot SITL with the origin at the take-off point: every position gets
+    minus that point added. The base moved the other way (to 707, 707) and the ArduCopter return
+    flew past the base towards it."""
+    section = EkfSlamPipelineConfig(gnss="gnss", landmarks="landmarks", base_ne=BASE)
+    moved = section.moved({"base_ne": list(BASE)}, (-BASE[0], -BASE[1]), lambda path: path)
+    assert moved["base_ne"] == [0.0, 0.0]
+
+
 def test_on_gnss_the_pose_follows_the_fixes_and_the_landmarks_flown_over_are_mapped() -> None:
     flight = Flight(SOUTH_WEST)
     flight.fly(30.0)

@@ -171,8 +171,9 @@ class EkfSlamPipelineConfig:
                             self.marker_pixel_sigma_px)
 
     def moved(self, raw: dict[str, Any], offset: tuple[float, float], move_map: Callable[[str], str]) -> dict[str, Any]:
-        """This section for a local frame whose origin moved by ``offset`` (north, east m): the base moves."""
-        return {**raw, "base_ne": [self.base_ne[0] - offset[0], self.base_ne[1] - offset[1]]}
+        """This section for a local frame whose origin moved: the base shifts by ``offset`` (north,
+        east m, added, as every position of the world and mission)."""
+        return {**raw, "base_ne": [self.base_ne[0] + offset[0], self.base_ne[1] + offset[1]]}
 
 
 def motion_input(sample: ImuSample, velocity_ned: np.ndarray | None) -> tuple[float, float, float] | None:
