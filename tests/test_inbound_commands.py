@@ -32,9 +32,10 @@ def acks(fake: FakeAutopilot) -> list[Any]:
 
 
 def exchange(command: int, sender: tuple[int, int] = GCS, refuse: str | None = None,
-             target_component: int = COMPANION_COMPID) -> tuple[list[Any], list[str], list[str], InboundCommands]:
-    """Send one routed command to a companion that obeys RTL with a handler answering ``refuse``;
-    (its COMMAND_ACKs, its STATUSTEXTs, what the handler saw, the server)."""
+             target_component: int = COMPANION_COMPID,
+             fail: bool = False) -> tuple[list[Any], list[str], list[str], InboundCommands]:
+    """Send one routed command to a companion that obeys RTL with a handler answering ``refuse``
+    (or raising, with ``fail``); (its COMMAND_ACKs, its STATUSTEXTs, what the handler saw, the server)."""
     seen: list[str] = []
     texts: list[str] = []
     box: dict[str, Any] = {}
@@ -42,7 +43,13 @@ def exchange(command: int, sender: tuple[int, int] = GCS, refuse: str | None = N
     async def body(link: MavlinkLink, fake: FakeAutopilot) -> None:
         server = box["server"] = InboundCommands(link, (255,), texts.append)
         box["fake"] = fake
-        server.register(RTL, lambda msg: seen.append(f"{msg.get_srcSystem()}/{msg.get_srcComponent()}") or refuse)
+        def handler(msg: Any) -> str | None:
+            seen.append(f"{msg.get_srcSystem()}/{msg.get_srcComponent()}")
+            if fail:
+                raise RuntimeError("planner broke")
+            return refuse
+
+        server.register(RTL, handler)
         routed(fake, sender, command, target_component)
         if target_component == COMPANION_COMPID:
             await fake.until(lambda: acks(fake), "the companion's COMMAND_ACK")
@@ -66,6 +73,13 @@ def test_a_refused_command_is_denied_and_the_reason_told_as_statustext() -> None
     answers, texts, _, server = exchange(RTL, refuse="not at the held altitude")
     assert [a.result for a in answers] == [mavlink.MAV_RESULT_DENIED]
     assert texts == ["companion: not at the held altitude"] and server.stats.denied == 1
+
+
+def test_a_handler_that_raises_answers_failed_and_says_why() -> None:
+    answers, texts, seen, server = exchange(RTL, fail=True)
+    assert [a.result for a in answers] == [mavlink.MAV_RESULT_FAILED] and seen == ["255/190"]
+    assert texts == ["companion: MAV_CMD_NAV_RETURN_TO_LAUNCH failed: RuntimeError: planner broke"]
+    assert server.stats.failed == 1 and server.stats.accepted == 0
 
 
 def test_a_command_without_a_handler_is_unsupported() -> None:

@@ -6,7 +6,9 @@ Who is obeyed: the systems in ``mavlink.command_sysids`` (default ``[255]``, a g
 convention). A command from anyone else is refused (MAV_RESULT_DENIED) and counted; on an
 unsigned link anyone who can send to it can claim sysid 255, so sign the link
 (``mavlink.signing_key_file``) where that matters. Every command gets one COMMAND_ACK, sent back
-to its sender: ACCEPTED, DENIED (why, as a STATUSTEXT), or UNSUPPORTED (no handler for it here).
+to its sender: ACCEPTED, DENIED (why, as a STATUSTEXT), UNSUPPORTED (no handler for it here), or
+FAILED (the handler raised: logged with its traceback and told as a STATUSTEXT, so the ground
+station is not left retrying an unanswered command).
 
 A handler answers ``None`` (done) or the reason it cannot (denied); it runs in the link's
 receive path, so it must not block.
@@ -32,6 +34,7 @@ class InboundStats:
     accepted: int = 0
     denied: int = 0  # a handler's refusal
     unsupported: int = 0  # no handler for that command
+    failed: int = 0  # the handler raised
     refused_senders: int = 0  # from a system not in mavlink.command_sysids
 
 
@@ -65,15 +68,25 @@ class InboundCommands:
             self.stats.unsupported += 1
             result, why = mavlink.MAV_RESULT_UNSUPPORTED, None
         else:
-            why = handler(msg)
-            if why is None:
-                self.stats.accepted += 1
-                log.info("%s from system %d component %d: accepted", name, *sender)
-                result = mavlink.MAV_RESULT_ACCEPTED
+            try:
+                why = handler(msg)
+            except Exception as exc:  # a bug in a handler must still answer the sender
+                log.exception("%s from system %d component %d: the handler failed", name, *sender)
+                why = f"{name} failed: {type(exc).__name__}: {exc}"
+                self.stats.failed += 1
+                result = mavlink.MAV_RESULT_FAILED
             else:
-                self.stats.denied += 1
-                log.warning("%s from system %d component %d denied: %s", name, *sender, why)
-                result = mavlink.MAV_RESULT_DENIED
+                result = self._judged(name, sender, why)
         self.link.send(mavlink.MAVLink_command_ack_message(msg.command, result, 0, 0, *sender))
         if why is not None:
             self.announce(f"companion: {why}")
+
+    def _judged(self, name: str, sender: tuple[int, int], why: str | None) -> int:
+        """ACCEPTED if the handler answered None, else DENIED (counted and logged)."""
+        if why is None:
+            self.stats.accepted += 1
+            log.info("%s from system %d component %d: accepted", name, *sender)
+            return mavlink.MAV_RESULT_ACCEPTED
+        self.stats.denied += 1
+        log.warning("%s from system %d component %d denied: %s", name, *sender, why)
+        return mavlink.MAV_RESULT_DENIED
