@@ -17,7 +17,9 @@ from dataclasses import dataclass
 
 from companion.frames import GRAVITY_MPS2, wrap_pi
 from sitl.dynamics import AirframeParams
-from sitl.estimator import SEVERITY_CRITICAL, SEVERITY_INFO, Estimator, StatusQueue
+from sitl.estimator import SEVERITY_CRITICAL, Estimator, StatusQueue
+from sitl.flight_controller_base import (
+    BODY_FRAMES, IGNORE_YAW, IGNORE_YAW_RATE, FlightControllerBase, rotate_xy, target_kind)
 
 STABILIZE, ALT_HOLD, GUIDED, LOITER, RTL, LAND, BRAKE = 0, 2, 4, 5, 6, 9, 17
 MODE_NAMES = {STABILIZE: "STABILIZE", ALT_HOLD: "ALT_HOLD", GUIDED: "GUIDED", LOITER: "LOITER",
@@ -25,25 +27,6 @@ MODE_NAMES = {STABILIZE: "STABILIZE", ALT_HOLD: "ALT_HOLD", GUIDED: "GUIDED", LO
 POSITION_MODES = frozenset({GUIDED, LOITER, RTL, BRAKE})  # need a position estimate to fly
 ARMABLE_MODES = frozenset({STABILIZE, ALT_HOLD, GUIDED, LOITER, LAND})
 ARMING_NEEDS_POSITION = frozenset({GUIDED, LOITER, LAND})
-
-# MAV_FRAME values accepted by SET_POSITION_TARGET_LOCAL_NED
-MAV_FRAME_LOCAL_NED = 1
-MAV_FRAME_LOCAL_OFFSET_NED = 7
-MAV_FRAME_BODY_NED = 8
-MAV_FRAME_BODY_OFFSET_NED = 9
-SUPPORTED_FRAMES = frozenset({MAV_FRAME_LOCAL_NED, MAV_FRAME_LOCAL_OFFSET_NED, MAV_FRAME_BODY_NED,
-                              MAV_FRAME_BODY_OFFSET_NED})
-# POSITION_TARGET_TYPEMASK
-IGNORE_YAW = 1024
-IGNORE_YAW_RATE = 2048
-# type_mask without the yaw bits -> which setpoint fields are used (ArduPilot's accepted sets)
-TARGET_KINDS = {
-    0b111111000: "pos",  # 3576 with yaw bits
-    0b111000111: "vel",  # 3527
-    0b000111111: "acc",  # 3135
-    0b111000000: "posvel",  # 3520
-    0b000000000: "posvelacc",  # 3072
-}
 
 
 @dataclass(frozen=True)
@@ -95,27 +78,24 @@ class ControlGains:
     rate_d_filter_hz: float = 20.0
 
 
-class FlightController:
-    """Mode logic, arming, GUIDED targets and the control cascade.
-
-    Public state: ``mode`` (custom_mode), ``armed``, ``landed`` (land detector), ``home_ned``
-    (home in the EKF frame or None) and ``home_locked`` (set explicitly, not moved at arming).
+class FlightController(FlightControllerBase):
+    """Mode logic, GUIDED targets and the control cascade; the public state, arming, disarming and
+    the take-off checks are :class:`sitl.flight_controller_base.FlightControllerBase`'s.
     """
+
+    MODE_NAMES = MODE_NAMES
+    POSITION_MODES = POSITION_MODES
+    ARMABLE_MODES = ARMABLE_MODES
+    ARMING_NEEDS_POSITION = ARMING_NEEDS_POSITION
+    TAKEOFF_MODES = frozenset({GUIDED})
+    RTL_MODE = RTL
 
     def __init__(self, *, status: StatusQueue, estimator: Estimator, airframe: AirframeParams,
                  limits: ControlLimits | None = None, gains: ControlGains | None = None) -> None:
-        self.status = status
-        self.est = estimator
+        super().__init__(status=status, estimator=estimator, mode=STABILIZE)
         self.airframe = airframe
         self.limits = limits or ControlLimits()
         self.gains = gains or ControlGains()
-        self.mode = STABILIZE
-        self.armed = False
-        self.landed = True
-        self.home_ned: tuple[float, float, float] | None = None
-        self.home_locked = False
-        self.nonfinite_rejected = 0
-        self.t = 0.0
         self._fmax = airframe.max_thrust_per_motor_n
         self._thrust = 0.0  # last collective thrust command, N
         # setpoints: horizontal "position" | "velocity" | "level", vertical "position" | "velocity"
@@ -130,88 +110,36 @@ class FlightController:
         self._cmd_t = 0.0
         self._takeoff_z: float | None = None
         self._rtl_phase = ""
-        self._ground_z = 0.0
         self._no_pos_since: float | None = None
         self._land_timer = 0.0
         self._landed_since = 0.0
         self._reset_integrators()
 
-    @property
-    def mode_name(self) -> str:
-        """ArduPilot name of the current mode."""
-        return MODE_NAMES[self.mode]
-
     # ------------------------------------------------------------------ commands
-    def set_mode(self, mode: int) -> tuple[bool, str]:
-        """Change flight mode; refused for unknown modes, or position modes without a position while armed."""
-        if mode not in MODE_NAMES:
-            return False, f"Unsupported mode {mode}"
-        if self.armed and mode in POSITION_MODES and not self.est.pos_valid:
-            return False, f"Mode change to {MODE_NAMES[mode]} failed: requires position"
-        if self.armed and mode == RTL and self.home_ned is None:
-            return False, "Mode change to RTL failed: no home"
-        self._enter_mode(mode)
-        return True, ""
+    def _mode_change_failure(self, mode: int) -> str:
+        """Like ArduCopter, a position mode needs a position (and RTL a home) only while armed."""
+        return super()._mode_change_failure(mode) if self.armed else ""
 
-    def arm(self, force: bool = False) -> tuple[bool, str]:
-        """Arm the motors after ArduPilot-like checks (``force`` skips them)."""
-        if self.armed:
-            return True, "Already armed"
-        if not force:
-            reason = self._arming_failure()
-            if reason:
-                self.status.push(SEVERITY_CRITICAL, reason)
-                return False, reason
-        self.armed = True
-        self.landed = True
+    def _on_arm(self) -> None:
+        """DISARM_DELAY on the ground counts from arming."""
         self._landed_since = self.t
-        self._ground_z = self.est.axes[2].p
-        if not self.home_locked and self.est.pos_valid:
-            self.home_ned = self._position()
-        self.status.push(SEVERITY_INFO, "Arming motors")
-        self._enter_mode(self.mode)
-        return True, ""
 
-    def disarm(self, force: bool = False) -> tuple[bool, str]:
-        """Disarm; refused in flight unless ``force``."""
-        if not self.armed:
-            return True, "Already disarmed"
-        if not self.landed and not force:
-            return False, "Disarm: vehicle not landed"
-        self._disarm()
-        return True, ""
-
-    def takeoff(self, altitude_m: float) -> tuple[bool, str]:
-        """Climb to ``altitude_m`` above home (or the arming point) at <= takeoff speed; GUIDED, armed, landed."""
-        if not math.isfinite(altitude_m):
-            self.nonfinite_rejected += 1
-            return False, "Takeoff: altitude not finite"
-        if self.mode != GUIDED:
-            return False, "Takeoff: mode is not GUIDED"
-        if not self.armed:
-            return False, "Takeoff: not armed"
-        if not self.landed:
-            return False, "Takeoff: already flying"
-        if altitude_m <= 0.0:
-            return False, "Takeoff: altitude must be positive"
-        if not self.est.pos_valid:
-            return False, "Takeoff: requires position"
-        ground = self.home_ned[2] if self.home_ned is not None else self._ground_z
-        self._takeoff_z = ground - altitude_m
+    def _start_takeoff(self, altitude_m: float) -> None:
+        """Climb to ``altitude_m`` above home (or the arming point) at <= takeoff speed."""
+        self._takeoff_z = self._ground_z() - altitude_m
         self._guided_kind = "pos"
         self.landed = False
         self._land_timer = 0.0
         self._hold_here(stop=False)
         self._vertical = "position"
-        return True, ""
 
     def set_position_target(self, frame: int, type_mask: int, pos: tuple[float, float, float],
                             vel: tuple[float, float, float], acc: tuple[float, float, float],
                             yaw: float, yaw_rate: float) -> bool:
         """SET_POSITION_TARGET_LOCAL_NED semantics; False when ignored (not GUIDED, bad frame/mask/values)."""
         pos, vel, acc = (tuple(float(x) for x in v) for v in (pos, vel, acc))
-        kind = TARGET_KINDS.get(type_mask & 0x3FF)
-        if self.mode != GUIDED or frame not in SUPPORTED_FRAMES or kind is None:
+        kind = target_kind(frame, type_mask)
+        if self.mode != GUIDED or kind is None:
             return False
         use_yaw = not type_mask & IGNORE_YAW
         use_yaw_rate = not use_yaw and not type_mask & IGNORE_YAW_RATE
@@ -220,18 +148,14 @@ class FlightController:
         if not all(math.isfinite(v) for v in used):
             self.nonfinite_rejected += 1
             return False
-        body = frame in (MAV_FRAME_BODY_NED, MAV_FRAME_BODY_OFFSET_NED)
+        body = frame in BODY_FRAMES
         heading = self.est.ahrs.yaw
         if "pos" in kind:
-            p = self._rotate_xy(pos, heading) if body else tuple(pos)
-            if frame != MAV_FRAME_LOCAL_NED:
-                here = self._position()
-                p = (p[0] + here[0], p[1] + here[1], p[2] + here[2])
-            self._sp = list(p)
+            self._sp = list(self._target_position(frame, pos))
         elif not self.landed:
             self._sp = list(self._position())
-        self._vel_ff = list(self._rotate_xy(vel, heading) if body else vel) if "vel" in kind else [0.0, 0.0, 0.0]
-        self._acc_ff = list(self._rotate_xy(acc, heading) if body else acc) if "acc" in kind else [0.0, 0.0, 0.0]
+        self._vel_ff = list(rotate_xy(vel, heading) if body else vel) if "vel" in kind else [0.0, 0.0, 0.0]
+        self._acc_ff = list(rotate_xy(acc, heading) if body else acc) if "acc" in kind else [0.0, 0.0, 0.0]
         if kind == "acc" and not self.landed:
             self._vel_ff = list(self._velocity())
         self._guided_kind = kind
@@ -314,14 +238,11 @@ class FlightController:
             self._disarm()
 
     def _arming_failure(self) -> str:
-        """Reason arming is refused, or '' if the checks pass."""
+        """The shared checks, then ArduPilot's: ExtNav yaw consistent with the compass."""
+        reason = super()._arming_failure()
+        if reason:
+            return reason
         est = self.est
-        if not self.landed:
-            return "Arm: vehicle not landed"
-        if self.mode not in ARMABLE_MODES:
-            return f"Arm: Mode {MODE_NAMES[self.mode]} not armable"
-        if self.mode in ARMING_NEEDS_POSITION and not est.pos_valid:
-            return "PreArm: Need Position Estimate"
         fresh = self.t - est.ext_nav_rx_t <= est.EXTNAV_TIMEOUT_S
         if est.position_source == "extnav" and fresh and est.ext_nav_yaw is not None:
             diff = abs(wrap_pi(est.ext_nav_yaw - est.ahrs.dcm_yaw))
@@ -329,11 +250,8 @@ class FlightController:
                 return f"PreArm: AHRS: ExtNav yaw inconsistent with compass by {math.degrees(diff):.0f} deg"
         return ""
 
-    def _disarm(self) -> None:
-        self.armed = False
-        self.landed = True
+    def _end_flight(self) -> None:
         self._takeoff_z = None
-        self.status.push(SEVERITY_INFO, "Disarming motors")
 
     # ------------------------------------------------------------------ modes
     def _enter_mode(self, mode: int) -> None:
@@ -352,7 +270,7 @@ class FlightController:
             self._vertical = "velocity"
         elif mode == RTL:
             self._rtl_phase = "climb"
-            climb_to = (self.home_ned[2] if self.home_ned else self._ground_z) - self.limits.rtl_alt_m
+            climb_to = self._ground_z() - self.limits.rtl_alt_m
             self._sp[2] = min(self._sp[2], climb_to)
 
     def _hold_here(self, stop: bool) -> None:
@@ -416,8 +334,7 @@ class FlightController:
 
     def _land_speed(self) -> float:
         """Descent speed (m/s, positive down) by height above home / the arming point."""
-        ground = self.home_ned[2] if self.home_ned is not None else self._ground_z
-        height = ground - self.est.axes[2].p
+        height = self._ground_z() - self.est.axes[2].p
         lim = self.limits
         return lim.land_speed_mps if height < lim.land_alt_low_m else lim.descent_mps
 
@@ -561,10 +478,6 @@ class FlightController:
         self._rate_err = [0.0, 0.0, 0.0]
 
     # ------------------------------------------------------------------ helpers
-    def _position(self) -> tuple[float, float, float]:
-        n, e, d = self.est.axes
-        return n.p, e.p, d.p
-
     def _velocity(self) -> tuple[float, float, float]:
         n, e, d = self.est.axes
         return n.v, e.v, d.v
@@ -573,12 +486,6 @@ class FlightController:
         lim = self.limits
         v[0], v[1] = _limit_norm(v[0], v[1], lim.speed_xy_mps)
         v[2] = min(max(v[2], -lim.climb_mps), lim.descent_mps)
-
-    @staticmethod
-    def _rotate_xy(v: tuple[float, float, float], heading: float) -> tuple[float, float, float]:
-        """Rotate a body-heading (forward, right, down) vector into NED by ``heading`` rad."""
-        c, s = math.cos(heading), math.sin(heading)
-        return c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]
 
 
 def _sqrt_controller(error: float, p: float, accel: float) -> float:

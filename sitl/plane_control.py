@@ -25,10 +25,9 @@ from __future__ import annotations
 import math
 
 from companion.frames import wrap_pi
-from sitl.estimator import SEVERITY_CRITICAL, SEVERITY_INFO, Estimator, StatusQueue
+from sitl.estimator import SEVERITY_INFO, Estimator, StatusQueue
 from sitl.fixedwing import FixedWingCommand
-from sitl.flight_control import (
-    IGNORE_YAW, MAV_FRAME_BODY_NED, MAV_FRAME_BODY_OFFSET_NED, MAV_FRAME_LOCAL_NED, SUPPORTED_FRAMES, TARGET_KINDS)
+from sitl.flight_controller_base import IGNORE_YAW, FlightControllerBase, target_kind
 from sitl.plane_guidance import PlaneLimits, Tecs, attitude_rates, bank_for_course, line_course, orbit_course
 
 MANUAL, CIRCLE, STABILIZE, FBWA, AUTO, RTL, LOITER, TAKEOFF, GUIDED = 0, 1, 2, 5, 10, 11, 12, 13, 15
@@ -39,99 +38,42 @@ ARMABLE_MODES = frozenset({MANUAL, STABILIZE, FBWA, TAKEOFF, GUIDED, LOITER})
 LANDED_SPEED_MPS = 1.0
 
 
-class PlaneController:
-    """Mode logic, arming, take-off, landing, GUIDED targets and the control laws.
+class PlaneController(FlightControllerBase):
+    """Mode logic, take-off, landing, GUIDED targets and the control laws; the public state, arming,
+    disarming and the take-off checks are :class:`sitl.flight_controller_base.FlightControllerBase`'s.
 
-    Public state like :class:`sitl.flight_control.FlightController`: ``mode``, ``armed``,
-    ``landed``, ``home_ned``, ``home_locked``, ``nonfinite_rejected``; ``rudder_rad_s`` is a
-    yaw-rate offset added to the turn coordination (a deliberate sideslip; 0 = coordinated).
+    ``rudder_rad_s`` is a yaw-rate offset added to the turn coordination (a deliberate sideslip;
+    0 = coordinated).
     """
 
+    MODE_NAMES = MODE_NAMES
+    POSITION_MODES = POSITION_MODES
+    ARMABLE_MODES = ARMABLE_MODES
+    ARMING_NEEDS_POSITION = POSITION_MODES
+    TAKEOFF_MODES = frozenset({GUIDED, TAKEOFF})
+    RTL_MODE = RTL
+
     def __init__(self, *, status: StatusQueue, estimator: Estimator, limits: PlaneLimits | None = None) -> None:
-        self.status = status
-        self.est = estimator
+        super().__init__(status=status, estimator=estimator, mode=MANUAL)
         self.limits = limits or PlaneLimits()
         self.tecs = Tecs(self.limits)
-        self.mode = MANUAL
-        self.armed = False
-        self.landed = True
-        self.home_ned: tuple[float, float, float] | None = None
-        self.home_locked = False
-        self.nonfinite_rejected = 0
         self.rudder_rad_s = 0.0
-        self.t = 0.0
         self._phase = ""  # "takeoff", "loiter", "level", "circle", "neutral"; AUTO: "to_final", "final", "flare", "rollout"
         self._centre = (0.0, 0.0)
         self._height_d = 0.0
         self._airspeed_d = self.limits.airspeed_cruise_mps
         self._runway_yaw = 0.0
-        self._ground_height = 0.0
         self._pending: tuple[float, float, float] | None = None  # GUIDED target received during the take-off
         self._final_start = (0.0, 0.0)
         self._stopped_since: float | None = None
         self._still_s = 0.0
 
-    @property
-    def mode_name(self) -> str:
-        """ArduPlane name of the current mode."""
-        return MODE_NAMES[self.mode]
-
     # ------------------------------------------------------------------ commands
-    def set_mode(self, mode: int) -> tuple[bool, str]:
-        """Change mode; refused for unknown modes, AUTO (no mission) and position modes without a position."""
-        if mode not in MODE_NAMES:
-            return False, f"Unsupported mode {mode}"
+    def _mode_change_failure(self, mode: int) -> str:
+        """AUTO is refused (no mission); then the shared position and home checks, armed or not."""
         if mode == AUTO:
-            return False, "Mode change to AUTO failed: no mission"
-        if mode in POSITION_MODES and not self.est.pos_valid:
-            return False, f"Mode change to {MODE_NAMES[mode]} failed: requires position"
-        if mode == RTL and self.home_ned is None:
-            return False, "Mode change to RTL failed: no home"
-        self._enter_mode(mode)
-        return True, ""
-
-    def arm(self, force: bool = False) -> tuple[bool, str]:
-        """Arm after ArduPilot-like checks (``force`` skips them); arming in TAKEOFF starts the take-off."""
-        if self.armed:
-            return True, "Already armed"
-        if not force:
-            reason = self._arming_failure()
-            if reason:
-                self.status.push(SEVERITY_CRITICAL, reason)
-                return False, reason
-        self.armed = True
-        self.landed = True
-        self._ground_height = self._height()
-        if not self.home_locked and self.est.pos_valid:
-            self.home_ned = self._position()
-        self.status.push(SEVERITY_INFO, "Arming motors")
-        self._enter_mode(self.mode)
-        return True, ""
-
-    def disarm(self, force: bool = False) -> tuple[bool, str]:
-        """Disarm; refused in flight unless ``force``."""
-        if not self.armed:
-            return True, "Already disarmed"
-        if not self.landed and not force:
-            return False, "Disarm: vehicle not landed"
-        self._disarm()
-        return True, ""
-
-    def takeoff(self, altitude_m: float) -> tuple[bool, str]:
-        """Take off to ``altitude_m`` above home; GUIDED or TAKEOFF, armed, on the ground, with a position."""
-        if not math.isfinite(altitude_m):
-            self.nonfinite_rejected += 1
-            return False, "Takeoff: altitude not finite"
-        if self.mode not in (GUIDED, TAKEOFF):
-            return False, "Takeoff: mode is not GUIDED"
-        if not self.armed:
-            return False, "Takeoff: not armed"
-        if not self.landed:
-            return False, "Takeoff: already flying"
-        if altitude_m <= 0.0 or not self.est.pos_valid:
-            return False, "Takeoff: altitude must be positive and a position known"
-        self._start_takeoff(altitude_m)
-        return True, ""
+            return "Mode change to AUTO failed: no mission"
+        return super()._mode_change_failure(mode)
 
     def land(self) -> tuple[bool, str]:
         """Land at home (mode AUTO): final approach, glide slope, flare; in flight with a home only."""
@@ -156,7 +98,7 @@ class PlaneController:
         """Begin airborne: armed, in GUIDED, loitering where the estimate is, at its height."""
         self.armed = True
         self.landed = False
-        self._ground_height = 0.0
+        self._arming_z = 0.0
         self.mode = GUIDED
         n, e, _ = self._position()
         self._loiter_at((n, e), self._height())
@@ -166,20 +108,14 @@ class PlaneController:
                             yaw: float, yaw_rate: float) -> bool:
         """SET_POSITION_TARGET_LOCAL_NED with a position: loiter around it at its height; False when ignored."""
         del vel, acc, yaw_rate  # a fixed wing flies to the point; speeds and yaw are its own
-        kind = TARGET_KINDS.get(type_mask & 0x3FF)
-        if self.mode != GUIDED or frame not in SUPPORTED_FRAMES or kind is None or "pos" not in kind:
+        kind = target_kind(frame, type_mask)
+        if self.mode != GUIDED or kind is None or "pos" not in kind:
             return False
         values = tuple(float(v) for v in pos) + (() if type_mask & IGNORE_YAW else (float(yaw),))
         if not all(math.isfinite(v) for v in values):
             self.nonfinite_rejected += 1
             return False
-        p = tuple(float(v) for v in pos)
-        if frame in (MAV_FRAME_BODY_NED, MAV_FRAME_BODY_OFFSET_NED):
-            h = self.est.ahrs.yaw
-            p = (p[0] * math.cos(h) - p[1] * math.sin(h), p[0] * math.sin(h) + p[1] * math.cos(h), p[2])
-        if frame != MAV_FRAME_LOCAL_NED:
-            here = self._position()
-            p = (p[0] + here[0], p[1] + here[1], p[2] + here[2])
+        p = self._target_position(frame, values[:3])
         if self._phase == "takeoff" or self.landed:
             self._pending = p
         else:
@@ -258,7 +194,7 @@ class PlaneController:
 
     # ------------------------------------------------------------------ take-off
     def _start_takeoff(self, altitude_m: float) -> None:
-        ground = -self.home_ned[2] if self.home_ned is not None else self._ground_height
+        ground = -self._ground_z()
         self._phase = "takeoff"
         self._height_d = ground + altitude_m
         self._runway_yaw = self.est.ahrs.yaw
@@ -355,27 +291,10 @@ class PlaneController:
         self._height_d = height
         self._airspeed_d = self.limits.airspeed_cruise_mps
 
-    def _arming_failure(self) -> str:
-        """Reason arming is refused, or '' if the checks pass."""
-        if not self.landed:
-            return "Arm: vehicle not landed"
-        if self.mode not in ARMABLE_MODES:
-            return f"Arm: Mode {MODE_NAMES[self.mode]} not armable"
-        if self.mode in POSITION_MODES and not self.est.pos_valid:
-            return "PreArm: Need Position Estimate"
-        return ""
-
-    def _disarm(self) -> None:
-        self.armed = False
-        self.landed = True
+    def _end_flight(self) -> None:
         self._phase = ""
         self._stopped_since = None
         self._pending = None
-        self.status.push(SEVERITY_INFO, "Disarming motors")
-
-    def _position(self) -> tuple[float, float, float]:
-        n, e, d = self.est.axes
-        return n.p, e.p, d.p
 
     def _height(self) -> float:
         """Estimated height, m above the EKF origin (-z)."""
