@@ -211,8 +211,12 @@ class Daemon:
         return commands
 
     def _commanded_return(self, _msg: object) -> str | None:
+        """Start the return if a mission runner is there to fly it: not before the mission starts
+        (the runner flies takeovers only in its steps), and not after it ended, even airborne."""
         if self.mission is None:
             return "no mission runs: nobody to fly the return"
+        if self.mission.status != "running":
+            return f"the mission is {self.mission.status}: nobody to fly the return"
         return self.mission.ctx.request_guidance("MAVLink command")
 
     def _select_source(self, source: str | None) -> None:

@@ -5,8 +5,10 @@ the link, as ArduPilot does, and carries the companion's COMMAND_ACK and STATUST
 from __future__ import annotations
 
 import asyncio
+from types import SimpleNamespace
 from typing import Any
 
+from companion.daemon import Daemon
 from companion.mavlink.inbound import InboundCommands
 from companion.mavlink.link import MavlinkLink, mavlink
 from tests.mavlink_peer import COMPANION_COMPID, FakeAutopilot
@@ -97,3 +99,15 @@ def test_a_system_not_in_command_sysids_is_denied_and_never_reaches_the_handler(
 def test_a_command_addressed_to_another_component_is_not_the_companions() -> None:
     answers, _, seen, _ = exchange(RTL, target_component=1)
     assert answers == [] and seen == []
+
+
+def test_a_return_commanded_when_no_mission_step_runs_is_denied_before_asking_the_pipeline() -> None:
+    """The runner flies a takeover only inside its steps: after the mission ended (even airborne)
+    an accepted return would have no one to fly it."""
+    asked: list[str] = []
+    ctx = SimpleNamespace(request_guidance=lambda reason: asked.append(reason))
+    ended = SimpleNamespace(mission=SimpleNamespace(status="completed", ctx=ctx))
+    running = SimpleNamespace(mission=SimpleNamespace(status="running", ctx=ctx))
+    assert Daemon._commanded_return(ended, None) == "the mission is completed: nobody to fly the return"
+    assert asked == []
+    assert Daemon._commanded_return(running, None) is None and asked == ["MAVLink command"]
