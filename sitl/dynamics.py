@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.frames import GRAVITY_MPS2
+from sitl.rigid_body import RigidBody
 
 
 class GaussianStream:
@@ -102,13 +103,10 @@ class AirMass:
         return mean[0] + g[0], mean[1] + g[1], mean[2] + g[2]
 
 
-class QuadrotorDynamics:
-    """Truth state and its integration (semi-implicit Euler, renormalised quaternion).
-
-    Public float attributes (read them, do not write): ``px py pz`` NED position m,
-    ``vx vy vz`` NED velocity m/s, ``qw qx qy qz`` attitude, ``wx wy wz`` body angular rate
-    rad/s, ``fx fy fz`` body specific force m/s^2 (what an ideal accelerometer reads),
-    ``resting`` True while the vehicle sits on the floor.
+class QuadrotorDynamics(RigidBody):
+    """Truth state (:class:`sitl.rigid_body.RigidBody`) and its integration (semi-implicit Euler,
+    renormalised quaternion) under the four motors; ``resting`` is True while the vehicle sits on
+    the floor.
     """
 
     def __init__(
@@ -120,42 +118,13 @@ class QuadrotorDynamics:
         start_ned: tuple[float, float, float] = (0.0, 0.0, 0.0),
         start_yaw_rad: float = 0.0,
     ) -> None:
+        super().__init__(start_ned, start_yaw_rad)
         self.airframe = airframe or AirframeParams()
         self.air = AirMass(wind or WindConfig(), noise)
         a = self.airframe
         self._k_thrust = a.max_thrust_per_motor_n / a.max_rotor_speed_rad_s**2
-        self.px, self.py, self.pz = (float(v) for v in start_ned)
-        self.pz = min(self.pz, 0.0)
-        self.vx = self.vy = self.vz = 0.0
-        self.qw, self.qx, self.qy, self.qz = math.cos(start_yaw_rad / 2), 0.0, 0.0, math.sin(start_yaw_rad / 2)
-        self.wx = self.wy = self.wz = 0.0
-        self.fx, self.fy, self.fz = 0.0, 0.0, -GRAVITY_MPS2
         self.rotor_speed = [0.0, 0.0, 0.0, 0.0]
         self.resting = self.pz >= 0.0
-
-    # ------------------------------------------------------------------ snapshots
-    @property
-    def position(self) -> np.ndarray:
-        """NED position, m."""
-        return np.array([self.px, self.py, self.pz])
-
-    @property
-    def velocity(self) -> np.ndarray:
-        """NED velocity, m/s."""
-        return np.array([self.vx, self.vy, self.vz])
-
-    @property
-    def quaternion(self) -> np.ndarray:
-        """Attitude quaternion [w, x, y, z], body FRD -> NED."""
-        return np.array([self.qw, self.qx, self.qy, self.qz])
-
-    def euler(self) -> tuple[float, float, float]:
-        """ZYX Euler angles (roll, pitch, yaw), rad."""
-        w, x, y, z = self.qw, self.qx, self.qy, self.qz
-        roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-        pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-        yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-        return roll, pitch, yaw
 
     # ------------------------------------------------------------------ integration
     def step(self, dt: float, commands: list[float]) -> None:
@@ -237,16 +206,6 @@ class QuadrotorDynamics:
         self.wx = self.wy = self.wz = 0.0
         self._specific_force(ax, ay, 0.0)
 
-    def _fly(self, ax: float, ay: float, az: float, dt: float) -> None:
-        """Free flight: semi-implicit Euler on velocity then position."""
-        self.vx += ax * dt
-        self.vy += ay * dt
-        self.vz += az * dt
-        self.px += self.vx * dt
-        self.py += self.vy * dt
-        self.pz += self.vz * dt
-        self._specific_force(ax, ay, az)
-
     def _touch_down(self, ax: float, ay: float, az: float, dt: float) -> None:
         """Inelastic contact with the floor: no sinking, no bounce; the gear levels the body.
 
@@ -261,15 +220,6 @@ class QuadrotorDynamics:
         self.qw, self.qx, self.qy, self.qz = math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)
         self._specific_force(ax, ay, az_step)
 
-    def _specific_force(self, ax: float, ay: float, az: float) -> None:
-        """Body-frame specific force (acceleration minus gravity), m/s^2."""
-        w, x, y, z = self.qw, self.qx, self.qy, self.qz
-        nx, ny, nz = ax, ay, az - GRAVITY_MPS2
-        # R^T @ n
-        self.fx = (1 - 2 * (y * y + z * z)) * nx + 2 * (x * y + w * z) * ny + 2 * (x * z - w * y) * nz
-        self.fy = 2 * (x * y - w * z) * nx + (1 - 2 * (x * x + z * z)) * ny + 2 * (y * z + w * x) * nz
-        self.fz = 2 * (x * z + w * y) * nx + 2 * (y * z - w * x) * ny + (1 - 2 * (x * x + y * y)) * nz
-
     def _rotate(self, tx: float, ty: float, tz: float, dt: float) -> None:
         """Euler's rotation equations and quaternion kinematics."""
         a = self.airframe
@@ -280,11 +230,4 @@ class QuadrotorDynamics:
         wy += (ty - (ixx - izz) * wz * wx - c * wy) / iyy * dt
         wz += (tz - (iyy - ixx) * wx * wy - c * wz) / izz * dt
         self.wx, self.wy, self.wz = wx, wy, wz
-        h = 0.5 * dt
-        qw, qx, qy, qz = self.qw, self.qx, self.qy, self.qz
-        nw = qw - h * (qx * wx + qy * wy + qz * wz)
-        nx = qx + h * (qw * wx + qy * wz - qz * wy)
-        ny = qy + h * (qw * wy - qx * wz + qz * wx)
-        nz = qz + h * (qw * wz + qx * wy - qy * wx)
-        inv = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
-        self.qw, self.qx, self.qy, self.qz = nw * inv, nx * inv, ny * inv, nz * inv
+        self._integrate_attitude(dt)

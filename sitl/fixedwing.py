@@ -34,6 +34,7 @@ import numpy as np
 
 from companion.frames import GRAVITY_MPS2, quat_from_euler
 from sitl.dynamics import AirMass, GaussianStream, WindConfig
+from sitl.rigid_body import RigidBody
 
 
 @dataclass(frozen=True)
@@ -112,29 +113,25 @@ def lift_drag_coefficients(alpha: float, p: FixedWingParams) -> tuple[float, flo
     return cl, (1.0 - sigma) * cd_attached + sigma * cd_plate
 
 
-class FixedWingDynamics:
-    """Truth state and its integration (semi-implicit Euler, renormalised quaternion).
+class FixedWingDynamics(RigidBody):
+    """Truth state (:class:`sitl.rigid_body.RigidBody`) and its integration (semi-implicit Euler,
+    renormalised quaternion) under thrust, aerodynamics and the runway.
 
-    Public float attributes (read them, do not write): ``px py pz`` NED position m, ``vx vy vz``
-    NED velocity m/s, ``qw qx qy qz`` attitude, ``wx wy wz`` body rates rad/s (FRD), ``fx fy fz``
-    body specific force m/s^2, ``airspeed`` m/s, ``alpha`` / ``beta`` angle of attack and sideslip
-    rad, ``thrust`` N, ``on_ground``, ``stalled`` (in flight past the angle of attack of maximum lift),
-    ``touchdown_sink_mps`` (descent rate at the last touchdown). ``air`` is the wind.
+    Public attributes besides the rigid body's (read them, do not write): ``airspeed`` m/s,
+    ``alpha`` / ``beta`` angle of attack and sideslip rad, ``thrust`` N, ``on_ground``, ``stalled``
+    (in flight past the angle of attack of maximum lift), ``touchdown_sink_mps`` (descent rate at
+    the last touchdown). ``air`` is the wind.
     """
 
     def __init__(self, *, noise: GaussianStream, params: FixedWingParams | None = None,
                  wind: WindConfig | None = None, start_ned: tuple[float, float, float] = (0.0, 0.0, 0.0),
                  start_yaw_rad: float = 0.0, start_airspeed_mps: float = 0.0) -> None:
+        super().__init__(start_ned, start_yaw_rad)
         self.params = params or FixedWingParams()
         self.air = AirMass(wind or WindConfig(), noise)
-        self.px, self.py, self.pz = (float(v) for v in start_ned)
-        self.pz = min(self.pz, 0.0)
         self.on_ground = self.pz >= 0.0
         c, s = math.cos(start_yaw_rad), math.sin(start_yaw_rad)
-        self.vx, self.vy, self.vz = start_airspeed_mps * c, start_airspeed_mps * s, 0.0
-        self.qw, self.qx, self.qy, self.qz = math.cos(start_yaw_rad / 2), 0.0, 0.0, math.sin(start_yaw_rad / 2)
-        self.wx = self.wy = self.wz = 0.0
-        self.fx, self.fy, self.fz = 0.0, 0.0, -GRAVITY_MPS2
+        self.vx, self.vy = start_airspeed_mps * c, start_airspeed_mps * s
         self.airspeed = float(start_airspeed_mps)
         self.alpha = self.beta = 0.0
         self.thrust = 0.0
@@ -143,34 +140,10 @@ class FixedWingDynamics:
         self._wind = (0.0, 0.0, 0.0)
         self._alpha_cl_max = self.params.alpha_cl_max_rad
 
-    # ------------------------------------------------------------------ snapshots
-    @property
-    def position(self) -> np.ndarray:
-        """NED position, m."""
-        return np.array([self.px, self.py, self.pz])
-
-    @property
-    def velocity(self) -> np.ndarray:
-        """NED velocity (ground-relative), m/s."""
-        return np.array([self.vx, self.vy, self.vz])
-
     @property
     def wind_ned(self) -> np.ndarray:
         """Air velocity (mean + gust) at the vehicle, NED m/s."""
         return np.array(self._wind)
-
-    @property
-    def quaternion(self) -> np.ndarray:
-        """Attitude quaternion [w, x, y, z], body FRD -> NED."""
-        return np.array([self.qw, self.qx, self.qy, self.qz])
-
-    def euler(self) -> tuple[float, float, float]:
-        """ZYX Euler angles (roll, pitch, yaw), rad."""
-        w, x, y, z = self.qw, self.qx, self.qy, self.qz
-        roll = math.atan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-        pitch = math.asin(max(-1.0, min(1.0, 2 * (w * y - z * x))))
-        yaw = math.atan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-        return roll, pitch, yaw
 
     # ------------------------------------------------------------------ integration
     def step(self, dt: float, cmd: FixedWingCommand) -> None:
@@ -188,24 +161,11 @@ class FixedWingDynamics:
             self._roll_on_ground(dt, cmd, ax, ay, az)
         else:
             self.on_ground = False
-            self.vx += ax * dt
-            self.vy += ay * dt
-            self.vz += az * dt
-            self.px += self.vx * dt
-            self.py += self.vy * dt
-            self.pz += self.vz * dt
-            self._specific_force(ax, ay, az)
+            self._fly(ax, ay, az, dt)
             self._rotate(dt, cmd)
             if self.pz >= 0.0:
                 self._touch_down(ax, ay, az, dt)
         self.stalled = not self.on_ground and self.alpha > self._alpha_cl_max
-
-    def _rotation(self) -> tuple[float, ...]:
-        """Body->NED rotation matrix, row-major."""
-        w, x, y, z = self.qw, self.qx, self.qy, self.qz
-        return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
 
     def _aero_and_thrust(self, dt: float, cmd: FixedWingCommand, r: tuple[float, ...]) -> tuple[float, float, float]:
         """Body-frame force (N) of thrust, lift, drag and side force; updates airspeed, alpha, beta."""
@@ -248,17 +208,6 @@ class FixedWingDynamics:
         self.wy += k * (qc - self.wy) - q_ratio * pitch_down * dt
         self.wz += k * (rc - self.wz) + q_ratio * p.weathercock_per_s2 * self.beta * dt
         self._integrate_attitude(dt)
-
-    def _integrate_attitude(self, dt: float) -> None:
-        wx, wy, wz = self.wx, self.wy, self.wz
-        h = 0.5 * dt
-        qw, qx, qy, qz = self.qw, self.qx, self.qy, self.qz
-        nw = qw - h * (qx * wx + qy * wy + qz * wz)
-        nx = qx + h * (qw * wx + qy * wz - qz * wy)
-        ny = qy + h * (qw * wy - qx * wz + qz * wx)
-        nz = qz + h * (qw * wz + qx * wy - qy * wx)
-        inv = 1.0 / math.sqrt(nw * nw + nx * nx + ny * ny + nz * nz)
-        self.qw, self.qx, self.qy, self.qz = nw * inv, nx * inv, ny * inv, nz * inv
 
     def _roll_on_ground(self, dt: float, cmd: FixedWingCommand, ax: float, ay: float, az: float) -> None:
         """On the runway: along the heading only, rolling resistance and brakes; no roll, nose up only."""
@@ -305,11 +254,3 @@ class FixedWingDynamics:
 
     def _set_euler(self, roll: float, pitch: float, yaw: float) -> None:
         self.qw, self.qx, self.qy, self.qz = (float(v) for v in quat_from_euler(roll, pitch, yaw))
-
-    def _specific_force(self, ax: float, ay: float, az: float) -> None:
-        """Body-frame specific force (acceleration minus gravity), m/s^2."""
-        r = self._rotation()
-        nx, ny, nz = ax, ay, az - GRAVITY_MPS2
-        self.fx = r[0] * nx + r[3] * ny + r[6] * nz
-        self.fy = r[1] * nx + r[4] * ny + r[7] * nz
-        self.fz = r[2] * nx + r[5] * ny + r[8] * nz
