@@ -88,6 +88,7 @@ class FlightController(FlightControllerBase):
     ARMABLE_MODES = ARMABLE_MODES
     ARMING_NEEDS_POSITION = ARMING_NEEDS_POSITION
     TAKEOFF_MODES = frozenset({GUIDED})
+    GUIDED_MODE = GUIDED
     RTL_MODE = RTL
 
     def __init__(self, *, status: StatusQueue, estimator: Estimator, airframe: AirframeParams,

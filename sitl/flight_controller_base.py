@@ -55,7 +55,7 @@ class FlightControllerBase:
 
     A subclass tells its modes (``MODE_NAMES`` custom_mode -> name, ``POSITION_MODES`` that need a
     position to fly, ``ARMABLE_MODES``, ``ARMING_NEEDS_POSITION``, ``TAKEOFF_MODES`` that take
-    MAV_CMD_NAV_TAKEOFF, ``RTL_MODE``) and implements :meth:`_enter_mode`, :meth:`_start_takeoff`
+    MAV_CMD_NAV_TAKEOFF, ``GUIDED_MODE`` that flies position targets, ``RTL_MODE``) and implements :meth:`_enter_mode`, :meth:`_start_takeoff`
     and :meth:`_end_flight`.
     """
 
@@ -64,6 +64,7 @@ class FlightControllerBase:
     ARMABLE_MODES: frozenset[int]
     ARMING_NEEDS_POSITION: frozenset[int]
     TAKEOFF_MODES: frozenset[int]
+    GUIDED_MODE: int
     RTL_MODE: int
 
     def __init__(self, *, status: StatusQueue, estimator: Estimator, mode: int) -> None:
@@ -82,6 +83,11 @@ class FlightControllerBase:
     def mode_name(self) -> str:
         """ArduPilot name of the current mode."""
         return self.MODE_NAMES[self.mode]
+
+    @property
+    def guided(self) -> bool:
+        """In GUIDED (position targets are flown)."""
+        return self.mode == self.GUIDED_MODE
 
     # ------------------------------------------------------------------ commands
     def set_mode(self, mode: int) -> tuple[bool, str]:

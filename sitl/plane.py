@@ -8,15 +8,16 @@ ArduPlane custom_mode numbers. Frames and units as in :mod:`sitl.simulated_vehic
 from __future__ import annotations
 
 import math
+from typing import Unpack
 
 import numpy as np
 
-from sitl.dynamics import GaussianStream, WindConfig
+from sitl.dynamics import WindConfig
 from sitl.fixedwing import FixedWingDynamics, FixedWingParams
-from sitl.plane_control import AUTO, GUIDED, PlaneController
+from sitl.plane_control import AUTO, PlaneController
 from sitl.plane_guidance import PlaneLimits
 from sitl.sensors import Airspeed
-from sitl.simulated_vehicle import EstimateState, GpsSample, ImuSample, SimulatedVehicle, TruthState
+from sitl.simulated_vehicle import EstimateState, GpsSample, ImuSample, SensorOptions, SimulatedVehicle, TruthState
 
 __all__ = ["EstimateState", "GpsSample", "ImuSample", "SimulatedPlane", "TruthState", "WindConfig"]
 
@@ -25,10 +26,10 @@ class SimulatedPlane(SimulatedVehicle):
     """A small fixed wing with an ArduPlane-like autopilot, stepped in simulation time.
 
     Arguments as :class:`sitl.copter.SimulatedCopter` (``position_source`` defaults to "gps":
-    outdoors), plus ``start_airspeed_mps`` (0: on the runway at ``start_ned``; above 0, in
-    level flight at that height and airspeed along ``start_yaw_rad``, already armed, in GUIDED
-    loitering at the start height once an origin gives it a position), ``params`` (airframe)
-    and ``limits`` (autopilot).
+    outdoors; no ``airframe``), plus ``start_airspeed_mps`` (0: on the runway at ``start_ned``;
+    above 0, in level flight at that height and airspeed along ``start_yaw_rad``, already armed,
+    in GUIDED loitering at the start height once an origin gives it a position), ``params``
+    (airframe) and ``limits`` (autopilot).
     """
 
     MAV_TYPE = 1  # MAV_TYPE_FIXED_WING
@@ -38,25 +39,20 @@ class SimulatedPlane(SimulatedVehicle):
         *,
         seed: int,
         home: tuple[float, float, float],
-        gps_enabled: bool = True,
         position_source: str = "gps",
         wind: WindConfig | None = None,
         start_ned: tuple[float, float, float] = (0.0, 0.0, 0.0),
         start_yaw_rad: float = 0.0,
         start_airspeed_mps: float = 0.0,
-        vision_delay_s: float = 0.01,
-        viso_pos_noise_m: float = 0.2,
-        viso_vel_noise_mps: float = 0.1,
         params: FixedWingParams | None = None,
         limits: PlaneLimits | None = None,
+        **sensors: Unpack[SensorOptions],
     ) -> None:
-        streams = [GaussianStream(s) for s in np.random.SeedSequence(seed).spawn(7)]
-        super().__init__(streams=streams, home=home, gps_enabled=gps_enabled, position_source=position_source,
-                         start_yaw_rad=start_yaw_rad, vision_delay_s=vision_delay_s,
-                         viso_pos_noise_m=viso_pos_noise_m, viso_vel_noise_mps=viso_vel_noise_mps)
-        dyn = FixedWingDynamics(noise=streams[0], params=params, wind=wind, start_ned=start_ned,
+        super().__init__(seed=seed, stream_count=7, home=home, position_source=position_source,
+                         start_yaw_rad=start_yaw_rad, **sensors)
+        dyn = FixedWingDynamics(noise=self._streams[0], params=params, wind=wind, start_ned=start_ned,
                                 start_yaw_rad=start_yaw_rad, start_airspeed_mps=start_airspeed_mps)
-        self._airspeed = Airspeed(streams[6])
+        self._airspeed = Airspeed(self._streams[6])
         self._last_throttle = 0.0
         self._attach(dyn, PlaneController(status=self._status, estimator=self._est, limits=limits))
         self._airspeed.sample(dyn.airspeed)
@@ -75,11 +71,6 @@ class SimulatedPlane(SimulatedVehicle):
         self._sense()
 
     # ------------------------------------------------------------------ fixed-wing specifics
-    @property
-    def guided(self) -> bool:
-        """In GUIDED (position targets are flown)."""
-        return self._fc.mode == GUIDED
-
     @property
     def landing(self) -> bool:
         """Flying the AUTO landing."""

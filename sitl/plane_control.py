@@ -51,6 +51,7 @@ class PlaneController(FlightControllerBase):
     ARMABLE_MODES = ARMABLE_MODES
     ARMING_NEEDS_POSITION = POSITION_MODES
     TAKEOFF_MODES = frozenset({GUIDED, TAKEOFF})
+    GUIDED_MODE = GUIDED
     RTL_MODE = RTL
 
     def __init__(self, *, status: StatusQueue, estimator: Estimator, limits: PlaneLimits | None = None) -> None:

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -21,7 +21,7 @@ from sitl.dynamics import GaussianStream
 from sitl.estimator import Estimator, StatusQueue
 from sitl.sensors import Barometer, Compass, Gps, GpsSample, Imu, ImuSample
 
-__all__ = ["EstimateState", "GpsSample", "ImuSample", "SimulatedVehicle", "TruthState"]
+__all__ = ["EstimateState", "GpsSample", "ImuSample", "SensorOptions", "SimulatedVehicle", "TruthState"]
 
 
 @dataclass
@@ -90,21 +90,37 @@ def _collapse(covariance: np.ndarray | None, diagonal: tuple[int, int, int]) -> 
     return math.sqrt(sum(variances) / 3.0)
 
 
+class SensorOptions(TypedDict, total=False):
+    """The sensor and estimator keywords every simulated vehicle takes and hands to
+    :class:`SimulatedVehicle` (defaults there): ``gps_enabled``; ``vision_delay_s`` plays
+    VISO_DELAY_MS (s, subtracted from each vision sample's ``t_capture``); ``viso_pos_noise_m`` /
+    ``viso_vel_noise_mps`` are the measurement-noise floors VISO_POS_M_NSE (m) / VISO_VEL_M_NSE (m/s).
+    """
+
+    gps_enabled: bool
+    vision_delay_s: float
+    viso_pos_noise_m: float
+    viso_vel_noise_mps: float
+
+
 class SimulatedVehicle:
     """Sensors, estimator and commands around an airframe ``_dyn`` and a flight controller ``_fc``
     that a subclass builds in its ``__init__`` (after calling this one) and steps in :meth:`_substep`.
 
-    ``_dyn`` has the truth attributes of :class:`sitl.dynamics.QuadrotorDynamics` (``px .. pz``,
-    ``vx .. vz``, ``wx .. wz``, ``fx .. fz``, ``position``, ``velocity``, ``quaternion``,
-    ``euler()``); ``_fc`` the state and commands of :class:`sitl.flight_control.FlightController`
-    (``mode``, ``mode_name``, ``armed``, ``landed``, ``home_ned``, ``home_locked``,
-    ``nonfinite_rejected``, ``set_mode``, ``arm``, ``disarm``, ``takeoff``, ``set_position_target``).
-    ``streams`` are the vehicle's seeded noise streams: 0 for the airframe, 1-5 for the sensors and
-    the estimator here, the rest for the subclass.
+    ``_dyn`` is a :class:`sitl.rigid_body.RigidBody` (``px .. pz``, ``vx .. vz``, ``wx .. wz``,
+    ``fx .. fz``, ``position``, ``velocity``, ``quaternion``, ``euler()``); ``_fc`` a
+    :class:`sitl.flight_controller_base.FlightControllerBase` (``mode``, ``mode_name``, ``armed``,
+    ``landed``, ``home_ned``, ``home_locked``, ``nonfinite_rejected``, ``set_mode``, ``arm``,
+    ``disarm``, ``takeoff``) with a ``set_position_target``.
+
+    ``seed`` seeds ``stream_count`` noise streams ``_streams``: 0 for the airframe, 1-5 for the
+    sensors and the estimator here, the rest for the subclass. ``home`` is the geodetic anchor of
+    the truth NED frame (lat deg, lon deg, alt m AMSL; the ground is at its altitude).
+    ``position_source`` is EK3_SRC1_POSXY: "extnav" (vision from the companion; yaw too) or "gps";
+    ``start_yaw_rad`` the heading the estimator starts from; the rest are :class:`SensorOptions`.
 
     For the MAVLink process a subclass also tells ``MAV_TYPE`` (its HEARTBEAT type) and the
-    properties ``guided`` (in the mode that takes position targets), ``landing`` (landing now),
-    ``airspeed_mps`` and ``throttle_percent`` (VFR_HUD).
+    properties ``landing`` (landing now), ``airspeed_mps`` and ``throttle_percent`` (VFR_HUD).
     """
 
     MAV_TYPE: int
@@ -114,9 +130,10 @@ class SimulatedVehicle:
     COMPASS_DIVIDER = 8  # 50 Hz
     GPS_DIVIDER = 80  # 5 Hz
 
-    def __init__(self, *, streams: list[GaussianStream], home: tuple[float, float, float], gps_enabled: bool,
-                 position_source: str, start_yaw_rad: float, vision_delay_s: float, viso_pos_noise_m: float,
-                 viso_vel_noise_mps: float) -> None:
+    def __init__(self, *, seed: int, stream_count: int, home: tuple[float, float, float], position_source: str,
+                 start_yaw_rad: float, gps_enabled: bool = True, vision_delay_s: float = 0.01,
+                 viso_pos_noise_m: float = 0.2, viso_vel_noise_mps: float = 0.1) -> None:
+        self._streams = streams = [GaussianStream(s) for s in np.random.SeedSequence(seed).spawn(stream_count)]
         self._anchor = (float(home[0]), float(home[1]), float(home[2]))
         self._dt = 1.0 / self.PHYSICS_HZ
         self._step_count = 0
@@ -220,6 +237,11 @@ class SimulatedVehicle:
     def mode_name(self) -> str:
         """ArduPilot Copter mode name."""
         return self._fc.mode_name
+
+    @property
+    def guided(self) -> bool:
+        """In GUIDED (position targets are flown)."""
+        return self._fc.guided
 
     @property
     def armed(self) -> bool:
