@@ -300,7 +300,10 @@ class MissionRunner:
         ``LAND_SETTLE_TIMEOUT_S``: the autopilot's LAND holds the point where the vehicle comes to
         rest, so a landing switched at cruise speed ends metres past its point."""
         ctx = self.ctx
-        ctx.setpoints.command(Setpoint(position_ned=np.asarray(point_ned, dtype=float),
+        # position with a zero velocity, not position alone: ArduCopter 4.0 flies a position-only
+        # GUIDED target as a new waypoint leg, and streamed at the setpoint rate it crept 8 m back
+        # to the point at 0.3 m/s until the 30 s ran out (ArduCopter 4.0.5 SITL)
+        ctx.setpoints.command(Setpoint(position_ned=np.asarray(point_ned, dtype=float), velocity_ned=np.zeros(3),
                                        yaw_rad=ctx.yaw() if yaw_rad is None else yaw_rad))
         give_up = clock.now() + LAND_SETTLE_TIMEOUT_S
 
