@@ -83,6 +83,14 @@ STAGES: dict[str, Callable[[], Callable[[], object]]] = {
 DASHBOARD_SECONDS = 10.0  # measured run of the dashboard chain
 
 
+def _stages_and_accuracy(stages: dict[str, tuple[float, float]], accuracy: dict[str, str]) -> None:
+    """A pipeline's stage rows (median, p99 ms), then its accuracy lines."""
+    for name, (median, p99) in stages.items():
+        _row(name, median, p99)
+    for name, text in accuracy.items():
+        print(f"  {name}: {text}")
+
+
 def _row(name: str, median: float, p99: float) -> None:
     print(f"{name:<50} {median:>10.4f} {p99:>10.4f}")
 
@@ -109,20 +117,12 @@ def run_bench(repeat: int) -> int:
     for name, (median, p99) in run_stage_bench(repeat).items():
         _row(name, median, p99)
     print("laser-dot pipeline (640x480 frames of the simulated downward camera, config/sitl-laser-dots.yaml):")
-    dot_stages, dot_accuracy = run_dots_bench(repeat)
-    for name, (median, p99) in dot_stages.items():
-        _row(name, median, p99)
-    for name, text in dot_accuracy.items():
-        print(f"  {name}: {text}")
+    _stages_and_accuracy(*run_dots_bench(repeat))
     print("EKF-SLAM (a map of 100 landmarks, 303 states; issue 14: update <= 2 ms median):")
     for name, (median, p99) in run_slam_bench(repeat).items():
         _row(name, median, p99)
     print("GNSS + optic flow (forward 90x90 deg camera, 100 m AGL, 20 m/s, 10 Hz; issue 15: LK <= 12 ms median):")
-    flow_stages, flow_accuracy = run_flow_bench(repeat)
-    for name, (median, p99) in flow_stages.items():
-        _row(name, median, p99)
-    for name, text in flow_accuracy.items():
-        print(f"  {name}: {text}")
+    _stages_and_accuracy(*run_flow_bench(repeat))
     print("fusion (50 Hz Kalman filter):")
     for name, (median, p99) in run_fusion_bench(repeat).items():
         _row(name, median, p99)
