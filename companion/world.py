@@ -261,6 +261,11 @@ class World:
     wall_offset_deg: float = field(default=0.0, metadata=meta(
         "The walls run at this angle plus multiples of wall_angle_deg (degrees from north towards east): the map "
         "is in the autopilot's NED frame, and a building need not be aligned with north.", (-90.0, 90.0)))
+    ground: Literal["floor", "terrain"] = field(default="floor", metadata=meta(
+        "What the simulated camera draws at z = 0 (sitl/camera_scene.py). floor: an indoor floor (texture of 5 mm to "
+        "2.56 m, repeating every 10.24 m), nothing beyond 100 m. terrain: open country for a camera high up (a "
+        "fixed wing's forward camera at 20-150 m): texture of 0.5 m to 512 m, drawn to the horizon under a smooth "
+        "sky."))
     survey_error_m: float = field(default=0.005, metadata=meta(
         "1-sigma error of the walls' and corners' positions as surveyed, metres: a property of this map that every "
         "lidar fix from it carries (the default: corners are accepted within 1 cm of their walls' corner).",

@@ -1,4 +1,4 @@
-"""What a simulated camera sees: the world's floor, its floor markers, walls and obstacles.
+"""What a simulated camera sees: the world's floor (or terrain), its floor markers, walls and obstacles.
 
 Frame and units: world = LOCAL_NED at the EKF origin (x north, y east, z down), metres. The floor
 is the plane z = 0 and a surface h metres above it is at z = -h (companion/world.py). A view is
@@ -9,14 +9,21 @@ float32 arrays north, east, down, any length; a zero ray meets nothing). :meth:`
 - the floor: a procedural texture from ``floor_seed`` with about equal contrast at every scale
   (noise with a 1/f amplitude spectrum from 5 mm to 2.56 m, so optic flow finds texture at any
   height), repeating every 10.24 m; texels of 5 mm, mip-mapped so that a far or grazing floor
-  does not alias;
+  does not alias (:data:`FLOOR`). In a world with ``ground: terrain`` (outdoors, a fixed wing's
+  forward camera at 20-150 m) the floor is terrain instead (:data:`TERRAIN`): the same kind of
+  texture with 0.25 m texels and wavelengths from 0.5 m to 512 m, repeating every 512 m (so a
+  pixel finds contrast from decimetres straight below to tens of metres near the horizon), mip-mapped
+  down to its mean grey, drawn at any distance: the ground reaches the true horizon;
 - floor markers: real ArUco markers of the world's ``marker_dictionary``, black (20) on white
   paper (235) with a quiet zone of one cell around the black square. ``size_m`` is the black
   square's side; the marker lies as :meth:`companion.world.FloorMarker.corners` places it (its
   top edge faces ``yaw_deg``, from north towards east);
 - walls (their doors and windows cut out) and obstacle boxes: flat grey, from 110 for a wall
   running east-west to 160 for one running north-south, so that corners show; obstacle tops 175;
-- nothing within :data:`MAX_RANGE_M` (above the walls: no ceiling is modelled): :data:`SKY_GREY`.
+- nothing within :data:`MAX_RANGE_M` (above the walls: no ceiling is modelled): :data:`SKY_GREY`;
+  over terrain, the sky above the horizon: a smooth gradient from :data:`SKY_HORIZON_GREY` to
+  :data:`SKY_ZENITH_GREY` (little texture, as a real sky), and walls and obstacles at any distance.
+  Floor markers are drawn within :data:`MAX_RANGE_M` (horizontally) of the camera in either case.
 
 :meth:`Scene.trace` finds what rays meet (the renderer's pixels, the simulated laser beams) and
 :meth:`Scene.cast` what one ray meets, with the surface's normal.
@@ -40,14 +47,25 @@ PAPER_CELLS = MARKER_CELLS + 2 * QUIET_ZONE_CELLS  # side of the paper, cells
 MARKER_TEXELS_PER_CELL = 64  # finest marker mip level
 MARKER_BLACK, PAPER_WHITE = 20.0, 235.0
 
-FLOOR_TEXEL_M = 0.005  # finest floor mip level, metres per texel
-FLOOR_TILE_TEXELS = 2048  # the floor texture repeats every FLOOR_TILE_TEXELS * FLOOR_TEXEL_M metres
-FLOOR_LARGEST_M = 2.56  # longest wavelength of the floor texture, metres
-FLOOR_LEVELS = 9  # mip levels: texels 5 mm .. 1.28 m
-FLOOR_MEAN, FLOOR_STD = 128.0, 35.0  # grey levels
+FLOOR_MEAN, FLOOR_STD = 128.0, 35.0  # grey levels of the floor and terrain textures (their finest level)
 
-MAX_RANGE_M = 100.0  # nothing further away is drawn
+
+@dataclass(frozen=True)
+class GroundTexture:
+    """A periodic 1/f noise texture of the ground (see :func:`floor_pyramid`)."""
+
+    texel_m: float  # finest mip level, metres per texel
+    tile_texels: int  # the texture repeats every tile_texels * texel_m metres
+    largest_m: float  # longest wavelength, metres
+    levels: int  # mip levels, texels texel_m * 2**l
+
+
+FLOOR = GroundTexture(0.005, 2048, 2.56, 9)  # indoors: texels 5 mm .. 1.28 m, repeating every 10.24 m
+TERRAIN = GroundTexture(0.25, 2048, 512.0, 12)  # ``ground: terrain``: texels 0.25 m .. 512 m (the last: the mean)
+
+MAX_RANGE_M = 100.0  # nothing further away is drawn (over terrain: no floor markers further away horizontally)
 SKY_GREY = 90.0
+SKY_HORIZON_GREY, SKY_ZENITH_GREY = 200.0, 235.0  # the sky over terrain, at the horizon and straight up
 WALL_GREYS = (110.0, 160.0)  # a wall running east-west, north-south (in between: by |cos direction|)
 TOP_GREY = 175.0  # obstacle tops
 UP = (0.0, 0.0, -1.0)  # the normal of the floor and of the obstacle tops, NED
@@ -62,19 +80,22 @@ def everywhere(corners: np.ndarray) -> tuple[slice, slice]:
 
 
 @functools.lru_cache(maxsize=4)
-def floor_pyramid(seed: int) -> tuple[np.ndarray, ...]:
-    """The floor texture's mip levels (float32 grey, periodic): level l has texels of
-    FLOOR_TEXEL_M * 2**l metres, rows along north, columns along east."""
-    n = FLOOR_TILE_TEXELS
+def floor_pyramid(seed: int, ground: GroundTexture = FLOOR) -> tuple[np.ndarray, ...]:
+    """The mip levels of the texture ``ground`` (float32 grey, periodic) from ``seed``: noise with
+    a 1/f amplitude spectrum (about equal contrast at every scale) from 2 texels to
+    ``ground.largest_m``, mean FLOOR_MEAN and standard deviation FLOOR_STD; level l has texels of
+    ``ground.texel_m * 2**l`` metres, rows along north, columns along east."""
+    n = ground.tile_texels
     rng = np.random.default_rng(seed)
     shape = (n, n // 2 + 1)
     spectrum = rng.standard_normal(shape, np.float32) + 1j * rng.standard_normal(shape, np.float32)
     f = np.hypot(*np.meshgrid(np.fft.fftfreq(n), np.fft.rfftfreq(n), indexing="ij")).astype(np.float32)  # cycles/texel
-    amplitude = np.where(f >= FLOOR_TEXEL_M / FLOOR_LARGEST_M, 1.0 / np.maximum(f, np.float32(1e-12)), np.float32(0.0))
+    amplitude = np.where(f >= ground.texel_m / ground.largest_m, 1.0 / np.maximum(f, np.float32(1e-12)),
+                         np.float32(0.0))
     noise = np.fft.irfft2(spectrum * amplitude, s=(n, n))  # float32 (numpy >= 2 keeps single precision)
     level = np.clip(FLOOR_MEAN + noise * (FLOOR_STD / noise.std()), 0.0, 255.0).astype(np.float32)
     levels = [level]
-    for _ in range(FLOOR_LEVELS - 1):
+    for _ in range(ground.levels - 1):
         levels.append(_halve(levels[-1]))
     return tuple(levels)
 
@@ -215,7 +236,10 @@ class Scene:
     """The world as a camera sees it (see the module docstring); one per world and floor seed."""
 
     def __init__(self, world: World, floor_seed: int = 0) -> None:
-        self.floor = floor_pyramid(floor_seed)
+        self.terrain = world.ground == "terrain"
+        self.ground = TERRAIN if self.terrain else FLOOR
+        self.floor = floor_pyramid(floor_seed, self.ground)
+        self.range_m = math.inf if self.terrain else MAX_RANGE_M  # what is further away is not drawn
         # Marker textures are made when a marker first comes within MAX_RANGE_M (each is ~2.7 MB and
         # ~25 ms to make: a world with a marker at each of 641 landmarks would take 2 GB and 17 s up
         # front), and forgotten once far behind.
@@ -275,11 +299,13 @@ class Scene:
         dx, dy, dz = rays
         t_best, surface = self.trace(origin, rays, window)
         image = self.greys[surface]
+        if self.terrain:
+            self._shade_sky(rays, surface == 0, image)
         floor = surface == 1
         if floor.any():
             tf = np.where(floor, t_best, np.float32(0.0))
             north, east = tf * dx, tf * dy  # floor points relative to the camera, m
-            footprint = np.full(dz.shape, np.float32(FLOOR_TEXEL_M))  # metres per pixel (meaningless off the floor)
+            footprint = np.full(dz.shape, np.float32(self.ground.texel_m))  # m per pixel (meaningless off the floor)
             np.divide(tf * footprint_k, dz, out=footprint, where=floor)
             self._shade_floor(o, north, east, footprint, floor, image)
             for marker in self.markers_near(o):
@@ -290,14 +316,15 @@ class Scene:
     def cast(self, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """((N,) distances m, (N, 3) unit normals NED of the surfaces) where the rays from ``origin``
         (NED, m) along the (N, 3) unit ``directions`` (NED) first meet something; NaN where nothing
-        within :data:`MAX_RANGE_M`. Float32 distances, as the renderer's: 1e-7 relative."""
+        within ``range_m`` (:data:`MAX_RANGE_M`; over terrain, any distance). Float32 distances, as the
+        renderer's: 1e-7 relative."""
         d = np.asarray(directions, dtype=float).reshape(1, -1, 3)  # a one-row image of rays
         t, surface = self.trace(origin, (d[..., 0], d[..., 1], d[..., 2]), everywhere)
         return np.where(surface[0] > 0, t[0], np.nan), self.normals[surface[0]]
 
     def trace(self, origin: np.ndarray, rays: Rays, window: Window) -> tuple[np.ndarray, np.ndarray]:
         """(distance in ray lengths (H, W) float32, label (H, W) int16) of what each ray from
-        ``origin`` (NED, m) meets first: 0 nothing (at :data:`MAX_RANGE_M` / |ray|), 1 the floor,
+        ``origin`` (NED, m) meets first: 0 nothing (at ``range_m`` / |ray|), 1 the floor,
         then the faces (:func:`wall_faces`), then the obstacle tops (see ``greys``, ``normals``).
 
         ``window(corners)`` gives the image rows and columns (slices) that may show a flat convex
@@ -306,7 +333,7 @@ class Scene:
         o = tuple(float(v) for v in origin)
         dx, dy, dz = rays
         with np.errstate(divide="ignore"):  # a zero ray meets nothing
-            t_best = (np.float32(MAX_RANGE_M) / np.sqrt(dx * dx + dy * dy + dz * dz)).astype(np.float32)  # ray lengths
+            t_best = (np.float32(self.range_m) / np.sqrt(dx * dx + dy * dy + dz * dz)).astype(np.float32)  # ray lengths
         surface = np.zeros(dz.shape, np.int16)  # label of what each ray meets (see self.greys)
         if o[2] < 0:
             with np.errstate(divide="ignore", invalid="ignore"):
@@ -362,20 +389,32 @@ class Scene:
         np.copyto(t_best, t, where=hit)
         surface[hit] = label
 
+    @staticmethod
+    def _shade_sky(rays: Rays, sky: np.ndarray, image: np.ndarray) -> None:
+        """Paint the ``sky`` pixels of ``image`` (in place) with the sky over terrain: grey from
+        SKY_HORIZON_GREY at the horizon to SKY_ZENITH_GREY straight up, by the sine of the ray's elevation."""
+        if not sky.any():
+            return
+        dx, dy, dz = (r[sky] for r in rays)
+        with np.errstate(divide="ignore", invalid="ignore"):  # zero rays: blacked out by the camera anyway
+            up = np.clip(-dz / np.sqrt(dx * dx + dy * dy + dz * dz), 0.0, 1.0)
+        image[sky] = np.float32(SKY_HORIZON_GREY) + np.float32(SKY_ZENITH_GREY - SKY_HORIZON_GREY) * up
+
     def _shade_floor(self, o: tuple[float, ...], north: np.ndarray, east: np.ndarray, footprint: np.ndarray,
                      floor: np.ndarray, image: np.ndarray) -> None:
         """Texture the floor pixels of ``image``, each from the mip level that matches its footprint."""
-        levels = np.log2(footprint * np.float32(1.0 / FLOOR_TEXEL_M))
-        levels = np.clip(np.rint(levels, out=levels), 0, FLOOR_LEVELS - 1, out=levels).astype(np.int8)
+        texel_m, count = self.ground.texel_m, self.ground.levels
+        levels = np.log2(footprint * np.float32(1.0 / texel_m))
+        levels = np.clip(np.rint(levels, out=levels), 0, count - 1, out=levels).astype(np.int8)
         levels[~floor] = -1
-        for level in range(np.min(levels, where=floor, initial=FLOOR_LEVELS), np.max(levels) + 1):
+        for level in range(np.min(levels, where=floor, initial=count), np.max(levels) + 1):
             use = levels == level
             if not use.any():
                 continue
             win = bounding_window(use)
             texture = self.floor[level]
             n = texture.shape[0]
-            scale = 1.0 / (FLOOR_TEXEL_M * 2 ** int(level))  # texels per metre
+            scale = 1.0 / (texel_m * 2 ** int(level))  # texels per metre
             row = north[win] * np.float32(scale) + np.float32((o[0] * scale) % n - 0.5)  # texel centres at integers
             col = east[win] * np.float32(scale) + np.float32((o[1] * scale) % n - 0.5)
             sampled = cv2.remap(texture, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)

@@ -12,7 +12,9 @@ places in body FRD. The sensor frame is FRD-like, as for a scanner: x along the 
 y towards the image's right, z towards the image's bottom. Mount rpy [0, 0, 0] looks forward
 with the image upright; [0, -90, 0] looks down with the image's top towards the body's front.
 
-Scene: the floor, floor markers (ArUco), walls and obstacles of the world (sitl/camera_scene.py).
+Scene: the floor, floor markers (ArUco), walls and obstacles of the world (sitl/camera_scene.py);
+in a world with ``ground: terrain``, textured ground to the horizon under a smooth sky (a fixed
+wing's forward camera: config/cameras/forward-90-640.yaml).
 Without ``laser_beams`` the image is grey, (H, W) uint8. With them, it is BGR (H, W, 3) uint8: the
 grey scene in all three channels plus the dots of the vehicle's laser beams (the true rig, body
 FRD), mostly in red, wherever they meet the world and the camera sees them (sitl/laser_spots.py:
