@@ -15,6 +15,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -27,6 +28,7 @@ from companion.telemetry.publisher import TelemetryPublisher
 from companion.telemetry.scan_codec import SCAN_ENCODING, encode_scan
 from companion.telemetry.session import open_session
 from tests.conftest import REPO, free_port
+from tests.gnss_flow_telemetry import flight
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -128,6 +130,51 @@ def test_a_new_browser_gets_the_current_state_at_once(dashboard: Dashboard) -> N
     streams = events[0]["vehicles"]["3"]["streams"]
     assert streams["pose"]["count"] >= 1 and streams["pose"]["bad"] == 0
     assert streams["laser_dots"]["count"] >= 1 and "Not-A-Stream" not in streams
+
+
+def test_the_gnss_flow_streams_and_each_sources_attitude_check_reach_a_new_browser(dashboard: Dashboard) -> None:
+    """The real pipeline's two flow streams, and its two sources' cross-checks published back to back
+    on the one ``attitude_check`` key: a browser joining later gets each source's, not only the last."""
+    telemetry = flight(0.0)
+    session = open_session("peer", [dashboard.endpoint], [], False, False)
+    publisher = TelemetryPublisher(session, sysid=4)
+    publisher.add_streams(tuple(telemetry.streams))  # the pipeline's telemetry_streams
+    first = EventStream(dashboard)
+    try:
+        deadline = time.monotonic() + 15
+        seen: set[str] = set()
+        while not {"gnss_flow", "gnss_flow_images"} <= seen:
+            assert time.monotonic() < deadline, "the dashboard never got the publisher's samples"
+            for stream, payload in telemetry.streams.items():
+                publisher.publish(stream, payload)
+            for check in telemetry.checks:
+                publisher.publish("attitude_check", check)
+            seen |= streams_of(first.events_until(lambda e: len(e) >= 1, 5))
+        first.close()
+        time.sleep(0.5)  # everything published has arrived
+
+        second = EventStream(dashboard)
+        checks: dict[str, dict] = {}
+
+        def complete(events: list[dict]) -> bool:
+            checks.update({e["data"]["source"]: e["data"] for e in events if e.get("stream") == "attitude_check"})
+            return {"gnss_flow", "gnss_flow_images"} <= streams_of(events) and len(checks) == 2
+        events = second.events_until(complete, 3.0)
+        second.close()
+    finally:
+        publisher.close()
+        session.close()
+    samples = {e["stream"]: e["data"] for e in events if e["type"] == "sample"}
+    for stream, payload in telemetry.streams.items():
+        assert set(samples[stream]) == set(payload) | {"v", "t"}
+    sensor, camera = samples["gnss_flow"], samples["gnss_flow_images"]
+    depth = telemetry.streams["gnss_flow"]["flow_depth_m"]
+    assert len(sensor["flow_n"]) == len(sensor["flow_depth_m"]) == len(depth)
+    assert [d is None for d in sensor["flow_depth_m"]] == np.isnan(depth).tolist()  # NaN arrives as null
+    assert camera["foe_px"] == pytest.approx(list(telemetry.streams["gnss_flow_images"]["foe_px"]))
+    assert sorted(checks) == ["gnss_flow", "gnss_flow.images"]
+    for sent in telemetry.checks:
+        assert checks[sent["source"]]["autopilot_euler_rad"] == pytest.approx(list(sent["autopilot_euler_rad"]))
 
 
 def _request(dashboard: Dashboard, method: str, path: str, host: str | None = None) -> http.client.HTTPResponse:

@@ -8,7 +8,9 @@ offered to every browser. Every stream name of the key space passes, a pipeline'
 (``telemetry_streams``) too, so a new pipeline needs no change here. A browser that joins gets
 the cache at once: the newest status, the last sample of every key and the recent alerts. Each
 browser has a bounded outbox holding the newest event per key, so a slow browser sees fewer
-updates but never holds the hub back.
+updates but never holds the hub back. A stream that interleaves several sources
+(``attitude_check``: one message per attitude source, often at the same instant) is cached and
+queued per key and source, so the newest message of one source never replaces another's.
 
 Events (the page's input, docs/dashboard.md):
 
@@ -43,6 +45,7 @@ log = logging.getLogger("companion.dashboard")
 INBOX_SIZE = 1024  # samples waiting for the loop, all keys together
 OUTBOX_SIZE = 256  # events waiting for one browser (one per key; each recent alert is one)
 ALERT_HISTORY = 50  # alerts a joining browser gets (the alerts stream is a list, not a state)
+PER_SOURCE_STREAMS = ("attitude_check",)  # their messages name a `source`: the newest per source is kept
 SUBSCRIPTION = f"{KEY_PREFIX}/*/*"
 
 
@@ -99,7 +102,7 @@ class TelemetryHub:
         self._inbox: deque[tuple[str, str, bytes, float]] = deque()
         self._inbox_lock = threading.Lock()
         self._drain_scheduled = False
-        self._cache: dict[str, str] = {}  # key -> its newest sample event
+        self._cache: dict[str, str] = {}  # slot (the key, or key#source) -> its newest sample event
         self._alerts: deque[str] = deque(maxlen=ALERT_HISTORY)
         self._alert_count = 0
         self._status_extra: dict[str, Any] = {}
@@ -155,7 +158,9 @@ class TelemetryHub:
             slot = f"{key}#{self._alert_count}"
             self._alerts.append(text)
         else:
-            self._cache[key] = text
+            if stream in PER_SOURCE_STREAMS and isinstance(data.get("source"), str):
+                slot = f"{key}#{data['source']}"
+            self._cache[slot] = text
         for browser in self.browsers:
             browser.offer(slot, text)
 
@@ -163,8 +168,8 @@ class TelemetryHub:
         """A new browser, its outbox already holding the status, the cache and recent alerts."""
         browser = Browser()
         browser.offer("status", self._status_text())
-        for key, text in self._cache.items():
-            browser.offer(key, text)
+        for slot, text in self._cache.items():
+            browser.offer(slot, text)
         for i, text in enumerate(self._alerts):
             browser.offer(f"alert-history#{i}", text)
         self.browsers.add(browser)

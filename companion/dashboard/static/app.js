@@ -3,6 +3,7 @@
 
 import { CameraView } from "./camera.js";
 import { setBadge } from "./dom.js";
+import { FLOW_STREAMS, FlowView } from "./flow.js";
 import { MapView, ScanView } from "./map.js";
 import { TimePlot } from "./plots.js";
 import * as panels from "./panels.js";
@@ -16,7 +17,8 @@ const ALERTS_KEPT = 100;
 const RENDER_PERIOD_MS = 100;
 const DEG = 180 / Math.PI;
 const MAP_STREAMS = ["map", "trajectory", "pose", "scan", "lines", "corners", "setpoint"];
-const PANEL_STREAMS = ["autopilot", "link", "mission", "health", "system", "rates", "alerts", "sources", "laser_dots", "ekf_slam"];
+const PANEL_STREAMS = ["autopilot", "link", "mission", "health", "system", "rates", "alerts", "sources", "laser_dots", "ekf_slam",
+  ...FLOW_STREAMS, "attitude_check"];
 
 /** Append a time row and drop the rows older than the plot window. */
 function pushRow(rows, row) {
@@ -36,6 +38,7 @@ class Vehicle {
     this.setpoints = []; // [rx, north, east, down]
     this.sigmas = []; // [rx, sigma north m, east m, down m, yaw deg]
     this.alerts = []; // newest first
+    this.checks = {}; // attitude source -> {rx, data} of its newest attitude_check (the stream interleaves the sources)
     this.lastAlertRx = -Infinity;
     this.changed = new Set([...MAP_STREAMS, ...PANEL_STREAMS]);
   }
@@ -46,6 +49,9 @@ class Vehicle {
       this.lastAlertRx = rx;
       this.alerts.unshift({ rx, ...data });
       this.alerts.length = Math.min(this.alerts.length, ALERTS_KEPT);
+    } else if (stream === "attitude_check" && typeof data.source === "string") {
+      if (this.checks[data.source] && rx <= this.checks[data.source].rx) return; // one source's, replayed
+      this.checks[data.source] = { rx, data };
     } else {
       if (this.latest[stream] && rx <= this.latest[stream].rx) return;
       this.latest[stream] = { rx, data };
@@ -78,6 +84,8 @@ const page = {
   scan: new ScanView($("scan")),
   camera: new CameraView($("camera"), $("camera-legend"), $("camera-status")),
   slam: new SlamView($("slam"), $("slam-status")),
+  flow: new FlowView({ select: $("flow-stream"), root: $("flow"), legend: $("flow-legend"), status: $("flow-status"),
+    attitudes: $("flow-attitudes"), badge: $("flow-check") }, () => vehicles.get(selected)?.changed.add(FLOW_STREAMS[0])),
   positionPlots: ["north", "east", "down"].map((axis) => new TimePlot($("position-plots"), axis, "m")),
   sigmaPlots: [new TimePlot($("sigma-plots"), "position σ (north, east, down)", "m"),
     new TimePlot($("sigma-plots"), "yaw σ", "°")],
@@ -178,6 +186,13 @@ function renderSlam(v) {
   if (slam) page.slam.render(slam, v.data("autopilot")); // against the autopilot's own position
 }
 
+function renderFlow(v) {
+  const payloads = Object.fromEntries(FLOW_STREAMS.filter((s) => v.data(s)).map((s) => [s, v.data(s)]));
+  const present = Object.keys(payloads).length > 0;
+  $("flow-panel").hidden = !present; // only a vehicle running the gnss_flow pipeline has the view
+  if (present) page.flow.render(payloads, Object.values(v.checks).map((c) => c.data), v.data("health"));
+}
+
 function renderPlots(v, now) {
   page.positionPlots.forEach((plot, axis) => plot.render([
     { rows: v.position, column: axis + 1, color: "#0d47a1" },
@@ -211,6 +226,7 @@ function render() {
   if (any("alerts", "health")) panels.alerts($("alerts"), v.alerts, now);
   if (any("laser_dots")) renderCamera(v);
   if (any("ekf_slam", "autopilot")) renderSlam(v);
+  if (any(...FLOW_STREAMS, "attitude_check", "health")) renderFlow(v);
 }
 
 $("vehicle-select").addEventListener("change", (e) => choose(Number(e.target.value)));

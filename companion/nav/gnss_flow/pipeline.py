@@ -701,7 +701,8 @@ class GnssFlowPipeline:
         return out | {p.source: dataclasses.asdict(p.stats) for p in self.paths[1:]}
 
     def telemetry(self, static_due: bool) -> dict[str, dict[str, Any]]:
-        """Each path's newest pair's flow, FOE, depths and attitudes on its stream (once per pair)."""
+        """Each path's newest pair's flow, FOE, depths (each shown vector's, and their summary) and
+        attitudes on its stream (once per pair)."""
         return {path.stream: self._pair_telemetry(path, path.last_result) for path in self.paths
                 if path.last_result is not None and path.last_result is not path.published}
 
@@ -713,6 +714,7 @@ class GnssFlowPipeline:
         return {
             "t_capture": r.t_capture, "status": r.status, "rates_source": r.rates_source,
             **path.telemetry_flow(r, shown), "flow_count": len(r.points),
+            "flow_depth_m": None if r.depth_m is None else r.depth_m[shown],
             "foe_n": None if r.foe is None else r.foe.point_n,
             "foe_inlier_fraction": None if r.foe is None else r.foe.inlier_fraction,
             "foe_rms_deg": None if r.foe is None else r.foe.rms_angle_deg,
