@@ -1,7 +1,9 @@
 """Attitude cross-check: a pipeline's attitude-only estimate against the autopilot's ATTITUDE.
 
 An attitude estimate is never sent to the autopilot as a pose; it checks the autopilot's own
-attitude. When they differ by more than ``threshold_deg`` (largest of the roll, pitch, yaw
+attitude at the estimate's capture time (an estimate is published late: it waits for its GNSS
+fixes, and in a 30 deg/s roll-in the newest ATTITUDE would differ from it by the turn since; an
+estimate without an autopilot attitude near its time is not compared). When they differ by more than ``threshold_deg`` (largest of the roll, pitch, yaw
 differences, wrapped, over the angles the estimate measures: NaN is an angle it cannot see, e.g.
 the yaw of a level floor's tilt) for ``hold_s`` without a break, the check reports
 ``crosscheck:<source>`` degraded (health announces it by STATUSTEXT and telemetry), and OK again
@@ -19,9 +21,10 @@ from companion.messages import AttitudeEstimate
 
 
 class AttitudeCrossCheck:
-    """Compares attitude estimates with ``autopilot_euler()`` (roll, pitch, yaw rad, or None)."""
+    """Compares attitude estimates with ``autopilot_euler(t)``: the autopilot's roll, pitch, yaw
+    (rad) at daemon time ``t`` (s), or None when it has none for that time."""
 
-    def __init__(self, autopilot_euler: Callable[[], tuple[float, float, float] | None], health: Health,
+    def __init__(self, autopilot_euler: Callable[[float], tuple[float, float, float] | None], health: Health,
                  publish: Callable[[str, dict], None], threshold_deg: float, hold_s: float) -> None:
         self.autopilot_euler = autopilot_euler
         self.health = health
@@ -31,7 +34,7 @@ class AttitudeCrossCheck:
         self._since: dict[str, float | None] = {}  # per source: capture time the divergence began
 
     def submit(self, estimate: AttitudeEstimate) -> None:
-        reference = self.autopilot_euler()
+        reference = self.autopilot_euler(estimate.t_capture)
         if reference is None:
             return
         measured = [(a, b) for a, b in zip(estimate.euler_rad, reference) if math.isfinite(a)]
@@ -40,14 +43,16 @@ class AttitudeCrossCheck:
         diff = max(abs(wrap_pi(a - b)) for a, b in measured)
         component = f"crosscheck:{estimate.source}"
         since = self._since.get(estimate.source)
+        alarm = False
         if diff <= self.threshold_rad:
             self._since[estimate.source] = None
             self.health.report(component, State.OK, "attitude agrees with the autopilot's")
         elif since is None:
             self._since[estimate.source] = estimate.t_capture
         elif estimate.t_capture - since >= self.hold_s:
+            alarm = True
             self.health.report(component, State.DEGRADED,
                                f"attitude differs from the autopilot's by {math.degrees(diff):.1f} deg")
         self.publish("attitude_check", {"source": estimate.source, "t_capture": estimate.t_capture,
                                         "euler_rad": estimate.euler_rad, "autopilot_euler_rad": reference,
-                                        "difference_deg": math.degrees(diff)})
+                                        "difference_deg": math.degrees(diff), "alarm": alarm})

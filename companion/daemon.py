@@ -154,7 +154,7 @@ class Daemon:
         self.commands = self._build_inbound_commands(pipelines)
         gate = WatchdogGate(max_age=1.0, clock=clock.now)
         p = cfg.pipelines
-        crosscheck = AttitudeCrossCheck(lambda: state.attitude_euler, self.health, telemetry.publish,
+        crosscheck = AttitudeCrossCheck(state.attitude_at, self.health, telemetry.publish,
                                         p.attitude_alarm_deg, p.attitude_alarm_s)
         outputs = NavOutputs(pose=self.estimate.submit, range=self.distance.submit, attitude=crosscheck.submit,
                              publish=telemetry.publish)

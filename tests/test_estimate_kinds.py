@@ -4,15 +4,20 @@ becomes DISTANCE_SENSOR, an attitude estimate is only a cross-check of the autop
 
 from __future__ import annotations
 
+import asyncio
 import math
 
 import numpy as np
 import pytest
 from pymavlink.dialects.v20 import common as mavlink
 
+from companion import clock
+from companion.config import MavlinkConfig, VehicleConfig
 from companion.crosscheck import AttitudeCrossCheck
 from companion.health import Health
+from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.distance import DistanceSender
+from companion.mavlink.link import MavlinkLink
 from companion.messages import AttitudeEstimate, Estimate, PoseEstimate, RangeEstimate
 from companion.navloop import NavLoop, NavOutputs
 from companion.sdnotify import WatchdogGate
@@ -62,7 +67,7 @@ def test_each_range_source_gets_its_own_sensor_id() -> None:
 def test_the_attitude_check_raises_only_after_a_lasting_divergence_and_clears() -> None:
     health = Health(lambda: 0.0)
     published: list[dict] = []
-    check = AttitudeCrossCheck(lambda: (0.0, 0.0, 0.0), health, lambda stream, p: published.append(p),
+    check = AttitudeCrossCheck(lambda t: (0.0, 0.0, 0.0), health, lambda stream, p: published.append(p),
                                threshold_deg=5.0, hold_s=1.0)
 
     def state_after(t: float, roll_deg: float) -> str:
@@ -78,7 +83,7 @@ def test_the_attitude_check_raises_only_after_a_lasting_divergence_and_clears() 
 
 def test_the_attitude_check_compares_only_the_angles_an_estimate_measures() -> None:
     health = Health(lambda: 0.0)
-    check = AttitudeCrossCheck(lambda: (0.0, 0.0, 2.0), health, lambda stream, p: None, threshold_deg=5.0, hold_s=0.0)
+    check = AttitudeCrossCheck(lambda t: (0.0, 0.0, 2.0), health, lambda stream, p: None, threshold_deg=5.0, hold_s=0.0)
     check.submit(AttitudeEstimate(0.0, (math.radians(1.0), 0.0, math.nan), np.diag([1e-4, 1e-4, math.inf]), source="dots"))
     assert health.snapshot()["components"]["crosscheck:dots"]["state"] == "ok"  # yaw unmeasured, not 115 deg off
     check.submit(AttitudeEstimate(0.1, (math.radians(8.0), 0.0, math.nan), np.diag([1e-4, 1e-4, math.inf]), source="dots"))
@@ -112,3 +117,30 @@ def test_the_loop_routes_each_kind_to_its_edge_and_only_poses_to_the_autopilot()
     loop.cycle(1.0)
     assert got["pose"] == [pose] and got["range"] == [rng] and got["attitude"] == [att]
     assert got["publish"] == ["pose"] and loop.last_estimate is pose
+
+
+def test_the_attitude_check_compares_with_the_autopilot_attitude_at_the_estimate_time() -> None:
+    """An estimate is published after its GNSS fixes came, 0.2-0.3 s late: in a roll-in the newest
+    ATTITUDE would be degrees away from it while the autopilot was right at the estimate's time."""
+    async def main() -> AutopilotState:
+        link = MavlinkLink(MavlinkConfig(), VehicleConfig(), "udpout:127.0.0.1:9", Health(clock.now))
+        state = AutopilotState(link)
+        for k in range(20):  # rolling in at 30 deg/s, ATTITUDE at 50 Hz
+            codec = mavlink.MAVLink(None, 1, 1)  # as the autopilot (sysid 1, compid 1) sends it
+            attitude = mavlink.MAVLink_attitude_message(1000 + 20 * k, math.radians(0.6 * k), 0.0, 0.0, 0, 0, 0)
+            link._dispatch(codec.parse_char(attitude.pack(codec)))
+            await asyncio.sleep(0.02)
+        return state
+
+    state = asyncio.run(main())
+    first_time = state.attitude_history[0][0]
+    assert state.attitude_at(first_time + 0.005) == pytest.approx((0.0, 0.0, 0.0))
+    assert state.attitude_at(first_time - 1.0) is None  # nothing received near that time
+    health = Health(lambda: 0.0)
+    check = AttitudeCrossCheck(state.attitude_at, health, lambda stream, p: None, threshold_deg=5.0, hold_s=0.0)
+    for _ in range(2):
+        check.submit(AttitudeEstimate(first_time, (0.0, 0.0, 0.0), np.eye(3) * 1e-4, source="flow"))
+    assert health.snapshot()["components"]["crosscheck:flow"]["state"] == "ok"  # the newest is 11.4 deg off
+    for _ in range(2):
+        check.submit(AttitudeEstimate(first_time, (math.radians(8.0), 0.0, 0.0), np.eye(3) * 1e-4, source="flow"))
+    assert health.snapshot()["components"]["crosscheck:flow"]["state"] == "degraded"

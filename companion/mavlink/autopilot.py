@@ -53,6 +53,8 @@ log = logging.getLogger("companion.autopilot")
 COMMANDABLE_MODES = {"GUIDED", "OFFBOARD"}
 IMU_MESSAGES = ("HIGHRES_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3", "RAW_IMU")
 IMU_QUEUE = 64  # samples kept: > 1 s at 50 Hz, far more than one nav cycle
+ATTITUDE_HISTORY = 256  # ATTITUDE messages kept for attitude_at: 5 s at 50 Hz
+ATTITUDE_MATCH_S = 0.1  # attitude_at answers only with a message received this close to the time asked
 IMU_CLOCK_WINDOW = 50  # samples in the clock-offset minimum (1 s at 50 Hz)
 HIGHRES_PRESSURE_ALT = 1 << 11  # HIGHRES_IMU fields_updated: pressure_alt is valid
 PRESSURE_MAX_AGE_S = 0.5  # the SCALED_PRESSURE altitude attached to a scaled IMU sample is at most this old
@@ -122,6 +124,8 @@ class AutopilotState:
     ekf_flags: int = 0
     attitude_euler: tuple[float, float, float] | None = None  # roll, pitch, yaw rad (body FRD -> NED)
     attitude_time: float | None = None
+    attitude_history: deque[tuple[float, tuple[float, float, float]]] = field(
+        default_factory=lambda: deque(maxlen=ATTITUDE_HISTORY))  # (reception time, euler), oldest first
     local_position_ned: np.ndarray | None = None  # m, the autopilot's own estimate, at the EKF origin
     local_velocity_ned: np.ndarray | None = None  # m/s
     local_position_time: float | None = None
@@ -247,6 +251,15 @@ class AutopilotState:
     def _on_attitude(self, msg: mavlink.MAVLink_message) -> None:
         self.attitude_euler = (msg.roll, msg.pitch, msg.yaw)
         self.attitude_time = clock.now()
+        self.attitude_history.append((self.attitude_time, self.attitude_euler))
+
+    def attitude_at(self, t: float) -> tuple[float, float, float] | None:
+        """The autopilot's attitude (roll, pitch, yaw rad, body FRD -> NED) received nearest the daemon
+        time ``t`` (s) among the last :data:`ATTITUDE_HISTORY` messages; None when none came within
+        :data:`ATTITUDE_MATCH_S` of it. For comparisons with an estimate of an earlier instant (an
+        estimate waits for its GNSS fixes): the newest attitude would differ by the turn since."""
+        best = min(self.attitude_history, key=lambda sample: abs(sample[0] - t), default=None)
+        return best[1] if best is not None and abs(best[0] - t) <= ATTITUDE_MATCH_S else None
 
     def _on_local_position(self, msg: mavlink.MAVLink_message) -> None:
         position = np.array([msg.x, msg.y, msg.z], dtype=float)
