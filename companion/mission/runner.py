@@ -26,7 +26,7 @@ from companion.mavlink.commands import CommandFailed
 from companion.mavlink.setpoints import Setpoint
 from companion.mission.context import FailsafeLanding, GuidanceTakeover, MissionContext, MissionFailed
 from companion.mission.flight import TrajectoryFlight
-from companion.mission.steps import (ArmStep, FlyStep, HoldStep, LandStep, Mission, MissionStep, PayloadDropStep,
+from companion.mission.steps import (ArmStep, FlyStep, GotoStep, HoldStep, LandStep, Mission, MissionStep, PayloadDropStep,
                                      PoseSourceStep, ReturnToBaseStep, TakeoffStep, WaitReadyStep)
 
 log = logging.getLogger("companion.mission")
@@ -239,8 +239,26 @@ class MissionRunner:
             ctx.setpoints.command(Setpoint(position_ned=current.position_ned, yaw_rad=current.yaw_rad))
         else:
             ctx.hold_on_autopilot(ctx.yaw(), height_m=self._takeoff_altitude)
-        end = clock.now() + step.seconds
-        await self.ctx.wait_for(lambda: clock.now() >= end, step.seconds + 1.0, "the end of the hold")
+        await self._fly_on_for(step.seconds, "the end of the hold")
+
+    async def _goto(self, step: GotoStep) -> None:
+        """One position target, flown by the autopilot for ``step.seconds`` (steps.py, ``goto``)."""
+        ctx = self.ctx
+        if not ctx.state.armed:
+            raise MissionFailed("goto: the vehicle is not flying (take off first)")
+        ctx.airborne = True  # also a fixed wing started in the air, which had no take-off step
+        target = np.array(step.position, dtype=float)
+        why = ctx.geofence.violation(target) if ctx.geofence is not None else None
+        if why is not None:
+            raise MissionFailed(f"goto: the target is outside the geofence: {why}")
+        ctx.check_takeover()
+        ctx.setpoints.command(Setpoint(position_ned=target))
+        await self._fly_on_for(step.seconds, f"the end of the goto to {tuple(round(c, 1) for c in step.position)}")
+
+    async def _fly_on_for(self, seconds: float, what: str) -> None:
+        """Let the commanded setpoint be flown for ``seconds`` (the estimate watched meanwhile)."""
+        end = clock.now() + seconds
+        await self.ctx.wait_for(lambda: clock.now() >= end, seconds + 1.0, what)
 
     async def _fly(self, step: FlyStep) -> None:
         self.flight = TrajectoryFlight(step, self.ctx)

@@ -8,6 +8,12 @@
 - ``arm: {timeout_s}``: arm, only if the config's ``mission.allow_arm`` is true;
 - ``takeoff: {altitude_m, timeout_s}``: take off and wait until within 0.1 m of the altitude, settled;
 - ``hold: {seconds}``: hold where the vehicle is (a position setpoint);
+- ``goto: {position, seconds}``: one position target, flown by the autopilot's own guidance for
+  ``seconds``: a copter flies there and holds; a fixed wing flies there and circles it at its
+  loiter radius (WP_LOITER_RAD), as ArduPlane flies a guided waypoint. A fixed wing's flight plan is
+  a list of these (``fly`` is a multicopter's trajectory controller). The vehicle must be flying: after
+  a ``takeoff``, or already armed in the air (a fixed wing started in flight). The target must lie
+  inside the companion's geofence;
 - ``fly: {waypoints, speed_mps, ...}``: plan a smooth trajectory from where the vehicle is
   through the waypoints (minimum-snap by default, within the speed / acceleration / jerk
   limits and a corridor around the straight legs) and fly it with the outer-loop controller
@@ -63,6 +69,12 @@ class TakeoffStep:
 @dataclass
 class HoldStep:
     seconds: float = field(metadata=meta("How long to hold.", (0, 3600)))
+
+
+@dataclass
+class GotoStep:
+    position: Vec3 = field(metadata=meta("The target, LOCAL_NED metres (z negative = up)."))
+    seconds: float = field(metadata=meta("Fly towards it (and hold or circle there) this long.", (0, 3600)))
 
 
 @dataclass
@@ -142,6 +154,7 @@ class MissionStep:
     arm: ArmStep | None = None
     takeoff: TakeoffStep | None = None
     hold: HoldStep | None = None
+    goto: GotoStep | None = None
     fly: FlyStep | None = None
     payload_drop: PayloadDropStep | None = None
     land: LandStep | None = None
