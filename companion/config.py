@@ -288,6 +288,33 @@ class ArduPilotSitlConfig:
 
 
 @dataclass
+class InFlightStart:
+    """A fixed wing started in the air: level, at ``start``'s position and heading."""
+
+    height_m: float = field(metadata=meta("Height above the origin, m.", (5, 2000)))
+    airspeed_mps: float = field(metadata=meta("Airspeed, m/s (the simulated plane cruises at 17).", (10, 40)))
+
+
+@dataclass
+class SimEvent:
+    """A scripted disturbance of the built-in vehicle while ``start_s <= t < end_s`` (simulation time)."""
+
+    start_s: float = field(metadata=meta("Start, simulation seconds.", (0, 1e6)))
+    end_s: float = field(metadata=meta("End, simulation seconds.", (0, 1e6)))
+    sideslip_deg_s: float = field(default=0.0, metadata=meta(
+        "vehicle: plane only: rudder held, a yaw rate added to the turn coordination: uncoordinated (slipping) "
+        "flight, deg/s.", (-30, 30)))
+    tilt_fault_deg: tuple[float, float] = field(default=(0.0, 0.0), metadata=meta(
+        "The autopilot's attitude estimate wrong by this (roll, pitch), degrees, unknown to it: it flies on it "
+        "(a failing gyro, a board moved in its mount).", (-45, 45)))
+
+    def validate(self) -> tuple[str, str] | None:
+        if self.end_s <= self.start_s:
+            return "end_s", "must be after start_s"
+        return None
+
+
+@dataclass
 class SitlConfig:
     """Used only by `companion sitl` (the harness), never by the daemon on a vehicle."""
 
@@ -304,7 +331,14 @@ class SitlConfig:
         "What the simulated autopilot fuses for position (EK3_SRC1_POSXY): extnav = the companion's estimate."))
     start: tuple[float, float, float] | None = field(default=None, metadata=meta(
         "Start pose: north m, east m, yaw deg. null = the world's `start`."))
+    start_in_flight: InFlightStart | None = field(default=None, metadata=meta(
+        "vehicle: plane only: {height_m, airspeed_mps}: start flying level at `start` along its heading (armed, "
+        "in GUIDED, circling the start point at that height) instead of on the runway; null = on the ground."))
     wind_ned_mps: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0), metadata=meta("Mean wind, NED m/s.", (-20, 20)))
+    events: list[SimEvent] = field(default_factory=list, metadata=meta(
+        "Scripted disturbances of the built-in vehicle (not ArduPilot SITL's), each {start_s, end_s (simulation "
+        "seconds), sideslip_deg_s (plane only: rudder held, a yaw rate added to the turn coordination, deg/s), "
+        "tilt_fault_deg ([roll, pitch]: the autopilot's attitude estimate wrong by this, unknown to it)}."))
     gust_mps: float = field(default=0.2, metadata=meta("Gust standard deviation, m/s.", (0, 10)))
     tick_s: float = field(default=0.005, metadata=meta("Lockstep tick (simulation seconds per clock step).", (0.001, 0.05)))
     scip_sensors: list[str] = field(default_factory=list, metadata=meta(
@@ -313,6 +347,14 @@ class SitlConfig:
         "emulates from the vehicle's ground truth, so the real Hokuyo driver runs end to end. Real time only."))
     ardupilot: ArduPilotSitlConfig = field(default_factory=ArduPilotSitlConfig, metadata=meta(
         "ArduPilot SITL as the vehicle (real time only)."))
+
+    def validate(self) -> tuple[str, str] | None:
+        if self.start_in_flight is not None and self.vehicle != "plane":
+            return "start_in_flight", "only the fixed wing (vehicle: plane) starts in flight"
+        for i, event in enumerate(self.events):
+            if event.sideslip_deg_s and self.vehicle != "plane":
+                return f"events[{i}].sideslip_deg_s", "only the fixed wing (vehicle: plane) slips on command"
+        return None
 
 
 @dataclass

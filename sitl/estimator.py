@@ -73,7 +73,9 @@ class Ahrs:
     """Attitude as the autopilot believes it (see the module docstring). Angles in rad.
 
     Float attributes: ``roll pitch yaw`` (the estimate), ``dcm_yaw`` (compass-only heading) and
-    the body->NED rotation matrix of the estimate, ``r00 .. r22``.
+    the body->NED rotation matrix of the estimate, ``r00 .. r22``. ``tilt_fault_rad`` (roll, pitch)
+    is added to the estimate while set: a fault (a failing gyro, a board that moved in its mount)
+    that the autopilot does not see, so it flies on the wrong tilt.
     """
 
     def __init__(self, noise: GaussianStream, *, start_yaw_rad: float,
@@ -89,6 +91,7 @@ class Ahrs:
         self.roll = self.pitch = 0.0
         self.yaw = self.dcm_yaw = wrap_pi(start_yaw_rad)
         self.aligned = False  # heading snapped to the first compass reading
+        self.tilt_fault_rad = (0.0, 0.0)
         self._update_rotation()
 
     def propagate(self, dt: float, truth_roll: float, truth_pitch: float, truth_yaw: float) -> None:
@@ -98,8 +101,8 @@ class Ahrs:
         w, draw = self._wander, self._noise.draw
         w[0] += -w[0] * decay + kick * draw()
         w[1] += -w[1] * decay + kick * draw()
-        self.roll = truth_roll + self._bias[0] + w[0]
-        self.pitch = truth_pitch + self._bias[1] + w[1]
+        self.roll = truth_roll + self._bias[0] + w[0] + self.tilt_fault_rad[0]
+        self.pitch = truth_pitch + self._bias[1] + w[1] + self.tilt_fault_rad[1]
         turn = wrap_pi(truth_yaw - self._truth_yaw) + self._yaw_drift * dt
         self._truth_yaw = truth_yaw
         self.yaw = wrap_pi(self.yaw + turn)

@@ -288,6 +288,10 @@ class SimulatedVehicle:
         """Disarm (refused in flight unless ``force``)."""
         return self._fc.disarm(force)
 
+    def set_tilt_fault(self, roll_rad: float, pitch_rad: float) -> None:
+        """Make the autopilot's attitude estimate wrong by (roll, pitch) rad (0, 0: healthy); it flies on it."""
+        self._est.ahrs.tilt_fault_rad = (float(roll_rad), float(pitch_rad))
+
     def takeoff(self, altitude_m: float) -> tuple[bool, str]:
         """Take off to ``altitude_m`` above home; GUIDED and armed only."""
         return self._fc.takeoff(float(altitude_m))

@@ -51,6 +51,14 @@ def parse_args(argv: Sequence[str] | None = None) -> VehicleConfig:
     p.add_argument("--vehicle", choices=("copter", "plane"), default="copter",
                    help="airframe and autopilot: ArduCopter-like quadrotor or ArduPlane-like fixed wing (on a runway "
                         "at --start, taking off along its heading)")
+    p.add_argument("--in-flight", type=_floats(2), default=None, metavar="HEIGHT,AIRSPEED",
+                   help="--vehicle plane only: start in level flight HEIGHT m above home at AIRSPEED m/s along the "
+                        "--start heading, armed, in GUIDED circling the start point")
+    p.add_argument("--event", type=_floats(5), action="append", default=[],
+                   metavar="START,END,SIDESLIP_DEG_S,TILT_ROLL_DEG,TILT_PITCH_DEG",
+                   help="from START to END simulation seconds: a yaw rate added to the turn coordination (--vehicle "
+                        "plane: uncoordinated flight) and the autopilot's attitude estimate tilted by roll and pitch "
+                        "(a fault it flies on) (repeatable)")
     p.add_argument("--refuse-interval", type=int, action="append", default=[], metavar="MSGID",
                    help="answer SET_MESSAGE_INTERVAL for this message id with MAV_RESULT_FAILED, as ArduPilot 4.0 does "
                         "for HIGHRES_IMU (105) and SIM_STATE (108) (repeatable)")
@@ -60,6 +68,10 @@ def parse_args(argv: Sequence[str] | None = None) -> VehicleConfig:
     p.add_argument("--signing-key", metavar="FILE", default=None,
                    help="MAVLink 2 signing on the companion link with this key (32 raw bytes or 64 hex characters)")
     a = p.parse_args(argv)
+    if a.in_flight is not None and a.vehicle != "plane":
+        p.error("--in-flight needs --vehicle plane")
+    if any(e[2] for e in a.event) and a.vehicle != "plane":
+        p.error("an --event sideslip needs --vehicle plane")
     if a.tick <= 0 or (a.seconds is not None and a.seconds < 0) or not 1 <= a.sysid <= 255:
         p.error("--tick must be > 0, --seconds >= 0 and --sysid 1..255")
     try:
@@ -70,7 +82,8 @@ def parse_args(argv: Sequence[str] | None = None) -> VehicleConfig:
         companion=a.companion, gcs=tuple(a.gcs), lockstep=a.lockstep, tick_s=a.tick, seed=a.seed,
         seconds=a.seconds, log=a.log, home=a.home, gps=not a.no_gps, position_source=a.position_source,
         wind_ned_mps=a.wind, gust_mps=a.gust, start=a.start, sysid=a.sysid, legacy_streams=a.legacy_streams,
-        refuse_intervals=tuple(a.refuse_interval), signing_key=key, airframe=a.vehicle)
+        refuse_intervals=tuple(a.refuse_interval), signing_key=key, airframe=a.vehicle,
+        in_flight=a.in_flight, events=tuple(a.event))
 
 
 @contextmanager

@@ -49,6 +49,8 @@ class VehicleConfig:
     refuse_intervals: tuple[int, ...] = ()  # message ids whose SET_MESSAGE_INTERVAL fails, as on ArduPilot 4.0
     signing_key: bytes | None = None  # MAVLink 2 signing on the companion link (--signing-key)
     airframe: str = "copter"  # --vehicle: "copter" (ArduCopter-like) or "plane" (ArduPlane-like)
+    in_flight: tuple[float, float] | None = None  # --in-flight: (height m, airspeed m/s) of a plane started flying
+    events: tuple[tuple[float, ...], ...] = ()  # --event: (start s, end s, sideslip deg/s, tilt roll deg, tilt pitch deg)
 
 
 class Vehicle(RunLoopMixin, ReceivingMixin, CommandsMixin, StateTrackingMixin, MessagesMixin):
@@ -66,10 +68,12 @@ class Vehicle(RunLoopMixin, ReceivingMixin, CommandsMixin, StateTrackingMixin, M
             raise ValueError("--tick must be at least 1 us")
         if cfg.airframe not in AIRFRAMES:
             raise ValueError(f"--vehicle must be one of {sorted(AIRFRAMES)}, not {cfg.airframe!r}")
+        in_flight = {} if cfg.in_flight is None else {"start_airspeed_mps": cfg.in_flight[1]}
+        height = 0.0 if cfg.in_flight is None else cfg.in_flight[0]
         self.copter: SimulatedCopter | SimulatedPlane = AIRFRAMES[cfg.airframe](
             seed=cfg.seed, home=cfg.home, gps_enabled=cfg.gps, position_source=cfg.position_source,
-            wind=_wind(cfg), start_ned=(cfg.start[0], cfg.start[1], 0.0),
-            start_yaw_rad=math.radians(cfg.start[2]))
+            wind=_wind(cfg), start_ned=(cfg.start[0], cfg.start[1], -height),
+            start_yaw_rad=math.radians(cfg.start[2]), **in_flight)
         self.links = [Link("companion", cfg.companion, cfg.sysid)]
         self.links += [Link(f"gcs{i}", url, cfg.sysid) for i, url in enumerate(cfg.gcs)]
         self.companion = self.links[0]

@@ -12,6 +12,7 @@ import time
 
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
+from sitl.plane import SimulatedPlane
 from sitl.vehicle.link import next_due
 
 LOG_SAMPLE_INTERVAL_US = 20_000  # truth / estimate in the flight log at 50 Hz
@@ -115,10 +116,19 @@ class RunLoopMixin:
 
     def _step(self) -> None:
         """Advance the copter one tick and record what changed."""
+        if self.cfg.events:
+            self._apply_events()
         self.copter.step(self.tick_us / 1e6)
         self.n += 1
         self.log.add_external_nav(self.t, bool(self.copter.estimate.ext_nav_in_use), self.tick_us / 1e6)
         self._observe()
+
+    def _apply_events(self) -> None:
+        """The ``--event`` disturbances active at the current time (summed where they overlap)."""
+        active = [e for e in self.cfg.events if e[0] <= self.t < e[1]]
+        if isinstance(self.copter, SimulatedPlane):
+            self.copter.set_rudder(math.radians(sum(e[2] for e in active)))
+        self.copter.set_tilt_fault(math.radians(sum(e[3] for e in active)), math.radians(sum(e[4] for e in active)))
 
     def _send_due(self) -> None:
         """Log sample and every stream due at the current tick, on every link."""
