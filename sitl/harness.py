@@ -47,7 +47,7 @@ from drivers.lidar_models import MODELS
 from sitl.ardupilot_observer import THREAD_NAME as OBSERVER_THREAD
 from sitl.ardupilot_run import ArduPilotRun, ArduPilotStartFailure
 from sitl.frame_shift import moved_origin, shift_mission, shift_world, shifted, takeoff_pose, write_shifted
-from sitl.report import build_report
+from sitl.report import PAIR_STREAM_KEYS, build_report
 from companion.world import load_world
 
 log = logging.getLogger("companion.sitl")
@@ -61,7 +61,9 @@ class StartFailure(Exception):
     """A process of the run did not come up."""
 
 
-KEPT_STREAMS = ("attitude_check",)  # streams the report scores sample by sample (sitl/report.py score_attitude)
+# Streams the report scores sample by sample (sitl/report.py score_attitude), and the keys kept of
+# each payload (None: all of it).
+KEPT_STREAMS: dict[str, tuple[str, ...] | None] = {"attitude_check": None, **PAIR_STREAM_KEYS}
 
 
 class TelemetryListener:
@@ -88,7 +90,8 @@ class TelemetryListener:
             self.latest[stream] = payload
             self.received[stream] = time.monotonic()
             if stream in self.kept:
-                self.kept[stream].append(payload)
+                keys = KEPT_STREAMS[stream]
+                self.kept[stream].append(payload if keys is None else {k: payload.get(k) for k in keys})
 
     def snapshot(self) -> dict[str, dict]:
         with self._lock:
@@ -200,6 +203,10 @@ def vehicle_command(cfg: Config, args: argparse.Namespace, log_path: Path,
         cmd += ["--gcs", url]
     if not s.gps:
         cmd.append("--no-gps")
+    if s.start_in_flight is not None:
+        cmd += ["--in-flight", f"{s.start_in_flight.height_m},{s.start_in_flight.airspeed_mps}"]
+    for e in s.events:
+        cmd += ["--event", f"{e.start_s},{e.end_s},{e.sideslip_deg_s},{e.tilt_fault_deg[0]},{e.tilt_fault_deg[1]}"]
     if args.lockstep:
         cmd.append("--lockstep")
     if args.seconds is not None:
@@ -449,6 +456,10 @@ def refusal(cfg: Config, args: argparse.Namespace, ardupilot: Path | None) -> st
             return "ArduPilot SITL runs in real time with the daemon (its clock is not the daemon's): leave out --lockstep"
         if cfg.sitl.scip_sensors:
             return "sitl.scip_sensors needs the built-in vehicle (its truth link); use backend: sim sensors with --ardupilot"
+        if cfg.sitl.start_in_flight is not None:
+            return "ArduPilot SITL starts on the ground: leave out sitl.start_in_flight (take off in the mission)"
+        if cfg.sitl.events:
+            return "sitl.events script the built-in vehicle; ArduPilot SITL has its own SIM_ parameters for faults"
         if not ardupilot.is_file() or not os.access(ardupilot, os.X_OK):
             return f"{ardupilot}: not an executable ArduPilot SITL binary"
     if cfg.sitl.scip_sensors and (args.lockstep or args.autopilot is not None):
@@ -559,6 +570,8 @@ def run_harness(args: argparse.Namespace) -> int:
             cpu_percent=None if usage is None else 100.0 * usage[0] / max(wall, 1e-6),
             rss_mb=None if usage is None else usage[1], base_ne=world.base,
             attitude_checks=session.listener.every("attitude_check") if session.listener is not None else [],
+            pair_streams={stream: session.listener.every(stream) for stream in PAIR_STREAM_KEYS}
+            if session.listener is not None else None,
             ground_height=world.floor_height_at)
         Path(args.report).write_text(json.dumps(report, indent=2) + "\n")
         print(json.dumps(report, indent=2), flush=True)

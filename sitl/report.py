@@ -12,7 +12,7 @@ null), never invented.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -34,6 +34,12 @@ ATTITUDE_CONTRACT: dict[str, tuple[str, str]] = {
     "euler_std_deg": ("gnss_flow", "euler_std_deg"),
     "images_euler_std_deg": ("gnss_flow.images", "euler_std_deg"),
 }
+# The attitude sources' per-pair telemetry streams the harness keeps (only these keys of each
+# payload): when a pair was flagged uncoordinated (no estimate), for ``uncoordinated_intervals_s``.
+PAIR_STREAM_KEYS: dict[str, tuple[str, ...]] = {"gnss_flow": ("t_capture", "coordinated"),
+                                                "gnss_flow_images": ("t_capture", "coordinated")}
+INTERVAL_GAP_S = 1.0
+LANDING_STEPS = ("land", "return_to_base")  # mission steps that end on the ground  # flagged samples this close in time form one interval
 AGL_CEILING_M = 50.0  # heights above ground scored up to this true height (issue 15: "below 50 m")
 AGL_FLOOR_M = 0.5  # ... and from this one: a percentage of a height near zero says nothing
 
@@ -138,11 +144,29 @@ def euler_error_stats(estimate_euler: np.ndarray, t: np.ndarray, log: dict) -> d
             "count": int(np.sum(inside))}
 
 
-def score_attitude(log: dict, attitude_checks: Sequence[dict]) -> dict[str, Any]:
+def flagged_intervals(log: dict, payloads: Sequence[dict], flagged: Callable[[dict], bool]) -> list[list[float]]:
+    """[[start, end], ...] simulation seconds (capture times) of the ``payloads`` (each with a
+    ``t_capture`` on the daemon clock) that are ``flagged``, samples within INTERVAL_GAP_S joined."""
+    marked = [p["t_capture"] for p in payloads if flagged(p)]
+    intervals: list[list[float]] = []
+    for t in sorted(capture_times(log, np.array(marked, dtype=float) * 1e6).tolist()):
+        if intervals and t - intervals[-1][1] <= INTERVAL_GAP_S:
+            intervals[-1][1] = t
+        else:
+            intervals.append([t, t])
+    return [[round(a, 2), round(b, 2)] for a, b in intervals]
+
+
+def score_attitude(log: dict, attitude_checks: Sequence[dict],
+                   pair_streams: Mapping[str, Sequence[dict]] | None = None) -> dict[str, Any]:
     """The attitude-only estimates (the daemon's ``attitude_check`` payloads, docs/telemetry.md)
-    against the truth, per source: ``sources`` {source: :func:`euler_error_stats`}, and the
-    contract's fields (ATTITUDE_CONTRACT) taken from those, None when their source made no
-    estimate (one the autopilot's ATTITUDE was not known for yet is not published)."""
+    against the truth, per source: ``sources`` {source: :func:`euler_error_stats` plus
+    ``alarm_intervals_s`` (while the cross-check against the autopilot's ATTITUDE was in alarm)
+    and, from the source's per-pair stream in ``pair_streams`` (PAIR_STREAM_KEYS, the stream named
+    as the source with '.' as '_'), ``uncoordinated_intervals_s`` (pairs flagged as uncoordinated
+    flight: no estimate)}, and the contract's fields (ATTITUDE_CONTRACT) taken from those, None
+    when their source made no estimate (one the autopilot's ATTITUDE was not known for yet is not
+    published)."""
     by_source: dict[str, list[dict]] = {}
     for payload in attitude_checks:
         by_source.setdefault(payload["source"], []).append(payload)
@@ -151,6 +175,11 @@ def score_attitude(log: dict, attitude_checks: Sequence[dict]) -> dict[str, Any]
         euler = np.array([[math.nan if v is None else v for v in p["euler_rad"]] for p in payloads], dtype=float)
         t = capture_times(log, np.array([p["t_capture"] for p in payloads], dtype=float) * 1e6)
         sources[name] = euler_error_stats(euler, t, log)
+        sources[name]["alarm_intervals_s"] = flagged_intervals(log, payloads, lambda p: bool(p.get("alarm")))
+        pairs = (pair_streams or {}).get(name.replace(".", "_"))
+        if pairs is not None:
+            sources[name]["uncoordinated_intervals_s"] = flagged_intervals(
+                log, pairs, lambda p: p.get("coordinated") is False)
     block: dict[str, Any] = {field: (sources.get(source) or {}).get(stat)
                              for field, (source, stat) in ATTITUDE_CONTRACT.items()}
     block["sources"] = sources
@@ -290,10 +319,12 @@ def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, con
                  telemetry: dict[str, dict], origin: tuple[float, float, float],
                  cpu_percent: float | None, rss_mb: float | None,
                  attitude_checks: Sequence[dict], ground_height: Callable[[float, float], float],
-                 internal_errors: list[str] | None = None, base_ne: tuple[float, float] | None = None) -> dict[str, Any]:
+                 internal_errors: list[str] | None = None, base_ne: tuple[float, float] | None = None,
+                 pair_streams: Mapping[str, Sequence[dict]] | None = None) -> dict[str, Any]:
     """The report dict (schema 1) from a vehicle log and the daemon's last telemetry.
 
-    ``attitude_checks``: every ``attitude_check`` payload the daemon published, and
+    ``attitude_checks``: every ``attitude_check`` payload the daemon published (and
+    ``pair_streams``: every payload of the PAIR_STREAM_KEYS streams, those keys only), and
     ``ground_height`` (north, east m -> m above the floor z = 0): when there are attitude
     estimates or scored heights above ground, the report gains ``attitude``
     (:func:`score_attitude`, with ``agl_error_pct`` and ``agl_count`` from :func:`score_agl`).
@@ -309,6 +340,7 @@ def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, con
         estimate["fix_rate_hz"] = (system.get("pipelines") or {}).get(active, {}).get("fix_rate_hz")
     tracking_rms, tracking_max = score_tracking(log)
     mission_state = telemetry.get("mission", {}).get("state")
+    lands = telemetry.get("mission", {}).get("step_kind") in LANDING_STEPS  # its last step, once completed
     failsafes = telemetry.get("mission", {}).get("failsafe_counts") or {}
     landed_disarmed = bool(log["modes"]) and not log["modes"][-1][2]
     nonfinite = stats.get("nonfinite_dropped", 0) + stats.get("nonfinite_dropped_link", 0) if stats else None
@@ -327,7 +359,9 @@ def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, con
         },
         "control": {
             "law": control_law,
-            "mission_completed": mission_state == "completed" and landed_disarmed,
+            # every step done, and landed and disarmed if the mission ends with a landing (a fixed
+            # wing's flight plan may end in the air, circling its last target)
+            "mission_completed": mission_state == "completed" and (landed_disarmed or not lands),
             "tracking_rms_m": tracking_rms,
             "tracking_max_m": tracking_max,
             # stop / hold / land failsafes (estimate lost, geofence, pass tolerance), as the mission reported them
@@ -345,7 +379,7 @@ def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, con
     }
     agl_error_pct, agl_count = score_agl(log, ground_height)
     if attitude_checks or agl_count:
-        report["attitude"] = {**score_attitude(log, attitude_checks), "agl_error_pct": agl_error_pct,
+        report["attitude"] = {**score_attitude(log, attitude_checks, pair_streams), "agl_error_pct": agl_error_pct,
                               "agl_count": agl_count}
     recovery = score_recovery(log, base_ne)
     if recovery is not None:

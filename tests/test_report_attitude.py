@@ -152,3 +152,17 @@ def test_the_ardupilot_tap_logs_distance_sensor_as_the_built_in_vehicle_does() -
     record = observer.log.to_dict(4.0)["distance_sensor"]
     assert record == {"t_rx": [3.5], "time_boot_ms": [1234], "id": [0], "orientation": [ORIENTATION["down"]],
                       "distance_m": [15.2], "min_m": [0.1], "max_m": [40.0]}
+
+
+def test_the_alarm_and_the_uncoordinated_pairs_come_out_as_intervals_of_simulation_time() -> None:
+    log = flight_log(60.0)
+    checks = [check("gnss_flow", t, true_euler(t)) | {"alarm": 20.0 <= t <= 24.0} for t in (k / 10 for k in range(10, 500))]
+    pairs = [{"t_capture": t, "coordinated": not (30.0 <= t <= 35.0 or 40.0 <= t <= 40.2)}
+             for t in (k / 5 for k in range(5, 250))]
+    result = build_report(mission="table1", seconds=60.0, lockstep=True, seed=1, control_law="guided",
+                          log=json.loads(json.dumps(log.to_dict(60.0))), telemetry={}, origin=(0.0, 0.0, 0.0),
+                          cpu_percent=None, rss_mb=None, attitude_checks=checks, ground_height=lambda n, e: 0.0,
+                          pair_streams={"gnss_flow": pairs, "gnss_flow_images": []})
+    source = result["attitude"]["sources"]["gnss_flow"]
+    assert source["alarm_intervals_s"] == [[20.0, 24.0]]
+    assert source["uncoordinated_intervals_s"] == [[30.0, 35.0], [40.0, 40.2]]
