@@ -68,6 +68,7 @@ SKY_GREY = 90.0
 SKY_HORIZON_GREY, SKY_ZENITH_GREY = 200.0, 235.0  # the sky over terrain, at the horizon and straight up
 WALL_GREYS = (110.0, 160.0)  # a wall running east-west, north-south (in between: by |cos direction|)
 TOP_GREY = 175.0  # obstacle tops
+REMAP_WIDTH = 1024  # points per row of the maps of sample_wrapped
 UP = (0.0, 0.0, -1.0)  # the normal of the floor and of the obstacle tops, NED
 
 Rays = tuple[np.ndarray, np.ndarray, np.ndarray]  # north, east, down components, each (H, W) float32
@@ -407,18 +408,20 @@ class Scene:
         levels = np.log2(footprint * np.float32(1.0 / texel_m))
         levels = np.clip(np.rint(levels, out=levels), 0, count - 1, out=levels).astype(np.int8)
         levels[~floor] = -1
-        for level in range(np.min(levels, where=floor, initial=count), np.max(levels) + 1):
-            use = levels == level
-            if not use.any():
+        # the pixels sorted by level: each level samples exactly its own pixels (a level's pixels
+        # form a band across the image, whose bounding box under a roll would hold most of it)
+        order = np.argsort(levels.ravel(), kind="stable")
+        ends = np.cumsum(np.bincount(levels.ravel() + 1, minlength=count + 1))  # of levels -1 (not floor), 0, 1, ...
+        north, east = north.ravel()[order[ends[0]:]], east.ravel()[order[ends[0]:]]
+        for level, (start, end) in enumerate(zip(ends[:-1] - ends[0], ends[1:] - ends[0])):
+            if start == end:
                 continue
-            win = bounding_window(use)
             texture = self.floor[level]
             n = texture.shape[0]
-            scale = 1.0 / (texel_m * 2 ** int(level))  # texels per metre
-            row = north[win] * np.float32(scale) + np.float32((o[0] * scale) % n - 0.5)  # texel centres at integers
-            col = east[win] * np.float32(scale) + np.float32((o[1] * scale) % n - 0.5)
-            sampled = cv2.remap(texture, col, row, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
-            np.copyto(image[win], sampled, where=use[win])
+            scale = 1.0 / (texel_m * 2 ** level)  # texels per metre
+            row = north[start:end] * np.float32(scale) + np.float32((o[0] * scale) % n - 0.5)  # texel centres: integers
+            col = east[start:end] * np.float32(scale) + np.float32((o[1] * scale) % n - 0.5)
+            np.put(image, order[ends[0] + start:ends[0] + end], sample_wrapped(texture, col, row))
 
     @staticmethod
     def _shade_marker(marker: MarkerTexture, o: tuple[float, ...], north: np.ndarray, east: np.ndarray,
@@ -434,7 +437,11 @@ class Scene:
         image += sample[..., 0] * floor
 
 
-def bounding_window(mask: np.ndarray) -> tuple[slice, slice]:
-    """The rows and columns (slices) of the smallest rectangle holding every True of a non-empty (H, W) ``mask``."""
-    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
-    return slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1)
+def sample_wrapped(texture: np.ndarray, col: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """(N,) float32: the periodic ``texture`` interpolated bilinearly (cv2.remap) at the (N,) float32
+    texel coordinates ``col``, ``row`` (texel centres at integers)."""
+    width = min(col.size, REMAP_WIDTH)  # cv2.remap takes maps of at most 32767 a side: fold the points into rows
+    rows = -(-col.size // width)
+    pad = (0, rows * width - col.size)
+    maps = (np.pad(c, pad).reshape(rows, width) for c in (col, row))
+    return cv2.remap(texture, *maps, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP).ravel()[:col.size]
