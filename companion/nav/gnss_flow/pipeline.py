@@ -45,8 +45,12 @@ range.
 Time: a fix is used at its ``t_capture`` (the solution's epoch as the backend stamps it) minus
 ``receiver_latency_s`` (latency the backend did not remove: keep it 0 when the backend's own
 ``latency_s`` is set or the backend stamps the epoch, as the simulated receiver does). A frame,
-or either instant of a flow field, waits until a fix at or after its capture time has arrived, so
-the filter is queried within its fixes rather than predicted past them.
+or either instant of a flow field, waits until a fix at or after ``smoothing_lag_s`` past its
+capture time has arrived; its pseudo-attitude is then smoothed with the fixes on both sides of it
+(:meth:`.pseudo_attitude.DopplerAccelerationFilter.smoothed`), never predicted past them, and the
+attitude keeps the instant's time: it describes the instant and is given the lag plus the
+receiver's latency after it. With IMU samples the roll is blended with the gyro's roll rate
+(``gyro_roll_tau_s``, :class:`.pseudo_attitude.GyroAidedRoll`).
 
 Frames: world LOCAL_NED, body FRD, the camera and the flow sensor each placed by its
 ``sensors.<name>.mount``, the optical frame of companion/calibration.py; Euler angles ZYX rad;
@@ -74,10 +78,10 @@ from companion.messages import (GNSS_3D, AttitudeEstimate, Estimate, FlowField, 
                                 RangeEstimate)
 from companion.nav.gnss_flow.flow import (FocusOfExpansion, depths, derotate, focus_of_expansion, grid_flow,
                                           height_above_ground, normalised_flow, velocity_offsets)
-from companion.nav.gnss_flow.pseudo_attitude import (DopplerAccelerationFilter, PseudoAttitude,
+from companion.nav.gnss_flow.pseudo_attitude import (DopplerAccelerationFilter, GyroAidedRoll, PseudoAttitude,
                                                      PseudoAttitudeLimits, body_rates_from_euler_rates,
-                                                     coordination_check, pseudo_attitude, pseudo_attitude_refusal,
-                                                     pseudo_euler_rates)
+                                                     coordination_check, euler_roll_rate, pseudo_attitude,
+                                                     pseudo_attitude_refusal, pseudo_euler_rates)
 from companion.pipeline import PipelineContext
 from companion.plugins import register_pipeline
 from companion.schema import meta
@@ -85,10 +89,11 @@ from companion.timing import Timings
 from drivers.mount import OPTICAL_TO_SENSOR, Mount
 
 STREAM = "gnss_flow"
-IMU_HISTORY_S = 2.0  # IMU samples kept, s: covers a frame interval and the wait for the GNSS fix after it
+IMU_HISTORY_S = 2.0  # IMU samples kept beyond the smoothing lag, s: a frame interval and the wait for its fix
 FRAME_SLACK = 0.1  # a frame up to this fraction of 1 / pair_rate_hz early is used (capture-time jitter)
 LOST_AFTER_S = 2.0  # no frame pair processed for this long (no frames, or no GNSS): health lost, s
 JACOBIAN_STEP = 1e-6  # central-difference step of the attitude covariance, rad and normalised units
+HISTORY_MARGIN_S = 1.0  # fixes kept for the smoother beyond its lag, s: covers a frame captured before a fused fix
 
 
 @dataclass
@@ -151,9 +156,18 @@ class GnssFlowConfig:
     spin_sweeps: int = field(default=2, metadata=meta(
         "With GNSS-derived rates: times the turn rate about the direction of travel is re-estimated from the "
         "flow's spiral around the focus of expansion (the pseudo roll rate's error), 0 = never.", (0, 10)))
-    jerk_psd: float = field(default=0.5, metadata=meta(
-        "White-jerk spectral density of the Doppler acceleration filter, m^2/s^5: lower is smoother but lags "
-        "a roll-in more (pseudo_attitude.DopplerAccelerationFilter).", (0.001, 1000)))
+    jerk_psd: float = field(default=0.2, metadata=meta(
+        "White-jerk spectral density of the Doppler acceleration filter, m^2/s^5: lower is smoother but follows "
+        "a bank change less (pseudo_attitude.DopplerAccelerationFilter); 0.2 gives the least roll error with "
+        "`smoothing_lag_s` 0.6 at 5 or 10 Hz and 0.05 m/s Doppler noise (pseudo_attitude_eval.py).", (0.001, 1000)))
+    gyro_roll_tau_s: float = field(default=3.0, metadata=meta(
+        "With IMU samples: the roll is blended with the gyro's roll rate, following the gyro over spans shorter "
+        "than this and the GNSS beyond, the gyro's bias estimated (pseudo_attitude.GyroAidedRoll), s; 0: the "
+        "GNSS roll alone. The attitude then checks the autopilot's gyro only over longer spans.", (0, 60)))
+    smoothing_lag_s: float = field(default=0.6, metadata=meta(
+        "The pseudo-attitude of an instant is smoothed with the GNSS fixes up to this long after it (fixed-lag "
+        "Rauch-Tung-Striebel): the attitude still describes its instant but is given this much later, s "
+        "(0: filtered, from the fixes up to the instant only; pseudo_attitude_eval.py measures both).", (0, 3)))
     min_fix_type: int = field(default=GNSS_3D, metadata=meta(
         "A fix is used from this MAVLink GPS_FIX_TYPE on (3 = 3-D), unless it reports jamming.", (2, 6)))
     min_speed_mps: float = field(default=5.0, metadata=meta(
@@ -453,7 +467,8 @@ class GnssFlowPipeline:
         if not self.paths:
             raise ValueError("gnss_flow needs a camera, a flow sensor or both")
         self.telemetry_streams = tuple(p.stream for p in self.paths)
-        self.filter = DopplerAccelerationFilter(jerk_psd=cfg.jerk_psd)
+        self.filter = DopplerAccelerationFilter(
+            jerk_psd=cfg.jerk_psd, history_s=cfg.smoothing_lag_s + cfg.rate_baseline_s + HISTORY_MARGIN_S)
         self.limits = PseudoAttitudeLimits(min_ground_speed_mps=cfg.min_speed_mps)
         self.gnss_stats = GnssStats()
         self.timings = {"gnss_flow": Timings()}
@@ -464,7 +479,7 @@ class GnssFlowPipeline:
         self._arrivals = 0
         self._last_frame_s = -math.inf  # capture time of the newest camera frame kept, s
         self._imu: deque[ImuSample] = deque()
-        self._pseudo_history: deque[PseudoAttitude] = deque()  # at the fixes of the last rate_baseline_s
+        self._gyro_roll = GyroAidedRoll(cfg.gyro_roll_tau_s) if cfg.gyro_roll_tau_s > 0 else None
 
     @property
     def stats(self) -> GnssFlowStats:
@@ -507,7 +522,7 @@ class GnssFlowPipeline:
 
     def on_imu(self, sample: ImuSample) -> None:
         self._imu.append(sample)
-        while self._imu and self._imu[0].t < sample.t - IMU_HISTORY_S:
+        while self._imu and self._imu[0].t < sample.t - IMU_HISTORY_S - self.cfg.smoothing_lag_s:
             self._imu.popleft()
 
     def _wait(self, t: float, path: FlowPath, payload: Any) -> None:
@@ -522,13 +537,14 @@ class GnssFlowPipeline:
         whose GNSS is in (see the module docstring)."""
         started = time.perf_counter()
         out: list[Estimate] = []
-        while self._instants and self._instants[0][0] <= self._newest_epoch:
+        lag = self.cfg.smoothing_lag_s
+        while self._instants and self._instants[0][0] + lag <= self._newest_epoch:
             t, _, path, payload = heapq.heappop(self._instants)
-            self._feed_fixes(t)
+            self._feed_fixes(t + lag)
             out += self._process(path, self._stamp(t), payload)
         if not self._instants:  # nothing waits for the filter to stay before a fix
             self._feed_fixes(math.inf)
-        elif now - self._instants[0][0] > self.filter.max_gap_s:  # no GNSS for them: drop the wait
+        elif now - self._instants[0][0] > self.filter.max_gap_s + lag:  # no GNSS for them: drop the wait
             for path in {entry[2] for entry in self._instants}:
                 path.refuse(f"no GNSS fix within {self.filter.max_gap_s:g} s of the flow")
             self._instants.clear()
@@ -554,32 +570,21 @@ class GnssFlowPipeline:
             sigma = fix.speed_acc_mps if fix.speed_acc_mps is not None else self.cfg.speed_sigma_mps
             if usable and self.filter.update(epoch, np.asarray(v, dtype=float), sigma):
                 self.gnss_stats.fixes += 1
-                self._remember(epoch)
             else:
                 self.gnss_stats.fixes_refused += 1
         self._fixes = keep
 
-    def _remember(self, epoch: float) -> None:
-        """Keep the pseudo-attitude at a fused fix's ``epoch`` (s) for the rates' baseline."""
-        estimate = self.filter.estimate(epoch)
-        pseudo = None if estimate is None else pseudo_attitude(estimate, self.limits)
-        if pseudo is None:
-            self._pseudo_history.clear()
-            return
-        self._pseudo_history.append(pseudo)
-        while len(self._pseudo_history) > 2 and self._pseudo_history[1].time_s <= epoch - self.cfg.rate_baseline_s:
-            self._pseudo_history.popleft()
-
     def _stamp(self, t: float) -> _Instant:
-        """The pseudo-attitude and speed at capture time ``t`` (s)."""
-        last = self.filter.last_fix_time_s
-        # captured before the newest fused fix (it arrived late): the estimate at that fix
-        estimate = None if last is None else self.filter.estimate(max(t, last))
+        """The pseudo-attitude and speed at capture time ``t`` (s), from the fixes up to
+        ``smoothing_lag_s`` after it (fused by the caller), the roll blended with the gyro's."""
+        estimate = self.filter.smoothed(t)
         if estimate is None:
             return _Instant(t, None, math.nan, "no GNSS velocity")
         refusal = pseudo_attitude_refusal(estimate.velocity_ned, estimate.acceleration_ned, self.limits)
-        return _Instant(t, None if refusal else pseudo_attitude(estimate, self.limits),
-                        float(np.linalg.norm(estimate.velocity_ned)), refusal or "")
+        pseudo = None if refusal else pseudo_attitude(estimate, self.limits)
+        if pseudo is not None and self._gyro_roll is not None:
+            pseudo = dataclasses.replace(pseudo, roll=self._gyro_aided_roll(self._gyro_roll, pseudo))
+        return _Instant(t, pseudo, float(np.linalg.norm(estimate.velocity_ned)), refusal or "")
 
     def _process(self, path: FlowPath, instant: _Instant, payload: Any) -> list[Estimate]:
         pair = path.complete(instant, payload)
@@ -606,15 +611,20 @@ class GnssFlowPipeline:
         """(body rates p, q, r rad/s over [t0, t1] s, their source, the mean IMU specific force
         body FRD m/s^2 over it or None without IMU samples in it), or None without either source
         (the first fixes after a gap). Without IMU samples: the pseudo
-        Euler rates over ``rate_baseline_s`` up to ``mid`` (differences over a frame interval are
-        the Doppler noise's, amplified) turned into the pseudo frame's rates at ``mid``'s angles,
+        Euler rates from the smoothed pseudo-attitude ``rate_baseline_s`` before ``mid`` (or at the
+        oldest fix kept) to ``mid`` (differences over a frame interval are the Doppler noise's,
+        amplified) turned into the pseudo frame's rates at ``mid``'s angles,
         then into the body's by the velocity ``offsets`` (pitch offset, drift rad) of the path's newest pair."""
         inside = [s for s in self._imu if t0 <= s.t <= t1]
         if inside:
             return (np.mean([s.gyro_body for s in inside], axis=0), "imu",
                     np.mean([s.accel_body for s in inside], axis=0))
-        earlier = self._pseudo_history[0] if self._pseudo_history else None
-        if earlier is None or earlier.time_s >= mid.time_s:
+        first = self.filter.first_kept_time_s
+        if first is None or first >= mid.time_s:
+            return None
+        estimate = self.filter.smoothed(max(mid.time_s - self.cfg.rate_baseline_s, first))
+        earlier = None if estimate is None else pseudo_attitude(estimate, self.limits)
+        if earlier is None:
             return None
         rates = pseudo_euler_rates(earlier, mid)
         return wind_to_body(*offsets) @ body_rates_from_euler_rates(mid.roll, mid.pitch, rates), "gnss", None
@@ -692,6 +702,23 @@ class GnssFlowPipeline:
             status = "attitude and height above ground"
         self.health.report(path.component, State.OK, status)
         return dataclasses.replace(result, status=status, euler_rad=t_euler, agl_m=agl), estimates
+
+    def _gyro_aided_roll(self, blend: GyroAidedRoll, pseudo: PseudoAttitude) -> float:
+        """The pseudo-roll (rad) blended with the IMU gyro's Euler roll rate since the previous
+        instant (``gyro_roll_tau_s``); as it is, the blend restarting, without IMU samples covering
+        that span. The gyro's Euler rate takes the body's pitch: the pseudo-pitch plus the newest
+        pair's pitch offset (in a turn the yaw rate's share of it goes with the pitch)."""
+        last = blend.last_time_s
+        if last is not None and pseudo.time_s <= last:  # the other path's instant at the same time
+            return blend.update(last, pseudo.roll, 0.0)
+        inside = [] if last is None or not self._imu or self._imu[0].t > last else [
+            s for s in self._imu if last < s.t <= pseudo.time_s]
+        if not inside:
+            blend.reset()
+            return blend.update(pseudo.time_s, pseudo.roll, 0.0)
+        pitch = pseudo.pitch + self.paths[0].offsets[0]
+        rate = float(np.mean([euler_roll_rate(s.gyro_body, pseudo.roll, pitch) for s in inside]))
+        return blend.update(pseudo.time_s, pseudo.roll, rate * (pseudo.time_s - last))
 
     # -- telemetry --------------------------------------------------------------------------
 

@@ -32,7 +32,7 @@ Re-derived from the seed text (its conversion garbled the equations):
   ``r = -theta' sin(phi) + psi' cos(phi) cos(theta)``.
 - Pseudo Euler rates: finite differences of successive pseudo-attitudes (the seed says "the
   derivative wrt time"); the filter carries no jerk, so its own prediction cannot give the roll
-  rate.
+  rate. With the autopilot's gyro, :class:`GyroAidedRoll` blends its roll rate into the roll.
 
 Singularities: the course is undefined at zero ground speed and the lift plane at a vertical
 velocity (refused below ``min_ground_speed_mps`` and beyond ``max_flight_path_rad``); the roll is
@@ -44,6 +44,7 @@ flight-path limit).
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -74,27 +75,39 @@ class DopplerAccelerationFilter:
     and any fix more than ``max_gap_s`` after the previous one, (re)starts the filter at the fix's
     velocity and zero acceleration of sigma ``initial_acceleration_sigma_mps2``. A fix not later
     than the last one is refused. Receiver latency: query :meth:`estimate` at the current time,
-    the state is predicted forward from the last capture time.
+    the state is predicted forward from the last capture time. With ``history_s`` (s) above 0 the
+    posteriors of the fixes of that span are kept for :meth:`smoothed`, the estimate of an
+    earlier instant from the fixes on both sides of it.
 
     ``jerk_psd`` trades noise for lag (no Singer decay time: the acceleration is a random
     walk). Measured in tests/test_gnss_pseudo_attitude.py (0.05 m/s fixes at 5 Hz, 25 m/s,
     30 deg bank): at the default 0.5 the steady-turn pseudo-roll RMS error is 0.86 deg and it
-    lags a 30 deg/s roll-in by up to 7.5 deg; 0.1 gives 0.52 deg and 10.5 deg.
+    lags a 30 deg/s roll-in by up to 7.5 deg; 0.1 gives 0.52 deg and 10.5 deg. Smoothed with
+    0.6 s of fixes after the instant, over a manoeuvring flight, 0.2 is best
+    (pseudo_attitude_eval.py).
     """
 
     def __init__(self, jerk_psd: float = 0.5, initial_acceleration_sigma_mps2: float = 5.0,
-                 max_gap_s: float = 1.5) -> None:
+                 max_gap_s: float = 1.5, history_s: float = 0.0) -> None:
         self.jerk_psd = jerk_psd
         self.initial_acceleration_sigma_mps2 = initial_acceleration_sigma_mps2
         self.max_gap_s = max_gap_s
+        self.history_s = history_s
         self._time_s: float | None = None
         self._state = np.zeros((3, 2))  # per axis: velocity m/s, acceleration m/s^2
         self._cov = np.zeros((3, 2, 2))  # per axis 2x2 covariance
+        # the posteriors of the fixes of the last ``history_s`` (and the one before): (time s, state, cov)
+        self._history: deque[tuple[float, np.ndarray, np.ndarray]] = deque()
 
     @property
     def last_fix_time_s(self) -> float | None:
         """Capture time (s) of the last fix used, None before the first."""
         return self._time_s
+
+    @property
+    def first_kept_time_s(self) -> float | None:
+        """Capture time (s) of the oldest fix kept for :meth:`smoothed`, None when none is."""
+        return self._history[0][0] if self._history else None
 
     def _transition(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
         f = np.array([[1.0, dt], [0.0, 1.0]])
@@ -102,8 +115,7 @@ class DopplerAccelerationFilter:
         return f, q
 
     def _predicted(self, dt: float) -> tuple[np.ndarray, np.ndarray]:
-        f, q = self._transition(dt)
-        return self._state @ f.T, f @ self._cov @ f.T + q
+        return _predicted_from(self._state, self._cov, *self._transition(dt))
 
     def update(self, time_s: float, velocity_ned: np.ndarray, speed_sigma_mps: float | np.ndarray) -> bool:
         """Fuse a Doppler velocity fix (NED m/s, captured at ``time_s`` s, 1-sigma per axis m/s).
@@ -117,16 +129,20 @@ class DopplerAccelerationFilter:
             self._cov = np.zeros((3, 2, 2))
             self._cov[:, 0, 0] = var
             self._cov[:, 1, 1] = self.initial_acceleration_sigma_mps2**2
-            self._time_s = time_s
-            return True
-        state, cov = self._predicted(time_s - self._time_s)
-        innovation = v - state[:, 0]
-        s = cov[:, 0, 0] + var
-        gain = cov[:, :, 0] / s[:, None]  # (3, 2)
-        self._state = state + gain * innovation[:, None]
-        self._cov = cov - gain[:, :, None] * cov[:, 0, None, :]
-        self._cov = 0.5 * (self._cov + np.transpose(self._cov, (0, 2, 1)))
+            self._history.clear()
+        else:
+            state, cov = self._predicted(time_s - self._time_s)
+            innovation = v - state[:, 0]
+            s = cov[:, 0, 0] + var
+            gain = cov[:, :, 0] / s[:, None]  # (3, 2)
+            self._state = state + gain * innovation[:, None]
+            self._cov = cov - gain[:, :, None] * cov[:, 0, None, :]
+            self._cov = 0.5 * (self._cov + np.transpose(self._cov, (0, 2, 1)))
         self._time_s = time_s
+        if self.history_s > 0:
+            self._history.append((time_s, self._state.copy(), self._cov.copy()))
+            while len(self._history) > 2 and self._history[1][0] < time_s - self.history_s:
+                self._history.popleft()
         return True
 
     def estimate(self, time_s: float) -> KinematicEstimate | None:
@@ -136,14 +152,49 @@ class DopplerAccelerationFilter:
             return None
         if time_s < self._time_s:
             raise ValueError(f"query at {time_s} s is before the last fix at {self._time_s} s")
-        state, cov = self._predicted(time_s - self._time_s)
-        joint = np.zeros((6, 6))
-        idx = np.arange(3)
-        joint[idx, idx] = cov[:, 0, 0]
-        joint[idx, idx + 3] = cov[:, 0, 1]
-        joint[idx + 3, idx] = cov[:, 1, 0]
-        joint[idx + 3, idx + 3] = cov[:, 1, 1]
-        return KinematicEstimate(time_s, state[:, 0].copy(), state[:, 1].copy(), joint)
+        return _joint_estimate(time_s, *self._predicted(time_s - self._time_s))
+
+    def smoothed(self, time_s: float) -> KinematicEstimate | None:
+        """Velocity and acceleration at ``time_s`` (s) from every fix kept, before and after it:
+        the Rauch-Tung-Striebel smoother of the filter's fixes from ``time_s`` to the last one
+        (fixed lag: ask once the fixes up to ``time_s`` plus the lag have been fused). From the
+        last fix on this is :meth:`estimate`; None when ``time_s`` precedes the fixes kept
+        (``history_s`` after construction, and none across a restart)."""
+        if self._time_s is None or time_s >= self._time_s:
+            return self.estimate(time_s)
+        later = [i for i, (t, _, _) in enumerate(self._history) if t > time_s]
+        if not later or later[0] == 0:
+            return None
+        t_node, state, cov = self._history[later[0] - 1]  # the last fix at or before time_s
+        state, cov = _predicted_from(state, cov, *self._transition(time_s - t_node))
+        nodes = [(time_s, state, cov)] + [self._history[i] for i in later]
+        smooth_state, smooth_cov = nodes[-1][1], nodes[-1][2]
+        for (t0, state0, cov0), (t1, _, _) in zip(nodes[-2::-1], nodes[:0:-1]):
+            f, q = self._transition(t1 - t0)
+            prior_state, prior_cov = _predicted_from(state0, cov0, f, q)
+            gain = cov0 @ f.T @ np.linalg.inv(prior_cov)  # (3, 2, 2): per axis C = P F^T P-^-1
+            smooth_state = state0 + np.einsum("aij,aj->ai", gain, smooth_state - prior_state)
+            smooth_cov = cov0 + gain @ (smooth_cov - prior_cov) @ np.transpose(gain, (0, 2, 1))
+            smooth_cov = 0.5 * (smooth_cov + np.transpose(smooth_cov, (0, 2, 1)))
+        return _joint_estimate(time_s, smooth_state, smooth_cov)
+
+
+def _predicted_from(state: np.ndarray, cov: np.ndarray, f: np.ndarray,
+                    q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-axis state (3, 2) and covariance (3, 2, 2) moved on by the transition ``f`` with
+    process noise ``q`` (2, 2)."""
+    return state @ f.T, f @ cov @ f.T + q
+
+
+def _joint_estimate(time_s: float, state: np.ndarray, cov: np.ndarray) -> KinematicEstimate:
+    """The :class:`KinematicEstimate` of per-axis states (3, 2) and covariances (3, 2, 2)."""
+    joint = np.zeros((6, 6))
+    idx = np.arange(3)
+    joint[idx, idx] = cov[:, 0, 0]
+    joint[idx, idx + 3] = cov[:, 0, 1]
+    joint[idx + 3, idx] = cov[:, 1, 0]
+    joint[idx + 3, idx + 3] = cov[:, 1, 1]
+    return KinematicEstimate(time_s, state[:, 0].copy(), state[:, 1].copy(), joint)
 
 
 @dataclass(frozen=True)
@@ -194,8 +245,9 @@ def _angles(x: np.ndarray) -> np.ndarray:
     yaw = math.atan2(v[1], v[0])
     pitch = math.atan2(-v[2], math.hypot(v[0], v[1]))
     x0 = v / np.linalg.norm(v)
-    y0 = np.array([-math.sin(yaw), math.cos(yaw), 0.0])  # unit(down x v): horizontal, right
-    z0 = np.cross(x0, y0)
+    sy, cy = math.sin(yaw), math.cos(yaw)
+    y0 = np.array([-sy, cy, 0.0])  # unit(down x v): horizontal, right
+    z0 = np.array([-x0[2] * cy, -x0[2] * sy, x0[0] * cy + x0[1] * sy])  # x0 x y0 (np.cross is slow)
     roll = math.atan2(float(f @ y0), float(-(f @ z0)))
     return np.array([roll, pitch, yaw])
 
@@ -253,3 +305,58 @@ def coordination_check(specific_force_body: np.ndarray,
     f = np.asarray(specific_force_body, dtype=float)
     lateral = math.atan2(float(f[1]), float(-f[2]))
     return abs(lateral) <= max_lateral_angle_rad, lateral
+
+
+def euler_roll_rate(gyro_body: np.ndarray, roll: float, pitch: float) -> float:
+    """The ZYX Euler roll rate (rad/s) of body FRD rates (p, q, r) rad/s at ``roll``, ``pitch``
+    (rad): ``p + (q sin(roll) + r cos(roll)) tan(pitch)``."""
+    p, q, r = (float(w) for w in gyro_body)
+    return p + (q * math.sin(roll) + r * math.cos(roll)) * math.tan(pitch)
+
+
+class GyroAidedRoll:
+    """The pseudo-roll blended with a gyro's roll rate: a second-order complementary filter whose
+    roll follows the gyro's Euler roll increments over short spans and the pseudo-roll over
+    spans beyond ``tau_s`` (s), with the gyro's roll-rate bias estimated (integral term), so a
+    constant gyro bias leaves no steady error. Critically damped: ``roll' = rate - bias +
+    (2 / tau) e``, ``bias' = -e / tau^2``, ``e = pseudo roll - roll``; its response to the
+    pseudo-roll is a second-order low pass of natural period ``2 pi tau``.
+
+    The pseudo-roll's errors are the Doppler filter's, correlated over about a second (its
+    smoothing span) and worst in bank changes, where the gyro is exact; the gyro's are a bias
+    and a scale error, slow. Angles rad, times s, on the caller's clock, in time order."""
+
+    def __init__(self, tau_s: float) -> None:
+        self.tau_s = tau_s
+        self._time_s: float | None = None
+        self._roll = 0.0  # rad
+        self._bias = 0.0  # gyro Euler roll-rate bias, rad/s
+
+    @property
+    def last_time_s(self) -> float | None:
+        """Time (s) of the last update, None before the first or after :meth:`reset`."""
+        return self._time_s
+
+    def reset(self) -> None:
+        """Forget the roll and the bias: the next update starts at its pseudo-roll."""
+        self._time_s = None
+        self._bias = 0.0
+
+    def update(self, time_s: float, pseudo_roll: float, roll_increment: float) -> float:
+        """The blended roll (rad) at ``time_s`` from the pseudo-roll there (rad) and the gyro's
+        Euler roll increment (rad) since the previous update (ignored on the first). At the time
+        of the previous update: that update's roll, unchanged."""
+        if self._time_s is None:
+            self._time_s, self._roll = time_s, pseudo_roll
+            return pseudo_roll
+        dt = time_s - self._time_s
+        if dt < 0:
+            raise ValueError("updates not in time order")
+        if dt == 0:
+            return self._roll
+        predicted = self._roll + roll_increment - self._bias * dt
+        error = wrap_pi(pseudo_roll - predicted)
+        self._roll = wrap_pi(predicted + min(1.0, 2.0 * dt / self.tau_s) * error)
+        self._bias -= dt / self.tau_s**2 * error
+        self._time_s = time_s
+        return self._roll
