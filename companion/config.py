@@ -260,7 +260,7 @@ class MissionConfig:
     payload: PayloadConfig = field(default_factory=PayloadConfig, metadata=meta("How the payload_drop step releases the payload."))
     on_daemon_stop: Literal["land", "hold"] = field(default="land", metadata=meta(
         "The daemon stopping while the mission commands the vehicle in flight: land = a hold target, then LAND "
-        "(indoors the estimate stops with the daemon); hold = only the hold target (ArduPilot GUIDED keeps it on "
+        "(indoors the estimate stops with the daemon; a fixed wing: RTL, it has no LAND mode); hold = only the hold target (ArduPilot GUIDED keeps it on "
         "its own estimate, e.g. GPS)."))
 
 

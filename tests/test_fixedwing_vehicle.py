@@ -19,6 +19,7 @@ from companion import clock
 from companion.config import MavlinkConfig, VehicleConfig
 from companion.health import Health
 from companion.mavlink.autopilot import AutopilotState
+from companion.mavlink.commands import Commander
 from companion.mavlink.firmware import firmware_from_heartbeat
 from companion.mavlink.link import MavlinkLink
 from tests.test_sitl_vehicle import LockstepCompanion, Rig, start_vehicle  # noqa: F401 (fixture)
@@ -95,3 +96,19 @@ def test_the_companion_asks_an_arduplane_for_guided_by_arduplane_s_number() -> N
     assert unknown[1] == 4
     assert plane == (mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, PLANE_GUIDED)
     assert mode == "LOITER"
+
+
+def test_landing_a_plane_means_rtl_since_arduplane_has_no_land_mode() -> None:
+    async def main() -> tuple[str, str, int]:
+        link = MavlinkLink(MavlinkConfig(), VehicleConfig(), "udpout:127.0.0.1:9", Health(clock.now))
+        state = AutopilotState(link)
+        commander = Commander(link, state, MavlinkConfig())
+        link.autopilot = "ArduPilot"
+        before = commander.landing_mode  # no HEARTBEAT yet: a copter's LAND
+        heartbeat = mav.MAVLink_heartbeat_message(mav.MAV_TYPE_FIXED_WING, mav.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                                                  mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 15, mav.MAV_STATE_ACTIVE, 3)
+        codec = mav.MAVLink(None, 1, 1)
+        link._dispatch(codec.parse_char(heartbeat.pack(codec)))
+        return before, commander.landing_mode, state.custom_mode_for(commander.landing_mode)[1]
+    before, plane, number = asyncio.run(main())
+    assert (before, plane, number) == ("LAND", "RTL", 11)  # ArduPlane's RTL

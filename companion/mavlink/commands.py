@@ -129,9 +129,17 @@ class Commander:
         else:
             await self.command(mavlink.MAV_CMD_DO_SET_SERVO, payload.servo, payload.release_pwm)
 
+    @property
+    def landing_mode(self) -> str:
+        """The mode :meth:`land` switches to: LAND; RTL for a fixed wing, which has no LAND mode
+        (ArduPlane lands in AUTO from a mission's landing sequence, or by its pilot): it flies home
+        and circles there at its RTL altitude."""
+        firmware = self.state.firmware
+        return "RTL" if firmware is not None and firmware.vehicle == "plane" else "LAND"
+
     async def land(self) -> None:
-        """Switch the autopilot to LAND."""
-        await self.set_mode("LAND")
+        """Switch the autopilot to :attr:`landing_mode`."""
+        await self.set_mode(self.landing_mode)
 
     def _on_ack(self, msg: mavlink.MAVLink_message) -> None:
         future = self._waiting.get(msg.command)

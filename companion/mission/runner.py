@@ -126,14 +126,14 @@ class MissionRunner:
             if self.on_stop == "hold":
                 log.warning("daemon stopping in flight: left holding in %s", ctx.state.mode)
                 return
-        log.warning("daemon stopping in flight: switching to LAND")
-        ctx.setpoints.expect_mode("LAND")
+        log.warning("daemon stopping in flight: switching to %s", ctx.commander.landing_mode)
+        ctx.setpoints.expect_mode(ctx.commander.landing_mode)
         try:
             await asyncio.wait_for(ctx.commander.land(), mode_timeout_s)
         except TimeoutError:
-            log.error("LAND on daemon stop: no COMMAND_ACK within %.1f s", mode_timeout_s)
+            log.error("%s on daemon stop: no COMMAND_ACK within %.1f s", ctx.commander.landing_mode, mode_timeout_s)
         except CommandFailed as exc:
-            log.error("LAND on daemon stop: %s", exc)
+            log.error("%s on daemon stop: %s", ctx.commander.landing_mode, exc)
 
     # -- outcome ----------------------------------------------------------------------------
 
@@ -345,7 +345,7 @@ class MissionRunner:
     async def _land(self, step: LandStep) -> None:
         ctx = self.ctx
         ctx.setpoints.stop()
-        ctx.setpoints.expect_mode("LAND")
+        ctx.setpoints.expect_mode(ctx.commander.landing_mode)
         await ctx.commander.land()
         ctx.airborne = False
         await self.ctx.wait_for(lambda: not ctx.state.armed, step.timeout_s, "touchdown and disarm")

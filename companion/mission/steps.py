@@ -20,7 +20,8 @@
   of ``control`` (RPT by default) at ``control.rate_hz``. A waypoint may stop, hold, or be a
   window / door pass with a tolerance (see :class:`Waypoint`);
 - ``payload_drop: {hold_s}``: hold, release the payload (``mission.payload``), keep holding;
-- ``land: {timeout_s}``: switch to LAND and wait for the autopilot to disarm;
+- ``land: {timeout_s}``: switch to LAND and wait for the autopilot to disarm (a fixed wing: RTL, its
+  pilot lands it);
 - ``return_to_base: {timeout_s, land_timeout_s}``: hand the flight to the pipeline that can
   fly the vehicle itself (a :class:`companion.pipeline.GuidanceSource`, e.g. the EKF-SLAM return
   to base): ask it to start if it has not taken over already, fly its guidance (position
