@@ -377,3 +377,19 @@ def test_the_registry_builds_the_flow_path_alone(tmp_path: Path) -> None:
     assert set(pipeline.subscriptions()) == {"gps", "of"} and pipeline.camera_path is None
     assert np.allclose(pipeline.flow_path.cam_to_body @ [0.0, 0.0, 1.0], [math.cos(math.radians(5)), 0.0,
                                                                           math.sin(math.radians(5))])
+
+
+def test_an_attitude_waits_for_the_smoothing_lags_fixes_and_describes_its_own_instant() -> None:
+    pipeline, _ = make(camera=False, flow=True, smoothing_lag_s=0.6)
+
+    def fix(t: float) -> None:
+        pipeline.on_fix(GnssFix("gps", t, GNSS_3D, 0.0, 0.0, 0.0, velocity_ned_mps=velocity(t), speed_acc_mps=0.02))
+
+    for t in np.arange(-2.0, 2.55, FIX_DT):
+        fix(t)
+    pipeline.on_flow(flow_field(20))  # [1.9, 2.0] s
+    assert pipeline.step(2.6) == []  # fixes up to 2.5 s: short of 2.0 + 0.6
+    fix(2.6)
+    attitudes = [e for e in pipeline.step(2.7) if isinstance(e, AttitudeEstimate)]
+    assert len(attitudes) == 1 and attitudes[0].t_capture == pytest.approx(1.95)
+    check_attitudes(attitudes, FLOW_TOLERANCE_DEG["gnss"])
