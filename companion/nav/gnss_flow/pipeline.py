@@ -89,6 +89,7 @@ from companion.timing import Timings
 from drivers.mount import OPTICAL_TO_SENSOR, Mount
 
 STREAM = "gnss_flow"
+PITCH_OFFSET_TAU_S = 5.0  # the pitch offset in the gyro roll blend's Euler conversion is averaged over this, s
 IMU_HISTORY_S = 2.0  # IMU samples kept beyond the smoothing lag, s: a frame interval and the wait for its fix
 FRAME_SLACK = 0.1  # a frame up to this fraction of 1 / pair_rate_hz early is used (capture-time jitter)
 LOST_AFTER_S = 2.0  # no frame pair processed for this long (no frames, or no GNSS): health lost, s
@@ -480,6 +481,7 @@ class GnssFlowPipeline:
         self._last_frame_s = -math.inf  # capture time of the newest camera frame kept, s
         self._imu: deque[ImuSample] = deque()
         self._gyro_roll = GyroAidedRoll(cfg.gyro_roll_tau_s) if cfg.gyro_roll_tau_s > 0 else None
+        self._pitch_offset: float | None = None  # the first path's pitch offsets averaged over PITCH_OFFSET_TAU_S, rad
 
     @property
     def stats(self) -> GnssFlowStats:
@@ -671,6 +673,9 @@ class GnssFlowPipeline:
         forward = 1.0 if foe.direction_cam[2] > 0 else -1.0
         euler, offsets = true_euler(np.array(pseudo_euler), foe.point_n, forward, cam_to_mid_body)
         path.offsets = offsets
+        if path is self.paths[0]:
+            previous = offsets[0] if self._pitch_offset is None else self._pitch_offset
+            self._pitch_offset = previous + min(1.0, dt / PITCH_OFFSET_TAU_S) * (offsets[0] - previous)
         if specific_force is not None:
             coordinated, lateral = coordination_check(specific_force, math.radians(cfg.max_lateral_deg))
         else:
@@ -706,8 +711,10 @@ class GnssFlowPipeline:
     def _gyro_aided_roll(self, blend: GyroAidedRoll, pseudo: PseudoAttitude) -> float:
         """The pseudo-roll (rad) blended with the IMU gyro's Euler roll rate since the previous
         instant (``gyro_roll_tau_s``); as it is, the blend restarting, without IMU samples covering
-        that span. The gyro's Euler rate takes the body's pitch: the pseudo-pitch plus the newest
-        pair's pitch offset (in a turn the yaw rate's share of it goes with the pitch)."""
+        that span. The gyro's Euler rate takes the body's pitch: the pseudo-pitch plus the pitch
+        offset averaged over the pairs of the last ``PITCH_OFFSET_TAU_S`` (in a turn the yaw rate's
+        share of the roll rate goes with the pitch: with one pair's offset, its ~1 deg of flow noise
+        put 0.5 deg/s into the roll rate and nearly doubled the roll error, flight_eval.py)."""
         last = blend.last_time_s
         if last is not None and pseudo.time_s <= last:  # the other path's instant at the same time
             return blend.update(last, pseudo.roll, 0.0)
@@ -716,7 +723,7 @@ class GnssFlowPipeline:
         if not inside:
             blend.reset()
             return blend.update(pseudo.time_s, pseudo.roll, 0.0)
-        pitch = pseudo.pitch + self.paths[0].offsets[0]
+        pitch = pseudo.pitch + (self._pitch_offset or 0.0)
         rate = float(np.mean([euler_roll_rate(s.gyro_body, pseudo.roll, pitch) for s in inside]))
         return blend.update(pseudo.time_s, pseudo.roll, rate * (pseudo.time_s - last))
 
