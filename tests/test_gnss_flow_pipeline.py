@@ -393,3 +393,11 @@ def test_an_attitude_waits_for_the_smoothing_lags_fixes_and_describes_its_own_in
     attitudes = [e for e in pipeline.step(2.7) if isinstance(e, AttitudeEstimate)]
     assert len(attitudes) == 1 and attitudes[0].t_capture == pytest.approx(1.95)
     check_attitudes(attitudes, FLOW_TOLERANCE_DEG["gnss"])
+
+
+def test_a_focus_of_expansion_past_the_pitch_offset_limit_is_refused_as_a_wrong_fit() -> None:
+    pipeline, health = make(camera=False, flow=True, max_pitch_offset_deg=2.0)  # the turn's angle of attack: 3 deg
+    estimates = run(pipeline, frames=0, flows=5)
+    assert not [e for e in estimates if isinstance(e, AttitudeEstimate)]
+    assert pipeline.stats.refused == {"implausible focus of expansion": 5} and pipeline.stats.flows == 5
+    assert health.get("nav:gnss_flow").reason.startswith("implausible focus of expansion: pitch offset 3.")

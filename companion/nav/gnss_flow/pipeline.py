@@ -179,6 +179,11 @@ class GnssFlowConfig:
     max_drift_deg: float = field(default=10.0, metadata=meta(
         "Without an IMU: a drift angle (the FOE's yaw offset) beyond this flags the pair uncoordinated, degrees; "
         "a crosswind's crab counts too.", (0.1, 60)))
+    max_pitch_offset_deg: float = field(default=20.0, metadata=meta(
+        "A focus of expansion putting the velocity more than this above or below the body's x axis (an angle of "
+        "attack past the stall) is a wrong fit: its pair gives no attitude, degrees. Derotated by the GNSS-derived "
+        "rates in bank changes the flow gave a few such fits (40 to 120 deg), whose attitudes were off by up to "
+        "180 deg (flight_eval.py).", (1, 90)))
     min_depression_deg: float = field(default=5.0, metadata=meta(
         "Flow points at least this far below the horizon are ground for the height above it, degrees.", (0.5, 89)))
     agl_range_m: tuple[float, float] = field(default=(1.0, 100.0), metadata=meta(
@@ -672,6 +677,10 @@ class GnssFlowPipeline:
         cam_to_mid_body = half_turn.T @ cam_to_body
         forward = 1.0 if foe.direction_cam[2] > 0 else -1.0
         euler, offsets = true_euler(np.array(pseudo_euler), foe.point_n, forward, cam_to_mid_body)
+        if abs(offsets[0]) > math.radians(cfg.max_pitch_offset_deg):
+            reason = f"implausible focus of expansion: pitch offset {math.degrees(offsets[0]):.1f} deg"
+            path.refuse(reason)
+            return dataclasses.replace(base, status=reason, rates_source=rates_source, foe=foe, offsets_rad=offsets), []
         path.offsets = offsets
         if path is self.paths[0]:
             previous = offsets[0] if self._pitch_offset is None else self._pitch_offset
