@@ -272,6 +272,15 @@ def _sitl_error_sources() -> dict[str, float]:
 
 
 @dataclass
+class ParameterEvent:
+    """An ArduPilot parameter the harness sets at a flight time (a fault injected into the autopilot)."""
+
+    at_s: float = field(metadata=meta("When: seconds since the flight's start (the report's time line).", (0, 1e6)))
+    name: str = field(metadata=meta("Parameter name, e.g. AHRS_TRIM_Y (pitch trim, rad)."))
+    value: float = field(metadata=meta("Value, in the parameter's own unit."))
+
+
+@dataclass
 class ArduPilotSitlConfig:
     """ArduPilot SITL as the vehicle of `companion sitl` (or `--ardupilot PATH`), instead of the built-in one."""
 
@@ -285,6 +294,9 @@ class ArduPilotSitlConfig:
     parameters: dict[str, float] = field(default_factory=_sitl_error_sources, metadata=meta(
         "Parameters the harness sets after the companion's own (error sources of the simulated sensors: SIM_ACC_RND, "
         "SIM_GYR_RND, biases, wind). The barometer's are always zeroed: it is the truth altimeter."))
+    parameter_events: list[ParameterEvent] = field(default_factory=list, metadata=meta(
+        "Parameters set during the flight, each {at_s, name, value}: PARAM_SET on the harness's own link, e.g. "
+        "AHRS_TRIM_Y 0.26 (the autopilot's pitch off by 15 deg, unknown to it: it flies on it) and back to 0."))
 
 
 @dataclass

@@ -3,8 +3,9 @@ truth, and the flight log they fill (the same document as the built-in vehicle's
 
 - **Tap**: the daemon connects to a loopback TCP port of the harness instead of SITL's SERIAL0;
   every byte is forwarded unchanged both ways, and parsed on the side: what the companion sent
-  (VISION_POSITION_ESTIMATE, VISION_SPEED_ESTIMATE, DISTANCE_SENSOR, SET_POSITION_TARGET_LOCAL_NED,
-  commands, origin) is logged with its arrival time, as the built-in vehicle logs what it receives. The
+  (VISION_POSITION_ESTIMATE, VISION_SPEED_ESTIMATE, DISTANCE_SENSOR, SET_POSITION_TARGET_LOCAL_NED and a
+  fixed wing's guided waypoints, MISSION_ITEM_INT in MAV_FRAME_GLOBAL, as position setpoints in the truth
+  frame; commands, origin) is logged with its arrival time, as the built-in vehicle logs what it receives. The
   tap mirrors the connection: SITL gone -> the daemon's connection is closed; the daemon
   reconnecting -> a new connection to SITL. Only the harness sees it: the daemon talks to
   ArduPilot exactly as it would on TCP.
@@ -12,7 +13,8 @@ truth, and the flight log they fill (the same document as the built-in vehicle's
   give the truth (``sitl.truth``: true attitude and position, the altitude from SITL's
   noiseless barometer), HEARTBEAT the mode and arming, STATUSTEXT the EKF's "using external nav",
   GPS_GLOBAL_ORIGIN the origin, LOCAL_POSITION_NED the autopilot's own estimate. It reconnects by
-  itself after SITL restarts.
+  itself after SITL restarts. It also sets the parameters of ``sitl.ardupilot.parameter_events`` at
+  their flight times (PARAM_SET, read back): faults injected into the autopilot.
 
 Times are seconds since :class:`ArduPilotObserver` started (time.monotonic() - t0): the daemon
 stamps its estimates with the same CLOCK_MONOTONIC, so ``clock.monotonic_at_sim_zero`` in the log
@@ -33,12 +35,14 @@ from pathlib import Path
 
 import numpy as np
 
-from companion.config import MavlinkConfig, OriginConfig, StreamRatesConfig, VehicleConfig
-from companion.frames import euler_from_quat
+from companion.config import MavlinkConfig, OriginConfig, ParameterEvent, StreamRatesConfig, VehicleConfig
+from companion.frames import euler_from_quat, ned_from_geodetic
 from companion.health import Health
 from companion.mavlink.autopilot import AutopilotState
 from companion.mavlink.commands import Commander
 from companion.mavlink.link import MavlinkLink, mavlink, nonfinite_fields
+from companion.mavlink.params import ParameterClient, ParamError
+from companion.mavlink.setpoints import GUIDED_WAYPOINT_CURRENT, Setpoint
 from companion.mavlink.streams import StreamNegotiator
 from sitl.truth import TruthSample, TruthSource
 from sitl.flight_log import FlightLog
@@ -88,9 +92,11 @@ class _Parser:
 class ArduPilotObserver:
     """Tap + ground link + flight log for one run; see the module docstring."""
 
-    def __init__(self, *, serial0_port: int, serial1_port: int, seed: int, autopilot_sysid: int = 1) -> None:
+    def __init__(self, *, serial0_port: int, serial1_port: int, seed: int, autopilot_sysid: int = 1,
+                 parameter_events: list[ParameterEvent] | None = None) -> None:
         self.serial0_port = serial0_port
         self.serial1_port = serial1_port
+        self.parameter_events = sorted(parameter_events or [], key=lambda e: e.at_s)
         self.origin: OriginConfig | None = None  # the frame of the truth, from begin()
         self.seed = seed
         self.autopilot_sysid = autopilot_sysid
@@ -186,9 +192,20 @@ class ArduPilotObserver:
         link.subscribe("STATUSTEXT", self._on_statustext)
         link.subscribe("GPS_GLOBAL_ORIGIN", self._on_origin)
         loop = asyncio.get_running_loop()
+        params = ParameterClient(link, lambda: state.firmware)
         return [loop.create_task(link.run()), loop.create_task(streams.run()),
                 loop.create_task(commander.identify_every_connection()),
-                loop.create_task(self._poll_origin(commander))]
+                loop.create_task(self._poll_origin(commander)), loop.create_task(self._set_parameters(params))]
+
+    async def _set_parameters(self, params: ParameterClient) -> None:
+        """Each of ``parameter_events`` at its time (observer seconds since begin()); a failed write is logged."""
+        for event in self.parameter_events:
+            await asyncio.sleep(max(0.0, event.at_s - self.now()))
+            try:
+                await params.write(event.name, event.value)
+                log.info("t=%.1f s: %s set to %g", self.now(), event.name, event.value)
+            except ParamError as exc:
+                log.error("t=%.1f s: parameter event failed: %s", self.now(), exc)
 
     async def _poll_origin(self, commander: Commander) -> None:
         """Ask for GPS_GLOBAL_ORIGIN until the autopilot has one (ArduPilot sends it on request)."""
@@ -277,5 +294,11 @@ class ArduPilotObserver:
         elif kind == "SET_POSITION_TARGET_LOCAL_NED":
             self.log.add_setpoint(t, msg.coordinate_frame, msg.type_mask, (msg.x, msg.y, msg.z),
                                   (msg.vx, msg.vy, msg.vz), (msg.afx, msg.afy, msg.afz))
+        elif kind == "MISSION_ITEM_INT" and msg.current == GUIDED_WAYPOINT_CURRENT and self.origin is not None \
+                and msg.frame == mavlink.MAV_FRAME_GLOBAL:
+            o = self.origin
+            target = Setpoint(position_ned=ned_from_geodetic(msg.x * 1e-7, msg.y * 1e-7, msg.z, (o.lat, o.lon, o.alt)))
+            self.log.add_setpoint(t, mavlink.MAV_FRAME_LOCAL_NED, target.type_mask, target.position_ned, (0, 0, 0),
+                                  (0, 0, 0))
         elif kind == "COMMAND_LONG" and msg.command == mavlink.MAV_CMD_SET_MESSAGE_INTERVAL:
             self.tap.stream_requests.append((t, int(msg.param1)))

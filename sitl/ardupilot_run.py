@@ -43,7 +43,8 @@ class ArduPilotRun:
         self.instance = free_instance()
         self.observer = ArduPilotObserver(serial0_port=serial_port(self.instance, 0),
                                           serial1_port=serial_port(self.instance, 1), seed=seed,
-                                          autopilot_sysid=autopilot_sysid)
+                                          autopilot_sysid=autopilot_sysid,
+                                          parameter_events=options.parameter_events)
         self.parameters = {**options.parameters, **TRUTH_PARAMETERS}
         self.sitl: ArduPilotSitl | None = None
         self.origin: OriginConfig | None = None

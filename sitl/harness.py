@@ -462,6 +462,8 @@ def refusal(cfg: Config, args: argparse.Namespace, ardupilot: Path | None) -> st
             return "sitl.events script the built-in vehicle; ArduPilot SITL has its own SIM_ parameters for faults"
         if not ardupilot.is_file() or not os.access(ardupilot, os.X_OK):
             return f"{ardupilot}: not an executable ArduPilot SITL binary"
+    elif cfg.sitl.ardupilot.parameter_events:
+        return "sitl.ardupilot.parameter_events set ArduPilot SITL's parameters: run with --ardupilot"
     if cfg.sitl.scip_sensors and (args.lockstep or args.autopilot is not None):
         return ("sitl.scip_sensors needs the built-in vehicle in real time (the SCIP bridge runs on the "
                 "wall clock); lockstep runs use backend: sim sensors")

@@ -2,7 +2,14 @@
 
 While commanding, the current target is re-sent at ``setpoint_rate_hz`` (>= 10 Hz):
 ArduPilot stops after 3 s without a velocity or acceleration target, PX4 leaves OFFBOARD
-when setpoints stop. The moment the autopilot leaves GUIDED/OFFBOARD because of someone else
+when setpoints stop. An ArduPilot fixed wing's (``Firmware.vehicle == "plane"``) GUIDED target
+is a guided waypoint instead, MISSION_ITEM_INT with current = 2, what ground stations send for
+"fly to here" (ArduPlane's documented GUIDED interface; checked on ArduPlane 4.0.7 SITL, which
+answers MAV_FRAME_GLOBAL_RELATIVE_ALT_INT with MAV_MISSION_UNSUPPORTED_FRAME, so the frame is
+MAV_FRAME_GLOBAL: metres above sea level). The plane
+flies to it and circles it until told otherwise, so it is sent once per new target and repeated
+only (every ``GUIDED_WAYPOINT_RETRY_S``) until a MISSION_ACK answers it (a refusal is logged).
+The moment the autopilot leaves GUIDED/OFFBOARD because of someone else
 (pilot, GCS, failsafe) the stream stops at once and ``on_takeover`` is called: the companion
 never fights the pilot.
 """
@@ -17,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion import clock
+from companion.frames import geodetic_from_ned
 from companion.mavlink.autopilot import COMMANDABLE_MODES, AutopilotState
 from companion.mavlink.link import MavlinkLink, mavlink
 
@@ -27,6 +35,8 @@ IGNORE_VELOCITY = 0b0000_0011_1000
 IGNORE_ACCELERATION = 0b0001_1100_0000
 IGNORE_YAW = 0b0100_0000_0000
 IGNORE_YAW_RATE = 0b1000_0000_0000
+GUIDED_WAYPOINT_CURRENT = 2  # MISSION_ITEM(_INT).current: a guided-mode target, not a mission item
+GUIDED_WAYPOINT_RETRY_S = 1.0  # a guided waypoint not yet acknowledged is sent again after this
 
 
 @dataclass(frozen=True)
@@ -72,6 +82,16 @@ def setpoint_message(sp: Setpoint, time_boot_ms: int, target: tuple[int, int],
         float(sp.yaw_rad or 0.0), float(sp.yaw_rate_rads or 0.0))
 
 
+def guided_waypoint_message(position_ned: np.ndarray, origin: tuple[float, float, float],
+                            target: tuple[int, int]) -> mavlink.MAVLink_message:
+    """MISSION_ITEM_INT "fly to here" (current 2, MAV_CMD_NAV_WAYPOINT) at ``position_ned`` (LOCAL_NED m,
+    relative to the EKF ``origin`` = (lat deg, lon deg, alt m AMSL)), in MAV_FRAME_GLOBAL (alt m AMSL)."""
+    lat, lon, alt = geodetic_from_ned(position_ned, origin)
+    return mavlink.MAVLink_mission_item_int_message(
+        target[0], target[1], 0, mavlink.MAV_FRAME_GLOBAL, mavlink.MAV_CMD_NAV_WAYPOINT, GUIDED_WAYPOINT_CURRENT,
+        1, 0.0, 0.0, 0.0, 0.0, int(round(lat * 1e7)), int(round(lon * 1e7)), float(alt))
+
+
 class SetpointStream:
     """Holds the current target and streams it while commanding."""
 
@@ -87,7 +107,9 @@ class SetpointStream:
         self._commanding = False
         self._expected_mode: str | None = None
         self._wake = asyncio.Event()
+        self._waypoint_answered = False  # (a fixed wing) a MISSION_ACK answered the current guided waypoint
         state.on_mode_change(self._on_mode_change)
+        link.subscribe("MISSION_ACK", self._on_mission_ack)
 
     @property
     def commanding(self) -> bool:
@@ -97,10 +119,20 @@ class SetpointStream:
         """Note that the companion itself asked for ``mode`` (not a pilot takeover)."""
         self._expected_mode = mode
 
+    @property
+    def guided_waypoints(self) -> bool:
+        """Targets go as guided waypoints (an ArduPilot fixed wing), not as a setpoint stream."""
+        firmware = self.state.firmware
+        return firmware is not None and firmware.autopilot == "ArduPilot" and firmware.vehicle == "plane"
+
     def command(self, setpoint: Setpoint) -> None:
         """Make ``setpoint`` the target and send it now; keep it alive until :meth:`stop`."""
+        if self.guided_waypoints and self.current is not None and _same_position(self.current, setpoint):
+            self._commanding = True
+            return  # the plane flies it already
         self.current = setpoint
         self._commanding = True
+        self._waypoint_answered = False
         self._send()
         self._wake.set()
 
@@ -113,27 +145,53 @@ class SetpointStream:
 
     async def run(self) -> None:
         """Keepalive task: re-sends the current target whenever ``1 / rate_hz`` passed without a send."""
-        period = 1.0 / self.rate_hz
         while True:
-            if not self._commanding:
+            period = GUIDED_WAYPOINT_RETRY_S if self.guided_waypoints else 1.0 / self.rate_hz
+            if not self._commanding or self._answered_waypoint():
                 self._wake.clear()
                 await self._wake.wait()
                 continue
             due = self._last_sent + period
             await asyncio.sleep(max(0.0, due - clock.now()))
             now = clock.now()
-            if self._commanding and now >= self._last_sent + period:
+            if self._commanding and now >= self._last_sent + period and not self._answered_waypoint():
                 # Count from the deadline, not the (slightly late) wake-up: no drift below rate_hz.
                 self._send(sent_at=due if now - due < period else now)
+
+    def _answered_waypoint(self) -> bool:
+        """A guided waypoint is the target and the autopilot answered it: nothing to repeat."""
+        return self.guided_waypoints and self._waypoint_answered
 
     def _send(self, sent_at: float | None = None) -> None:
         if self.current is None:
             return
         now = clock.now()
         self._last_sent = now if sent_at is None else sent_at
-        if self.link.send(setpoint_message(self.current, int(now * 1000) & 0xFFFFFFFF, self.link.target(),
-                                           self.state.setpoint_z_offset_m())):
+        if self.guided_waypoints:
+            message = self._guided_waypoint(self.current)
+            if message is None:
+                return
+        else:
+            message = setpoint_message(self.current, int(now * 1000) & 0xFFFFFFFF, self.link.target(),
+                                       self.state.setpoint_z_offset_m())
+        if self.link.send(message):
             self.sent += 1
+
+    def _guided_waypoint(self, sp: Setpoint) -> mavlink.MAVLink_message | None:
+        """The guided waypoint for ``sp`` (its position only); None, logged, when there is none to send."""
+        origin = self.state.origin
+        if sp.position_ned is None or origin is None:
+            log.warning("a fixed wing flies position targets only, with a known EKF origin: %s not sent",
+                        "velocity target" if sp.position_ned is None else "position target")
+            return None
+        return guided_waypoint_message(sp.position_ned, (origin.lat, origin.lon, origin.alt), self.link.target())
+
+    def _on_mission_ack(self, msg: mavlink.MAVLink_message) -> None:
+        if not self.guided_waypoints:
+            return
+        self._waypoint_answered = True
+        if msg.type != mavlink.MAV_MISSION_ACCEPTED:
+            log.warning("guided waypoint refused: MISSION_ACK type %d", msg.type)
 
     def _on_mode_change(self, old: str | None, new: str) -> None:
         if new == self._expected_mode:
@@ -142,3 +200,9 @@ class SetpointStream:
             log.warning("mode changed to %s by someone else: stop commanding", new)
             self.stop()
             self.on_takeover(new)
+
+
+def _same_position(a: Setpoint, b: Setpoint) -> bool:
+    """Both targets are the same position (velocity, acceleration and yaw aside: a fixed wing flies none of them)."""
+    return a.position_ned is not None and b.position_ned is not None and bool(np.array_equal(a.position_ned,
+                                                                                             b.position_ned))

@@ -6,7 +6,9 @@
 - ``mode: NAME``: switch flight mode (GUIDED on ArduPilot; OFFBOARD on PX4, after streaming a
   hold setpoint for a second first, as PX4 requires);
 - ``arm: {timeout_s}``: arm, only if the config's ``mission.allow_arm`` is true;
-- ``takeoff: {altitude_m, timeout_s}``: take off and wait until within 0.1 m of the altitude, settled;
+- ``takeoff: {altitude_m, timeout_s}``: take off and wait until within 0.1 m of the altitude, settled
+  (a fixed wing: 5 m, climbing slower than 1 m/s). In the autopilot's TAKEOFF mode (ArduPlane: switch
+  to it, then arm) the autopilot climbs to its TKOFF_ALT by itself, which must be ``altitude_m``;
 - ``hold: {seconds}``: hold where the vehicle is (a position setpoint);
 - ``goto: {position, seconds}``: one position target, flown by the autopilot's own guidance for
   ``seconds``: a copter flies there and holds; a fixed wing flies there and circles it at its

@@ -131,6 +131,7 @@ class Vehicle(RunLoopMixin, ReceivingMixin, CommandsMixin, StateTrackingMixin, M
             "VISION_SPEED_ESTIMATE": self._on_vision_speed,
             "DISTANCE_SENSOR": self._on_distance_sensor,
             "SET_POSITION_TARGET_LOCAL_NED": self._on_set_position_target,
+            "MISSION_ITEM_INT": self._on_mission_item_int,
         }
         self._commands: dict[int, Callable[[Link, tuple[float, ...], int | None], int]] = {
             mav.MAV_CMD_SET_MESSAGE_INTERVAL: self._cmd_set_message_interval,

@@ -9,7 +9,12 @@ from collections.abc import Sequence
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
+from companion.frames import ned_from_geodetic
+from companion.mavlink.setpoints import GUIDED_WAYPOINT_CURRENT, Setpoint
 from sitl.vehicle.link import COMPID, Link
+
+# Frames of a guided waypoint ArduPilot 4.0 takes (it answers the *_INT frames MAV_MISSION_UNSUPPORTED_FRAME)
+WAYPOINT_FRAMES = frozenset({mav.MAV_FRAME_GLOBAL, mav.MAV_FRAME_GLOBAL_RELATIVE_ALT})
 
 # ArduPilot's stream groups (REQUEST_DATA_STREAM), approximately.
 STREAM_GROUPS: dict[int, tuple[int, ...]] = {
@@ -168,3 +173,23 @@ class ReceivingMixin:
         self.copter.set_position_target(
             msg.coordinate_frame, msg.type_mask, np.array(pos), np.array(vel), np.array(acc),
             msg.yaw, msg.yaw_rate)
+
+    def _on_mission_item_int(self, link: Link, msg: mav.MAVLink_message) -> None:
+        """MISSION_ITEM_INT with current 2: a guided waypoint (ArduPlane's "fly to here"), flown as a
+        position target; answered by MISSION_ACK. Mission upload is not simulated (no other current)."""
+        if msg.target_system != self.sysid or msg.current != GUIDED_WAYPOINT_CURRENT:
+            return
+        lat, lon, alt = msg.x * 1e-7, msg.y * 1e-7, float(msg.z)
+        origin, home = self.copter.origin, self.copter.home_position
+        result = mav.MAV_MISSION_UNSUPPORTED_FRAME
+        if msg.frame in WAYPOINT_FRAMES and msg.command == mav.MAV_CMD_NAV_WAYPOINT and origin is not None:
+            if msg.frame == mav.MAV_FRAME_GLOBAL_RELATIVE_ALT:
+                alt += home[2] if home is not None else origin[2]
+            pos = ned_from_geodetic(lat, lon, alt, tuple(origin))
+            mask = Setpoint(position_ned=pos).type_mask  # position only, no yaw
+            self.log.add_setpoint(self._now(), mav.MAV_FRAME_LOCAL_NED, mask, pos, (0, 0, 0), (0, 0, 0))
+            taken = finite((lat, lon, alt)) and self.copter.set_position_target(
+                mav.MAV_FRAME_LOCAL_NED, mask, pos, np.zeros(3), np.zeros(3), 0.0, 0.0)
+            result = mav.MAV_MISSION_ACCEPTED if taken else mav.MAV_MISSION_ERROR
+        link.send(mav.MAVLink_mission_ack_message(msg.get_srcSystem(), msg.get_srcComponent(), result,
+                                                  mav.MAV_MISSION_TYPE_MISSION))
