@@ -1,4 +1,4 @@
-"""The pseudo-roll over a manoeuvring fixed-wing flight (companion/nav/gnss_flow/pseudo_attitude_eval.py):
+"""The pseudo-roll over a manoeuvring fixed-wing flight (sitl/pseudo_attitude_eval.py):
 the fixed-lag smoother against the causal filter, the gyro blend, and the pieces they rest on
 (the Rauch-Tung-Striebel smoother's consistency, the blend's bias estimation). Flights are 120 s
 of the 300 s plan's kind at the simulated receiver's defaults (5 Hz, 0.05 m/s Doppler noise)."""
@@ -11,10 +11,10 @@ import math
 import numpy as np
 import pytest
 
-from companion.nav.gnss_flow.flight_eval import run
+from sitl.gnss_flow_flight_eval import run
 from companion.nav.gnss_flow.pipeline import GnssFlowConfig
 from companion.nav.gnss_flow.pseudo_attitude import DopplerAccelerationFilter, GyroAidedRoll
-from companion.nav.gnss_flow.pseudo_attitude_eval import (Estimator, Flight, FlightPlan, Gyro, Receiver, evaluate,
+from sitl.pseudo_attitude_eval import (Estimator, Flight, FlightPlan, Gyro, Receiver, evaluate,
                                                           fly)
 
 DOPPLER_SIGMA = 0.05  # m/s

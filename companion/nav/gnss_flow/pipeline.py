@@ -160,7 +160,7 @@ class GnssFlowConfig:
     jerk_psd: float = field(default=0.2, metadata=meta(
         "White-jerk spectral density of the Doppler acceleration filter, m^2/s^5: lower is smoother but follows "
         "a bank change less (pseudo_attitude.DopplerAccelerationFilter); 0.2 gives the least roll error with "
-        "`smoothing_lag_s` 0.6 at 5 or 10 Hz and 0.05 m/s Doppler noise (pseudo_attitude_eval.py).", (0.001, 1000)))
+        "`smoothing_lag_s` 0.6 at 5 or 10 Hz and 0.05 m/s Doppler noise (sitl/pseudo_attitude_eval.py).", (0.001, 1000)))
     gyro_roll_tau_s: float = field(default=3.0, metadata=meta(
         "With IMU samples: the roll is blended with the gyro's roll rate, following the gyro over spans shorter "
         "than this and the GNSS beyond, the gyro's bias estimated (pseudo_attitude.GyroAidedRoll), s; 0: the "
@@ -168,7 +168,7 @@ class GnssFlowConfig:
     smoothing_lag_s: float = field(default=0.6, metadata=meta(
         "The pseudo-attitude of an instant is smoothed with the GNSS fixes up to this long after it (fixed-lag "
         "Rauch-Tung-Striebel): the attitude still describes its instant but is given this much later, s "
-        "(0: filtered, from the fixes up to the instant only; pseudo_attitude_eval.py measures both).", (0, 3)))
+        "(0: filtered, from the fixes up to the instant only; sitl/pseudo_attitude_eval.py measures both).", (0, 3)))
     min_fix_type: int = field(default=GNSS_3D, metadata=meta(
         "A fix is used from this MAVLink GPS_FIX_TYPE on (3 = 3-D), unless it reports jamming.", (2, 6)))
     min_speed_mps: float = field(default=5.0, metadata=meta(
@@ -183,7 +183,7 @@ class GnssFlowConfig:
         "A focus of expansion putting the velocity more than this above or below the body's x axis (an angle of "
         "attack past the stall) is a wrong fit: its pair gives no attitude, degrees. Derotated by the GNSS-derived "
         "rates in bank changes the flow gave a few such fits (40 to 120 deg), whose attitudes were off by up to "
-        "180 deg (flight_eval.py).", (1, 90)))
+        "180 deg (sitl/gnss_flow_flight_eval.py).", (1, 90)))
     min_depression_deg: float = field(default=5.0, metadata=meta(
         "Flow points at least this far below the horizon are ground for the height above it, degrees.", (0.5, 89)))
     agl_range_m: tuple[float, float] = field(default=(1.0, 100.0), metadata=meta(
@@ -723,7 +723,7 @@ class GnssFlowPipeline:
         that span. The gyro's Euler rate takes the body's pitch: the pseudo-pitch plus the pitch
         offset averaged over the pairs of the last ``PITCH_OFFSET_TAU_S`` (in a turn the yaw rate's
         share of the roll rate goes with the pitch: with one pair's offset, its ~1 deg of flow noise
-        put 0.5 deg/s into the roll rate and nearly doubled the roll error, flight_eval.py)."""
+        put 0.5 deg/s into the roll rate and nearly doubled the roll error, sitl/gnss_flow_flight_eval.py)."""
         last = blend.last_time_s
         if last is not None and pseudo.time_s <= last:  # the other path's instant at the same time
             return blend.update(last, pseudo.roll, 0.0)

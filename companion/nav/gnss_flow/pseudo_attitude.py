@@ -84,7 +84,7 @@ class DopplerAccelerationFilter:
     30 deg bank): at the default 0.5 the steady-turn pseudo-roll RMS error is 0.86 deg and it
     lags a 30 deg/s roll-in by up to 7.5 deg; 0.1 gives 0.52 deg and 10.5 deg. Smoothed with
     0.6 s of fixes after the instant, over a manoeuvring flight, 0.2 is best
-    (pseudo_attitude_eval.py).
+    (sitl/pseudo_attitude_eval.py).
     """
 
     def __init__(self, jerk_psd: float = 0.5, initial_acceleration_sigma_mps2: float = 5.0,

@@ -3,7 +3,7 @@
 flow over 90 x 90 deg, +/-2.5 deg angle noise, looking along body x, 10 Hz): its Euler errors
 against the airframe's truth, with the autopilot's IMU (gyro derotation and, at
 ``gyro_roll_tau_s`` above 0, the gyro roll blend) or without (GNSS-derived rates).
-``python -m companion.nav.gnss_flow.flight_eval`` prints the table; tests/test_gnss_pseudo_attitude_eval.py
+``python -m sitl.gnss_flow_flight_eval`` prints the table; tests/test_gnss_pseudo_attitude_eval.py
 runs a short flight.
 
 Timing, as in the daemon: GNSS fixes at ``Receiver.rate_hz`` stamped at their epoch and
@@ -29,7 +29,7 @@ from companion.health import Health
 from companion.messages import GNSS_3D, AttitudeEstimate, GnssFix, ImuSample
 from companion.nav.gnss_flow.pipeline import GnssFlowConfig, GnssFlowPipeline
 from companion.nav.gnss_flow.pseudo_attitude import body_rates_from_euler_rates
-from companion.nav.gnss_flow.pseudo_attitude_eval import Errors, Flight, FlightPlan, Gyro, Receiver, fly, manoeuvring
+from sitl.pseudo_attitude_eval import Errors, Flight, FlightPlan, Gyro, Receiver, fly, manoeuvring
 from drivers.mount import Mount
 from sitl.flow_sim import SimFlowSettings, SimulatedFlowSensor
 from sitl.truth import TruthSample

@@ -1,6 +1,6 @@
 """Offline accuracy of the GNSS pseudo-attitude over a fixed wing's flight with truth (issue 15's
 roll figure; tests/test_gnss_pseudo_attitude_eval.py runs it, ``python -m
-companion.nav.gnss_flow.pseudo_attitude_eval`` prints the table).
+sitl.pseudo_attitude_eval`` prints the table).
 
 The flight: a small fixed wing at constant airspeed (default 18 m/s) in still air, flying
 straight legs and coordinated turns (bank 15 to 35 deg either way) with climbs and descents (up to
