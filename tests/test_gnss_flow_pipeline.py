@@ -49,21 +49,23 @@ FIX_DT = 0.1
 TEXTURE_M_PER_PX = 0.25
 TEXTURE_PX = 2400
 # roll, pitch, yaw against truth, the flow derotated by the IMU's gyro (and the roll blended with
-# it: roll within 0.03 deg, measured; pitch 0.09, yaw 0.14), or by the GNSS-derived rates with the
+# it since 5 s before the frames: its error the slow part of the pseudo-roll's, measured 0.36 deg
+# falling to 0.20 over the frames; pitch 0.09, yaw 0.14), or by the GNSS-derived rates with the
 # spin about the direction of travel re-estimated from the flow (without: drift angle errors up to
 # 2.5 deg; measured 0.28 / 0.29 / 0.36 deg; the roll the smoothed pseudo-roll's alone)
-TOLERANCE_DEG = {"imu": 0.3, "gnss": 0.6}
+TOLERANCE_DEG = {"imu": np.array([0.45, 0.3, 0.3]), "gnss": 0.6}
 AGL_TOLERANCE = 0.10  # relative
 FLOW_MOUNT = Mount(np.eye(3), np.zeros(3))  # the seed's flow sensor: looking forward along body x
 FLOW_DT = 0.1  # the flow sensor's fields, s
 FLOW_NOISE_DEG = 2.5  # the seed's Table 1
 # the synthetic flow path over 2 s of the turn, against truth, (roll, pitch, yaw) deg: the roll's
 # error is the smoothed pseudo-roll's (up to 0.49 deg over these 2 s; the FOE moves pitch and yaw
-# only), blended with the gyro when there is one (0.06 deg). From 961 ground vectors with +/-2.5
+# only), blended with the gyro when there is one (up to 0.36 deg, the slow part of the pseudo-roll's
+# error over the blend's 3 s, drifting to +0.22 over the 2 s). From 961 ground vectors with +/-2.5
 # deg noise, derotated by the IMU's gyro: pitch and yaw within 0.26 and 0.14 deg (std 0.13, 0.07);
 # by the GNSS-derived rates: 0.56 and 1.42 deg (std 0.23, 0.67: the rates' error, the spin
 # re-estimated from the noisy flow). Measured at the defaults (jerk_psd 0.2, smoothing_lag_s 0.6).
-FLOW_TOLERANCE_DEG = {"imu": np.array([0.3, 0.4, 0.3]), "gnss": np.array([0.8, 0.8, 1.6])}
+FLOW_TOLERANCE_DEG = {"imu": np.array([0.45, 0.4, 0.3]), "gnss": np.array([0.8, 0.8, 1.6])}
 
 
 def texture() -> np.ndarray:
@@ -142,10 +144,11 @@ def flow_field(k: int, **attitude: float) -> FlowField:
 
 
 def run(pipeline: GnssFlowPipeline, frames: int = 13, imu: bool = False, stamp_late_s: float = 0.0,
-        flows: int = 0, **attitude: float) -> list[AttitudeEstimate | RangeEstimate]:
+        flows: int = 0, imu_from_s: float = -5.0, **attitude: float) -> list[AttitudeEstimate | RangeEstimate]:
     """Fixes from 5 s before the first frame to after the last (stamped ``stamp_late_s`` after
     their epoch: a backend that did not remove the receiver's latency), the frames, the ``flows``
-    flow fields (1 to ``flows``), the IMU at 100 Hz if ``imu``, fed in order of arrival (a fix 0.1 s
+    flow fields (1 to ``flows``), the IMU at 100 Hz from ``imu_from_s`` if ``imu`` (from -5 s the
+    gyro roll blend has settled before the frames), fed in order of arrival (a fix 0.1 s
     after its epoch, a frame or field 5 ms after its capture) with a nav cycle per message."""
     rng = np.random.default_rng(0)
     end = max(frames * FRAME_DT, flows * FLOW_DT) + 0.5 + pipeline.cfg.smoothing_lag_s  # s
@@ -153,7 +156,7 @@ def run(pipeline: GnssFlowPipeline, frames: int = 13, imu: bool = False, stamp_l
     events += [(i * FRAME_DT + 0.005, "frame", i * FRAME_DT) for i in range(frames)]
     events += [(k * FLOW_DT + 0.005, "flow", k) for k in range(1, flows + 1)]
     if imu:
-        events += [(t, "imu", t) for t in np.arange(-0.5, end, 0.01)]
+        events += [(t, "imu", t) for t in np.arange(imu_from_s, end, 0.01)]
     out = []
     for arrival, kind, t in sorted(events):
         if kind == "fix":
@@ -180,13 +183,13 @@ def make(camera: bool = True, flow: bool = False, **settings: object) -> tuple[G
 
 
 def check_attitudes(estimates: list, tolerance_deg: float | np.ndarray,
-                    source: str = "gnss_flow") -> list[AttitudeEstimate]:
+                    source: str = "gnss_flow", **attitude: float) -> list[AttitudeEstimate]:
     """The attitude estimates of ``source``, each checked against the truth (``tolerance_deg``:
-    every axis, or (roll, pitch, yaw))."""
+    every axis, or (roll, pitch, yaw); ``attitude``: the airframe's, as :func:`body_to_ned`)."""
     attitudes = [e for e in estimates if isinstance(e, AttitudeEstimate) and e.source == source]
     assert attitudes
     for a in attitudes:
-        true = np.degrees(euler_from_rotation(body_to_ned(a.t_capture)))
+        true = np.degrees(euler_from_rotation(body_to_ned(a.t_capture, **attitude)))
         error = [math.degrees(wrap_pi(math.radians(x - y))) for x, y in zip(np.degrees(a.euler_rad), true)]
         assert np.all(np.abs(error) < tolerance_deg), (error, a.t_capture)
         assert np.all(np.isfinite(a.covariance)) and np.all(np.diag(a.covariance) > 0)
@@ -214,7 +217,7 @@ def test_a_coordinated_turn_gives_the_attitude_and_the_height_above_ground(imu: 
     telemetry = pipeline.telemetry(False)["gnss_flow"]
     assert telemetry["rates_source"] == ("imu" if imu else "gnss")
     assert telemetry["coordinated"] is True and telemetry["foe_px"] is not None
-    assert abs(telemetry["pitch_offset_rad"] - ALPHA) < math.radians(TOLERANCE_DEG["imu" if imu else "gnss"])
+    assert abs(telemetry["pitch_offset_rad"] - ALPHA) < math.radians(np.broadcast_to(TOLERANCE_DEG["imu" if imu else "gnss"], 3)[1])
     assert len(telemetry["flow_px"]) <= 200 and telemetry["depth_m"]["count"] > 100
     assert pipeline.telemetry(False) == {}  # once per pair
 
@@ -229,6 +232,33 @@ def test_an_uncoordinated_turn_is_flagged_and_gives_no_attitude() -> None:
     component = health.get("nav:gnss_flow")
     assert component.state == State.DEGRADED and "uncoordinated" in component.reason
     assert pipeline.telemetry(False)["gnss_flow"]["coordinated"] is False
+
+
+def test_a_slight_slip_within_the_bound_is_taken_out_of_the_roll_by_the_accelerometer() -> None:
+    """The airframe rolled 2 deg less than the lift's bank (within max_lateral_deg 3): the pseudo-roll
+    is the lift's; the IMU's lateral specific force turns it to the airframe's before the gyro blend.
+    The turn is an Euler roll of the lateral angle (measured in the body, pitched by the angle of
+    attack, at 20 deg of bank): 0.25 deg of the 2 remain, on top of the blend's 0.36."""
+    slip = {"roll_error_rad": math.radians(-2.0)}
+    pipeline, _ = make(camera=False, flow=True, imu_sensor="imu")
+    estimates = run(pipeline, frames=0, flows=20, imu=True, **slip)
+    attitudes = check_attitudes(estimates, FLOW_TOLERANCE_DEG["imu"] + [0.3, 0.0, 0.0], **slip)
+    assert len(attitudes) == 20 and pipeline.stats.uncoordinated == 0
+    off_lift = [abs(math.degrees(wrap_pi(a.euler_rad[0] - euler_from_rotation(body_to_ned(a.t_capture))[0])))
+                for a in attitudes]
+    assert min(off_lift) > 1.2  # not the lift's roll
+
+
+def test_the_gyro_roll_blend_gives_no_attitude_until_it_has_settled() -> None:
+    """IMU samples from the first flow field on: the blend starts there, at the pseudo-roll of one
+    instant, and no attitude is given for gyro_roll_tau_s (1 s here) after it."""
+    pipeline, health = make(camera=False, flow=True, imu_sensor="imu", gyro_roll_tau_s=1.0)
+    estimates = run(pipeline, frames=0, flows=6, imu=True, imu_from_s=0.05)
+    assert "gyro roll blend settling" in health.get("nav:gnss_flow").reason
+    assert estimates == []
+    pipeline, _ = make(camera=False, flow=True, imu_sensor="imu", gyro_roll_tau_s=1.0)
+    attitudes = check_attitudes(run(pipeline, frames=0, flows=20, imu=True, imu_from_s=0.05), FLOW_TOLERANCE_DEG["imu"])
+    assert min(a.t_capture for a in attitudes) >= 1.0 and len(attitudes) >= 8
 
 
 def test_without_an_imu_a_large_drift_angle_is_flagged() -> None:

@@ -125,6 +125,32 @@ def test_a_reset_blend_restarts_at_its_pseudo_roll():
     assert blend.update(0.2, -0.3, 9.0) == -0.3
 
 
+def test_without_a_pseudo_roll_the_blend_follows_the_gyro_and_keeps_its_bias():
+    """A slip or a push-over: the pseudo-roll is not the airframe's, the gyro alone carries the roll."""
+    blend = GyroAidedRoll(tau_s=3.0)
+    bias, dt = 0.02, 0.1  # rad/s
+    for k in range(400):  # 40 s level: the bias learnt
+        blend.update(k * dt, 0.0, bias * dt)
+    learnt = blend.update(40.0, 0.0, bias * dt)
+    roll = learnt
+    for k in range(1, 11):  # 1 s rolling at 0.3 rad/s, a pseudo-roll 180 deg off the whole time
+        roll = blend.update(40.0 + k * dt, None, (0.3 + bias) * dt)
+    assert roll == pytest.approx(learnt + 0.3, abs=1e-3)  # the gyro's increments less the bias learnt
+    assert blend.update(41.1, 0.3, 0.0) == pytest.approx(0.3, abs=2e-3)  # and the bias kept
+    with pytest.raises(ValueError):
+        GyroAidedRoll(tau_s=3.0).update(0.0, None, 0.0)
+
+
+def test_the_blend_has_settled_tau_after_it_starts_and_again_after_a_reset():
+    blend = GyroAidedRoll(tau_s=3.0)
+    assert not blend.settled
+    for k in range(31):
+        blend.update(10.0 + k * 0.1, 0.0, 0.0)
+        assert blend.settled == (k >= 30)
+    blend.reset()
+    assert not blend.settled
+
+
 def test_over_a_manoeuvring_flight_the_pipelines_roll_is_the_gyro_blends():
     """30 s of the flight (level, a 4 deg climb, a roll-in to 33 deg at 19 s and a roll-out at
     27 s, 100 to 140 m above the ground), the synthetic flow path at 10 Hz, the gyro of

@@ -40,7 +40,9 @@ accelerometer's lateral specific force over the frame interval must stay within
 (the FOE's yaw offset) must stay within ``max_drift_deg``, which a strong crosswind also
 exceeds. A pair that fails is flagged (its path's health ``nav:<source>`` degraded with the
 reason, counter ``uncoordinated``, telemetry ``coordinated: false``) and gives no attitude and no
-range.
+range. Within the bound, with an IMU, the pseudo-roll blended with the gyro is first turned by
+the accelerometer's lateral angle: the pseudo-roll is the roll of the specific force's plane, off
+the airframe's by that angle (in SITL the roll error followed it at 0.95 deg per deg in calm air).
 
 Time: a fix is used at its ``t_capture`` (the solution's epoch as the backend stamps it) minus
 ``receiver_latency_s`` (latency the backend did not remove: keep it 0 when the backend's own
@@ -94,6 +96,8 @@ IMU_HISTORY_S = 2.0  # IMU samples kept beyond the smoothing lag, s: a frame int
 FRAME_SLACK = 0.1  # a frame up to this fraction of 1 / pair_rate_hz early is used (capture-time jitter)
 LOST_AFTER_S = 2.0  # no frame pair processed for this long (no frames, or no GNSS): health lost, s
 JACOBIAN_STEP = 1e-6  # central-difference step of the attitude covariance, rad and normalised units
+IMU_HOLD_S = 0.1  # a blend span with no IMU sample in it takes the newest sample up to this old; older: restart, s
+SAME_INSTANT_S = 1e-6  # capture times this close are one instant (the two paths' frames at 0.2 and 0.2 + 4e-17 s), s
 HISTORY_MARGIN_S = 1.0  # fixes kept for the smoother beyond its lag, s: covers a frame captured before a fused fix
 
 
@@ -164,7 +168,8 @@ class GnssFlowConfig:
     gyro_roll_tau_s: float = field(default=3.0, metadata=meta(
         "With IMU samples: the roll is blended with the gyro's roll rate, following the gyro over spans shorter "
         "than this and the GNSS beyond, the gyro's bias estimated (pseudo_attitude.GyroAidedRoll), s; 0: the "
-        "GNSS roll alone. The attitude then checks the autopilot's gyro only over longer spans.", (0, 60)))
+        "GNSS roll alone. The attitude then checks the autopilot's gyro only over longer spans; none is given for "
+        "this long after the blend (re)starts.", (0, 60)))
     smoothing_lag_s: float = field(default=0.6, metadata=meta(
         "The pseudo-attitude of an instant is smoothed with the GNSS fixes up to this long after it (fixed-lag "
         "Rauch-Tung-Striebel): the attitude still describes its instant but is given this much later, s "
@@ -175,7 +180,7 @@ class GnssFlowConfig:
         "Below this ground speed the course, and so the attitude, is undefined: nothing is given, m/s.", (0.5, 100)))
     max_lateral_deg: float = field(default=3.0, metadata=meta(
         "With an IMU: a lateral specific force beyond this angle from the body's -z (a slip or skid) flags the "
-        "frame pair uncoordinated, degrees.", (0.1, 45)))
+        "frame pair uncoordinated, and keeps the pseudo-roll out of the gyro roll blend over that span, degrees.", (0.1, 45)))
     max_drift_deg: float = field(default=10.0, metadata=meta(
         "Without an IMU: a drift angle (the FOE's yaw offset) beyond this flags the pair uncoordinated, degrees; "
         "a crosswind's crab counts too.", (0.1, 60)))
@@ -482,6 +487,8 @@ class GnssFlowPipeline:
         self._newest_epoch = -math.inf  # of any fix received, s
         # capture instants waiting for a fix at or after them: (t s, arrival number, path, payload)
         self._instants: list[tuple[float, int, FlowPath, Any]] = []
+        # latency-corrected fix epochs at which the gyro roll blend is advanced between frames (s), in order
+        self._blend_ticks: deque[float] = deque()
         self._arrivals = 0
         self._last_frame_s = -math.inf  # capture time of the newest camera frame kept, s
         self._imu: deque[ImuSample] = deque()
@@ -508,6 +515,8 @@ class GnssFlowPipeline:
     def on_fix(self, fix: GnssFix) -> None:
         epoch = fix.t_capture - self.cfg.receiver_latency_s
         self._fixes.append((epoch, fix))
+        if self._gyro_roll is not None and epoch > self._newest_epoch:
+            self._blend_ticks.append(epoch)
         self._newest_epoch = max(self._newest_epoch, epoch)
 
     def on_frame(self, frame: Frame) -> None:
@@ -545,10 +554,20 @@ class GnssFlowPipeline:
         started = time.perf_counter()
         out: list[Estimate] = []
         lag = self.cfg.smoothing_lag_s
-        while self._instants and self._instants[0][0] + lag <= self._newest_epoch:
-            t, _, path, payload = heapq.heappop(self._instants)
-            self._feed_fixes(t + lag)
-            out += self._process(path, self._stamp(t), payload)
+        while True:
+            tick = self._blend_ticks[0] if self._blend_ticks else math.inf
+            if self._instants and self._instants[0][0] < tick:
+                if self._instants[0][0] + lag > self._newest_epoch:
+                    break
+                t, _, path, payload = heapq.heappop(self._instants)
+                self._feed_fixes(t + lag)
+                out += self._process(path, self._stamp(t), payload)
+            elif tick + lag <= self._newest_epoch:  # the gyro roll blend runs between frames too
+                self._blend_ticks.popleft()
+                self._feed_fixes(tick + lag)
+                self._stamp(tick)
+            else:
+                break
         if not self._instants:  # nothing waits for the filter to stay before a fix
             self._feed_fixes(math.inf)
         elif now - self._instants[0][0] > self.filter.max_gap_s + lag:  # no GNSS for them: drop the wait
@@ -583,7 +602,9 @@ class GnssFlowPipeline:
 
     def _stamp(self, t: float) -> _Instant:
         """The pseudo-attitude and speed at capture time ``t`` (s), from the fixes up to
-        ``smoothing_lag_s`` after it (fused by the caller), the roll blended with the gyro's."""
+        ``smoothing_lag_s`` after it (fused by the caller), the roll blended with the gyro's (the
+        blend advanced to ``t``: :meth:`step` also calls this at every fix's epoch, so the blend
+        has settled when the first frames come). None, with the reason, while the blend settles."""
         estimate = self.filter.smoothed(t)
         if estimate is None:
             return _Instant(t, None, math.nan, "no GNSS velocity")
@@ -591,6 +612,8 @@ class GnssFlowPipeline:
         pseudo = None if refusal else pseudo_attitude(estimate, self.limits)
         if pseudo is not None and self._gyro_roll is not None:
             pseudo = dataclasses.replace(pseudo, roll=self._gyro_aided_roll(self._gyro_roll, pseudo))
+            if self._imu and not self._gyro_roll.settled:
+                pseudo, refusal = None, "gyro roll blend settling"
         return _Instant(t, pseudo, float(np.linalg.norm(estimate.velocity_ned)), refusal or "")
 
     def _process(self, path: FlowPath, instant: _Instant, payload: Any) -> list[Estimate]:
@@ -720,21 +743,33 @@ class GnssFlowPipeline:
     def _gyro_aided_roll(self, blend: GyroAidedRoll, pseudo: PseudoAttitude) -> float:
         """The pseudo-roll (rad) blended with the IMU gyro's Euler roll rate since the previous
         instant (``gyro_roll_tau_s``); as it is, the blend restarting, without IMU samples covering
-        that span. The gyro's Euler rate takes the body's pitch: the pseudo-pitch plus the pitch
+        that span. The pseudo-roll is first turned to the airframe's by the accelerometer's lateral
+        angle over that span (:func:`.pseudo_attitude.coordination_check`): the blend passes the
+        pseudo-roll's slow part only, so the angle's fast part (gusts) cancels there with the
+        pseudo-roll's own (per pair, the correction lagged it and left a third of it, wrong way, in
+        SITL with 0.5 m/s gusts). Beyond ``max_lateral_deg`` (a slip, or a push-over where the
+        normal specific force vanishes: in SITL a 44 deg roll-out read 180 deg) the pseudo-roll is
+        not the airframe's and the gyro alone carries the roll. The gyro's Euler rate takes the body's pitch: the pseudo-pitch plus the pitch
         offset averaged over the pairs of the last ``PITCH_OFFSET_TAU_S`` (in a turn the yaw rate's
         share of the roll rate goes with the pitch: with one pair's offset, its ~1 deg of flow noise
         put 0.5 deg/s into the roll rate and nearly doubled the roll error, sitl/gnss_flow_flight_eval.py)."""
         last = blend.last_time_s
-        if last is not None and pseudo.time_s <= last:  # the other path's instant at the same time
+        if last is not None and pseudo.time_s <= last + SAME_INSTANT_S:  # the other path's instant at the same time
             return blend.update(last, pseudo.roll, 0.0)
         inside = [] if last is None or not self._imu or self._imu[0].t > last else [
             s for s in self._imu if last < s.t <= pseudo.time_s]
+        if not inside and last is not None:  # a span shorter than the IMU's interval (the other path's instant)
+            inside = [s for s in self._imu if pseudo.time_s - IMU_HOLD_S < s.t <= pseudo.time_s][-1:]
         if not inside:
             blend.reset()
             return blend.update(pseudo.time_s, pseudo.roll, 0.0)
+        coordinated, lateral = coordination_check(np.mean([s.accel_body for s in inside], axis=0),
+                                                  math.radians(self.cfg.max_lateral_deg))
+        roll = pseudo.roll - lateral if coordinated else None
         pitch = pseudo.pitch + (self._pitch_offset or 0.0)
-        rate = float(np.mean([euler_roll_rate(s.gyro_body, pseudo.roll, pitch) for s in inside]))
-        return blend.update(pseudo.time_s, pseudo.roll, rate * (pseudo.time_s - last))
+        rate = float(np.mean([euler_roll_rate(s.gyro_body, pseudo.roll if roll is None else roll, pitch)
+                              for s in inside]))
+        return blend.update(pseudo.time_s, roll, rate * (pseudo.time_s - last))
 
     # -- telemetry --------------------------------------------------------------------------
 
