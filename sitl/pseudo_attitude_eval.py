@@ -25,7 +25,7 @@ predicted from the last fix before the instant, the pipeline's stamping before 0
 became its default) or smoothed with the fixes
 up to ``lag_s`` after it (:meth:`~.pseudo_attitude.DopplerAccelerationFilter.smoothed`: the
 estimate describes the instant and is ready ``lag_s`` plus the latency after it); optionally
-blended with a gyro's roll rate (:class:`~.pseudo_attitude.GyroAidedRoll` of ``gyro_tau_s``; the
+blended with a gyro's roll rate (:class:`~.pseudo_attitude.GyroAidedAngle` of ``gyro_tau_s``; the
 gyro measures the true Euler roll rate with a constant bias, a scale error and white noise, as
 the autopilot's IMU would after the Euler conversion).
 
@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.frames import GRAVITY_MPS2, wrap_pi
-from companion.nav.gnss_flow.pseudo_attitude import (DopplerAccelerationFilter, GyroAidedRoll, KinematicEstimate,
+from companion.nav.gnss_flow.pseudo_attitude import (DopplerAccelerationFilter, GyroAidedAngle, KinematicEstimate,
                                                      pseudo_attitude)
 
 
@@ -200,7 +200,7 @@ def evaluate(flight: Flight, receiver: Receiver, estimator: Estimator, gyro: Gyr
     queries = list(range(round(settle_s / step) + query_every // 2, len(flight.t), query_every))
     lag_steps = round(estimator.lag_s / step)
     near_change = manoeuvring(flight, transition_rate_dps, transition_margin_s)
-    blend = GyroAidedRoll(estimator.gyro_tau_s) if estimator.gyro_tau_s > 0 else None
+    blend = GyroAidedAngle(estimator.gyro_tau_s) if estimator.gyro_tau_s > 0 else None
     gyro_rng = np.random.default_rng(receiver.seed + 1)
     errors, kept, next_fix, previous = [], [], 0, queries[0]
     for i in queries:

@@ -174,7 +174,10 @@ def run(pipeline: GnssFlowPipeline, frames: int = 13, imu: bool = False, stamp_l
 
 
 def make(camera: bool = True, flow: bool = False, **settings: object) -> tuple[GnssFlowPipeline, Health]:
-    """The pipeline with the camera, the flow sensor, or both."""
+    """The pipeline with the camera, the flow sensor, or both; each pair's own pitch and yaw unless
+    ``gyro_pitch_yaw_tau_s`` is given (its blend with the gyro needs seconds of pairs: tested on
+    its own)."""
+    settings.setdefault("gyro_pitch_yaw_tau_s", 0.0)
     health = Health(lambda: 0.0)
     cfg = GnssFlowConfig(gnss="gps", camera="cam" if camera else None,
                          calibration="unused.yaml" if camera else None, flow="of" if flow else None, **settings)
@@ -259,6 +262,23 @@ def test_the_gyro_roll_blend_gives_no_attitude_until_it_has_settled() -> None:
     pipeline, _ = make(camera=False, flow=True, imu_sensor="imu", gyro_roll_tau_s=1.0)
     attitudes = check_attitudes(run(pipeline, frames=0, flows=20, imu=True, imu_from_s=0.05), FLOW_TOLERANCE_DEG["imu"])
     assert min(a.t_capture for a in attitudes) >= 1.0 and len(attitudes) >= 8
+
+
+def test_the_gyro_blend_takes_the_flows_pair_to_pair_noise_out_of_pitch_and_yaw() -> None:
+    """7 s of the turn's synthetic flow (+/-2.5 deg noise) with the gyro: each pair's own pitch and
+    yaw (gyro_pitch_yaw_tau_s 0), then blended with the gyro (the default 3 s), scored from 3.5 s on.
+    Measured: error std pitch 0.143 -> 0.019 deg, yaw 0.078 -> 0.011 deg."""
+    errors = {}
+    for tau in (0.0, 3.0):
+        pipeline, health = make(camera=False, flow=True, imu_sensor="imu", gyro_pitch_yaw_tau_s=tau)
+        estimates = run(pipeline, frames=0, flows=70, imu=True)
+        attitudes = check_attitudes(estimates, FLOW_TOLERANCE_DEG["imu"])
+        late = [a for a in attitudes if a.t_capture >= 3.5]
+        errors[tau] = np.array([np.degrees(wrap_pi(np.array(a.euler_rad) - euler_from_rotation(body_to_ned(a.t_capture))))
+                                for a in late]).std(axis=0)
+        assert len(attitudes) == 70 and health.get("nav:gnss_flow").state == State.OK
+    assert errors[3.0][0] == pytest.approx(errors[0.0][0], rel=1e-6)  # the roll is the roll blend's either way
+    assert np.all(errors[3.0][1:] < 0.35 * errors[0.0][1:])
 
 
 def test_without_an_imu_a_large_drift_angle_is_flagged() -> None:

@@ -18,6 +18,7 @@ from companion.nav.gnss_flow.pseudo_attitude import (
     PseudoAttitudeLimits,
     body_rates_from_euler_rates,
     coordination_check,
+    euler_rates_from_body_rates,
     pseudo_attitude,
     pseudo_attitude_refusal,
     pseudo_euler_rates,
@@ -312,6 +313,7 @@ def test_body_rates_match_the_rotation_of_the_attitude():
     skew = r0.T @ (r1 - r0) / dt  # R' = R [w]x with w in body FRD
     body = np.array([skew[2, 1], skew[0, 2], skew[1, 0]])
     assert np.allclose(body_rates_from_euler_rates(roll, pitch, euler_rates), body, atol=1e-5)
+    assert np.allclose(euler_rates_from_body_rates(roll, pitch, body), euler_rates, atol=1e-5)  # and back
 
 
 def test_coordination_check_accepts_a_coordinated_turn_and_flags_a_skid():

@@ -13,7 +13,7 @@ import pytest
 
 from sitl.gnss_flow_flight_eval import run
 from companion.nav.gnss_flow.pipeline import GnssFlowConfig
-from companion.nav.gnss_flow.pseudo_attitude import DopplerAccelerationFilter, GyroAidedRoll
+from companion.nav.gnss_flow.pseudo_attitude import DopplerAccelerationFilter, GyroAidedAngle
 from sitl.pseudo_attitude_eval import (Estimator, Flight, FlightPlan, Gyro, Receiver, evaluate,
                                                           fly)
 
@@ -101,7 +101,7 @@ def test_smoothing_from_the_last_fix_on_is_the_filters_prediction_and_before_the
 
 
 def test_the_blend_estimates_a_constant_gyro_bias_and_follows_the_gyro_through_a_roll_in():
-    blend = GyroAidedRoll(tau_s=3.0)
+    blend = GyroAidedAngle(tau_s=3.0)
     bias, dt, errors = math.radians(2.0), 0.1, []
     rng = np.random.default_rng(1)
     for k in range(600):
@@ -117,7 +117,7 @@ def test_the_blend_estimates_a_constant_gyro_bias_and_follows_the_gyro_through_a
 
 
 def test_a_reset_blend_restarts_at_its_pseudo_roll():
-    blend = GyroAidedRoll(tau_s=3.0)
+    blend = GyroAidedAngle(tau_s=3.0)
     blend.update(0.0, 0.1, 0.0)
     blend.update(0.1, 0.1, 0.5)
     blend.reset()
@@ -127,7 +127,7 @@ def test_a_reset_blend_restarts_at_its_pseudo_roll():
 
 def test_without_a_pseudo_roll_the_blend_follows_the_gyro_and_keeps_its_bias():
     """A slip or a push-over: the pseudo-roll is not the airframe's, the gyro alone carries the roll."""
-    blend = GyroAidedRoll(tau_s=3.0)
+    blend = GyroAidedAngle(tau_s=3.0)
     bias, dt = 0.02, 0.1  # rad/s
     for k in range(400):  # 40 s level: the bias learnt
         blend.update(k * dt, 0.0, bias * dt)
@@ -138,11 +138,11 @@ def test_without_a_pseudo_roll_the_blend_follows_the_gyro_and_keeps_its_bias():
     assert roll == pytest.approx(learnt + 0.3, abs=1e-3)  # the gyro's increments less the bias learnt
     assert blend.update(41.1, 0.3, 0.0) == pytest.approx(0.3, abs=2e-3)  # and the bias kept
     with pytest.raises(ValueError):
-        GyroAidedRoll(tau_s=3.0).update(0.0, None, 0.0)
+        GyroAidedAngle(tau_s=3.0).update(0.0, None, 0.0)
 
 
 def test_the_blend_has_settled_tau_after_it_starts_and_again_after_a_reset():
-    blend = GyroAidedRoll(tau_s=3.0)
+    blend = GyroAidedAngle(tau_s=3.0)
     assert not blend.settled
     for k in range(31):
         blend.update(10.0 + k * 0.1, 0.0, 0.0)

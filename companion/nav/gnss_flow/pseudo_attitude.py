@@ -32,7 +32,7 @@ Re-derived from the seed text (its conversion garbled the equations):
   ``r = -theta' sin(phi) + psi' cos(phi) cos(theta)``.
 - Pseudo Euler rates: finite differences of successive pseudo-attitudes (the seed says "the
   derivative wrt time"); the filter carries no jerk, so its own prediction cannot give the roll
-  rate. With the autopilot's gyro, :class:`GyroAidedRoll` blends its roll rate into the roll.
+  rate. With the autopilot's gyro, :class:`GyroAidedAngle` blends its roll rate into the roll.
 
 Singularities: the course is undefined at zero ground speed and the lift plane at a vertical
 velocity (refused below ``min_ground_speed_mps`` and beyond ``max_flight_path_rad``); the roll is
@@ -307,31 +307,38 @@ def coordination_check(specific_force_body: np.ndarray,
     return abs(lateral) <= max_lateral_angle_rad, lateral
 
 
-def euler_roll_rate(gyro_body: np.ndarray, roll: float, pitch: float) -> float:
-    """The ZYX Euler roll rate (rad/s) of body FRD rates (p, q, r) rad/s at ``roll``, ``pitch``
-    (rad): ``p + (q sin(roll) + r cos(roll)) tan(pitch)``."""
+def euler_rates_from_body_rates(roll: float, pitch: float, gyro_body: np.ndarray) -> np.ndarray:
+    """ZYX Euler rates (roll', pitch', yaw') rad/s of body FRD rates (p, q, r) rad/s at ``roll``,
+    ``pitch`` (rad), the inverse of :func:`body_rates_from_euler_rates`: roll' = p + (q sin(roll) +
+    r cos(roll)) tan(pitch), pitch' = q cos(roll) - r sin(roll), yaw' = (q sin(roll) + r
+    cos(roll)) / cos(pitch)."""
     p, q, r = (float(w) for w in gyro_body)
-    return p + (q * math.sin(roll) + r * math.cos(roll)) * math.tan(pitch)
+    sr, cr = math.sin(roll), math.cos(roll)
+    turn = q * sr + r * cr
+    return np.array([p + turn * math.tan(pitch), q * cr - r * sr, turn / math.cos(pitch)])
 
 
-class GyroAidedRoll:
-    """The pseudo-roll blended with a gyro's roll rate: a second-order complementary filter whose
-    roll follows the gyro's Euler roll increments over short spans and the pseudo-roll over
-    spans beyond ``tau_s`` (s), with the gyro's roll-rate bias estimated (integral term), so a
-    constant gyro bias leaves no steady error. Critically damped: ``roll' = rate - bias +
-    (2 / tau) e``, ``bias' = -e / tau^2``, ``e = pseudo roll - roll``; its response to the
-    pseudo-roll is a second-order low pass of natural period ``2 pi tau``.
+class GyroAidedAngle:
+    """One Euler angle measured without the gyro (the pseudo-roll; the flow's pitch or yaw)
+    blended with the gyro's Euler rate of that angle: a second-order complementary filter whose
+    angle follows the gyro's increments over short spans and the measurement over spans beyond
+    ``tau_s`` (s), with the gyro's rate bias estimated (integral term), so a constant gyro bias
+    leaves no steady error. Critically damped: ``angle' = rate - bias + (2 / tau) e``,
+    ``bias' = -e / tau^2``, ``e = measured - angle``; its response to the measurement is a
+    second-order low pass of natural period ``2 pi tau``.
 
     The pseudo-roll's errors are the Doppler filter's, correlated over about a second (its
-    smoothing span) and worst in bank changes, where the gyro is exact; the gyro's are a bias
-    and a scale error, slow. Angles rad, times s, on the caller's clock, in time order."""
+    smoothing span) and worst in bank changes; the flow's pitch and yaw errors are its focus of
+    expansion's, from pair to pair; the gyro is exact there, its errors a bias and a scale error,
+    slow. Angles rad (wrapped to [-pi, pi]), times s, on the caller's clock, in time order."""
 
     def __init__(self, tau_s: float) -> None:
         self.tau_s = tau_s
         self._time_s: float | None = None
         self._start_s: float | None = None  # time of the first update since construction or reset
-        self._roll = 0.0  # rad
-        self._bias = 0.0  # gyro Euler roll-rate bias, rad/s
+        self._measured_s: float | None = None  # time of the last update with a measurement
+        self._angle = 0.0  # rad
+        self._bias = 0.0  # gyro Euler rate bias of the angle, rad/s
 
     @property
     def last_time_s(self) -> float | None:
@@ -339,40 +346,48 @@ class GyroAidedRoll:
         return self._time_s
 
     @property
+    def last_measured_s(self) -> float | None:
+        """Time (s) of the last update with a measurement, None before the first or after :meth:`reset`."""
+        return self._measured_s
+
+    @property
     def settled(self) -> bool:
-        """Whether the blend has run ``tau_s`` since it (re)started: before that its roll is
-        mostly the first pseudo-roll it took (in a roll-in the smoother's first, one-sided
-        estimates were 12-16 deg off in SITL) and its bias is unlearnt."""
+        """Whether the blend has run ``tau_s`` since it (re)started: before that its angle is
+        mostly the first measurement it took (in a roll-in the smoother's first, one-sided
+        pseudo-rolls were 12-16 deg off in SITL) and its bias is unlearnt."""
         return self._start_s is not None and self._time_s is not None and self._time_s - self._start_s >= self.tau_s
 
     def reset(self) -> None:
-        """Forget the roll and the bias: the next update starts at its pseudo-roll."""
+        """Forget the angle and the bias: the next update starts at its measurement."""
         self._time_s = None
         self._start_s = None
+        self._measured_s = None
         self._bias = 0.0
 
-    def update(self, time_s: float, pseudo_roll: float | None, roll_increment: float) -> float:
-        """The blended roll (rad) at ``time_s`` from the pseudo-roll there (rad; None: not the
-        airframe's, e.g. in a slip or at low load, so the gyro's increment alone carries the roll
-        and the bias is kept) and the gyro's Euler roll increment (rad) since the previous update
-        (ignored on the first, which needs a pseudo-roll). At the time of the previous update:
-        that update's roll, unchanged."""
+    def update(self, time_s: float, measured: float | None, increment: float) -> float:
+        """The blended angle (rad) at ``time_s`` from the measurement there (rad; None: none, or
+        not the airframe's, e.g. the pseudo-roll in a slip or at low load, so the gyro's increment
+        alone carries the angle and the bias is kept) and the gyro's Euler increment of the angle
+        (rad) since the previous update (ignored on the first, which needs a measurement). At the
+        time of the previous update: that update's angle, unchanged."""
         if self._time_s is None:
-            if pseudo_roll is None:
-                raise ValueError("the first update needs a pseudo-roll")
-            self._time_s, self._start_s, self._roll = time_s, time_s, pseudo_roll
-            return pseudo_roll
+            if measured is None:
+                raise ValueError("the first update needs a measurement")
+            self._time_s = self._start_s = self._measured_s = time_s
+            self._angle = measured
+            return measured
         dt = time_s - self._time_s
         if dt < 0:
             raise ValueError("updates not in time order")
         if dt == 0:
-            return self._roll
-        predicted = self._roll + roll_increment - self._bias * dt
+            return self._angle
+        predicted = self._angle + increment - self._bias * dt
         self._time_s = time_s
-        if pseudo_roll is None:
-            self._roll = wrap_pi(predicted)
-            return self._roll
-        error = wrap_pi(pseudo_roll - predicted)
-        self._roll = wrap_pi(predicted + min(1.0, 2.0 * dt / self.tau_s) * error)
+        if measured is None:
+            self._angle = wrap_pi(predicted)
+            return self._angle
+        self._measured_s = time_s
+        error = wrap_pi(measured - predicted)
+        self._angle = wrap_pi(predicted + min(1.0, 2.0 * dt / self.tau_s) * error)
         self._bias -= dt / self.tau_s**2 * error
-        return self._roll
+        return self._angle
