@@ -141,6 +141,14 @@ def test_without_a_pseudo_roll_the_blend_follows_the_gyro_and_keeps_its_bias():
         GyroAidedAngle(tau_s=3.0).update(0.0, None, 0.0)
 
 
+def test_a_restarted_blend_averages_its_first_measurements_instead_of_holding_the_first():
+    blend = GyroAidedAngle(tau_s=3.0)
+    measured = [0.02, -0.01, 0.015, -0.02, -0.005]  # noise about a true 0
+    angles = [blend.update(k * 0.1, m, 0.0) for k, m in enumerate(measured)]
+    assert angles[-1] == pytest.approx(np.mean(measured), abs=1e-4)  # and the bias integral barely moved
+    assert abs(angles[-1]) < abs(measured[0])
+
+
 def test_the_blend_has_settled_tau_after_it_starts_and_again_after_a_reset():
     blend = GyroAidedAngle(tau_s=3.0)
     assert not blend.settled

@@ -325,7 +325,9 @@ class GyroAidedAngle:
     ``tau_s`` (s), with the gyro's rate bias estimated (integral term), so a constant gyro bias
     leaves no steady error. Critically damped: ``angle' = rate - bias + (2 / tau) e``,
     ``bias' = -e / tau^2``, ``e = measured - angle``; its response to the measurement is a
-    second-order low pass of natural period ``2 pi tau``.
+    second-order low pass of natural period ``2 pi tau``. After a (re)start the angle's gain is
+    the running mean's (1/n at the n-th measurement) until the filter's is larger, so it does
+    not hold the first measurement's error for a time constant.
 
     The pseudo-roll's errors are the Doppler filter's, correlated over about a second (its
     smoothing span) and worst in bank changes; the flow's pitch and yaw errors are its focus of
@@ -337,6 +339,7 @@ class GyroAidedAngle:
         self._time_s: float | None = None
         self._start_s: float | None = None  # time of the first update since construction or reset
         self._measured_s: float | None = None  # time of the last update with a measurement
+        self._measurements = 0  # since the (re)start
         self._angle = 0.0  # rad
         self._bias = 0.0  # gyro Euler rate bias of the angle, rad/s
 
@@ -374,7 +377,7 @@ class GyroAidedAngle:
             if measured is None:
                 raise ValueError("the first update needs a measurement")
             self._time_s = self._start_s = self._measured_s = time_s
-            self._angle = measured
+            self._angle, self._measurements = measured, 1
             return measured
         dt = time_s - self._time_s
         if dt < 0:
@@ -387,7 +390,9 @@ class GyroAidedAngle:
             self._angle = wrap_pi(predicted)
             return self._angle
         self._measured_s = time_s
+        self._measurements += 1
         error = wrap_pi(measured - predicted)
-        self._angle = wrap_pi(predicted + min(1.0, 2.0 * dt / self.tau_s) * error)
+        gain = max(min(1.0, 2.0 * dt / self.tau_s), 1.0 / self._measurements)  # a running mean at the start
+        self._angle = wrap_pi(predicted + gain * error)
         self._bias -= dt / self.tau_s**2 * error
         return self._angle
