@@ -167,7 +167,8 @@ class GnssFlowConfig:
     jerk_psd: float = field(default=0.2, metadata=meta(
         "White-jerk spectral density of the Doppler acceleration filter, m^2/s^5: lower is smoother but follows "
         "a bank change less (pseudo_attitude.DopplerAccelerationFilter); 0.2 gives the least roll error with "
-        "`smoothing_lag_s` 0.6 at 5 or 10 Hz and 0.05 m/s Doppler noise (sitl/pseudo_attitude_eval.py).", (0.001, 1000)))
+        "`smoothing_lag_s` 0.6 at 5 or 10 Hz and 0.05 m/s Doppler noise (sitl/pseudo_attitude_eval.py).",
+        (0.001, 1000)))
     gyro_roll_tau_s: float = field(default=3.0, metadata=meta(
         "With IMU samples: the roll is blended with the gyro's roll rate, following the gyro over spans shorter "
         "than this and the GNSS beyond, the gyro's bias estimated (pseudo_attitude.GyroAidedAngle), s; 0: the "
@@ -188,7 +189,8 @@ class GnssFlowConfig:
         "Below this ground speed the course, and so the attitude, is undefined: nothing is given, m/s.", (0.5, 100)))
     max_lateral_deg: float = field(default=3.0, metadata=meta(
         "With an IMU: a lateral specific force beyond this angle from the body's -z (a slip or skid) flags the "
-        "frame pair uncoordinated, and keeps the pseudo-roll out of the gyro roll blend over that span, degrees.", (0.1, 45)))
+        "frame pair uncoordinated, and keeps the pseudo-roll out of the gyro roll blend over that span, degrees.",
+        (0.1, 45)))
     max_drift_deg: float = field(default=10.0, metadata=meta(
         "Without an IMU: a drift angle (the FOE's yaw offset) beyond this flags the pair uncoordinated, degrees; "
         "a crosswind's crab counts too.", (0.1, 60)))
@@ -502,8 +504,9 @@ class GnssFlowPipeline:
         self._imu: deque[ImuSample] = deque()
         self._gyro_roll = GyroAidedAngle(cfg.gyro_roll_tau_s) if cfg.gyro_roll_tau_s > 0 else None
         # each path's (pitch, yaw) blends with the gyro, by source
-        self._gyro_pitch_yaw = {p.source: (GyroAidedAngle(cfg.gyro_pitch_yaw_tau_s), GyroAidedAngle(cfg.gyro_pitch_yaw_tau_s))
-                                for p in self.paths} if cfg.gyro_pitch_yaw_tau_s > 0 else {}
+        tau = cfg.gyro_pitch_yaw_tau_s
+        self._gyro_pitch_yaw = {p.source: (GyroAidedAngle(tau), GyroAidedAngle(tau))
+                                for p in self.paths} if tau > 0 else {}
         self._pitch_offset: float | None = None  # the first path's pitch offsets averaged over PITCH_OFFSET_TAU_S, rad
 
     @property
@@ -676,7 +679,6 @@ class GnssFlowPipeline:
         rates = pseudo_euler_rates(earlier, mid)
         return wind_to_body(*offsets) @ body_rates_from_euler_rates(mid.roll, mid.pitch, rates), "gnss", None
 
-
     def _foe(self, path: FlowPath, points_n: np.ndarray, translational: np.ndarray) -> FocusOfExpansion | None:
         return focus_of_expansion(points_n, translational, threshold_deg=self.cfg.foe_threshold_deg,
                                   iterations=self.cfg.foe_iterations, min_flow=path.min_flow_n)
@@ -765,10 +767,11 @@ class GnssFlowPipeline:
         pseudo-roll's own (per pair, the correction lagged it and left a third of it, wrong way, in
         SITL with 0.5 m/s gusts). Beyond ``max_lateral_deg`` (a slip, or a push-over where the
         normal specific force vanishes: in SITL a 44 deg roll-out read 180 deg) the pseudo-roll is
-        not the airframe's and the gyro alone carries the roll. The gyro's Euler rate takes the body's pitch: the pseudo-pitch plus the pitch
-        offset averaged over the pairs of the last ``PITCH_OFFSET_TAU_S`` (in a turn the yaw rate's
-        share of the roll rate goes with the pitch: with one pair's offset, its ~1 deg of flow noise
-        put 0.5 deg/s into the roll rate and nearly doubled the roll error, sitl/gnss_flow_flight_eval.py)."""
+        not the airframe's and the gyro alone carries the roll. The gyro's Euler rate takes the
+        body's pitch: the pseudo-pitch plus the pitch offset averaged over the pairs of the last
+        ``PITCH_OFFSET_TAU_S`` (in a turn the yaw rate's share of the roll rate goes with the pitch:
+        with one pair's offset, its ~1 deg of flow noise put 0.5 deg/s into the roll rate and nearly
+        doubled the roll error, sitl/gnss_flow_flight_eval.py)."""
         last = blend.last_time_s
         if last is not None and pseudo.time_s <= last + SAME_INSTANT_S:  # the other path's instant at the same time
             return blend.update(last, pseudo.roll, 0.0)
