@@ -11,6 +11,7 @@ untextured sky above it), frames at 30 Hz (the pipeline uses every third), fixes
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import shutil
 from pathlib import Path
@@ -279,6 +280,35 @@ def test_the_gyro_blend_takes_the_flows_pair_to_pair_noise_out_of_pitch_and_yaw(
         assert len(attitudes) == 70 and health.get("nav:gnss_flow").state == State.OK
     assert errors[3.0][0] == pytest.approx(errors[0.0][0], rel=1e-6)  # the roll is the roll blend's either way
     assert np.all(errors[3.0][1:] < 0.35 * errors[0.0][1:])
+
+
+def blank_fields(pipeline: GnssFlowPipeline, first: int, last: int) -> None:
+    """The flow sensor's fields ``first`` to ``last`` (sequence numbers) arrive with no valid
+    vector: their pairs give no focus of expansion."""
+    on_flow = pipeline.on_flow
+    pipeline.on_flow = lambda f: on_flow(  # type: ignore[method-assign]
+        dataclasses.replace(f, valid=np.zeros_like(f.valid)) if first <= f.sequence <= last else f)
+
+
+@pytest.mark.parametrize("gap_fields, bridged", [(10, True), (40, False)], ids=["1s_bridged", "4s_restarted"])
+def test_pairs_without_a_foe_are_bridged_on_the_gyro_for_the_time_constant_then_the_blend_restarts(
+        gap_fields: int, bridged: bool) -> None:
+    """Fields 31 on give no FOE for 1 s (within gyro_pitch_yaw_tau_s 3): the first attitude after
+    it carries the blend on, off its own pair's pitch and yaw by the blend's smoothing; for 4 s:
+    the blends restart at that pair's own angles (a pipeline with each pair's own gives the same)."""
+    first_after: dict[float, AttitudeEstimate] = {}
+    for tau in (3.0, 0.0):
+        pipeline, _ = make(camera=False, flow=True, imu_sensor="imu", gyro_pitch_yaw_tau_s=tau)
+        blank_fields(pipeline, 31, 30 + gap_fields)
+        attitudes = [e for e in run(pipeline, frames=0, flows=45 + gap_fields, imu=True) if isinstance(e, AttitudeEstimate)]
+        assert not any(3.0 < a.t_capture < (30 + gap_fields) * FLOW_DT for a in attitudes)
+        first_after[tau] = min((a for a in attitudes if a.t_capture > 3.0), key=lambda a: a.t_capture)
+        if tau:  # (each pair's own are the flow's noise, up to 0.43 deg of pitch over this longer run)
+            check_attitudes(attitudes, FLOW_TOLERANCE_DEG["imu"])
+    blended, own = first_after[3.0].euler_rad, first_after[0.0].euler_rad
+    assert blended[0] == own[0]  # the roll is the roll blend's either way
+    same = np.allclose(blended[1:], own[1:], rtol=0.0, atol=1e-12)
+    assert same != bridged
 
 
 def test_without_an_imu_a_large_drift_angle_is_flagged() -> None:
