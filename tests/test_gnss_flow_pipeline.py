@@ -311,6 +311,18 @@ def test_pairs_without_a_foe_are_bridged_on_the_gyro_for_the_time_constant_then_
     assert same != bridged
 
 
+def test_a_late_flow_field_older_than_the_blends_newest_pair_keeps_its_own_angles() -> None:
+    """Field 25 delivered again after field 30 (a late or repeated field): its pair is evaluated,
+    older than the pitch and yaw blends' newest, and gives its own attitude instead of stopping the
+    pipeline on the blends' time order."""
+    pipeline, _ = make(camera=False, flow=True, imu_sensor="imu", gyro_pitch_yaw_tau_s=3.0)
+    run(pipeline, frames=0, flows=30, imu=True)
+    pipeline.on_flow(flow_field(25))
+    late = [e for e in pipeline.step(10.0) if isinstance(e, AttitudeEstimate)]
+    assert [a.t_capture for a in late] == pytest.approx([2.45])
+    check_attitudes(late, FLOW_TOLERANCE_DEG["imu"])
+
+
 def test_without_an_imu_a_large_drift_angle_is_flagged() -> None:
     pipeline, health = make(max_drift_deg=3.0)
     estimates = run(pipeline, frames=7, slip_rad=math.radians(6.0))

@@ -810,9 +810,12 @@ class GnssFlowPipeline:
         the blends on the gyro alone, for at most the time constant since the last attitude: in a
         45 deg banked turn (33 deg/s) the Euler pitch rate takes 0.6 deg/s of error per degree of
         roll error, 10 deg over the 15 s of a circle without a focus of expansion in SITL. After
-        that, or without IMU samples over the span, the blends restart at the next pair's own."""
+        that, or without IMU samples over the span, the blends restart at the next pair's own. A pair
+        older than the blends' newest keeps its own angles."""
         blends = self._gyro_pitch_yaw[path.source]
         last, measured_s = blends[0].last_time_s, blends[0].last_measured_s
+        if last is not None and result.t_capture < last:  # a pair older than the blends' newest (a late field)
+            return result, estimates
         inside = self._imu_since(last, result.t_capture)
         measured = result.euler_rad
         stale = measured_s is None or result.t_capture - measured_s > self.cfg.gyro_pitch_yaw_tau_s
