@@ -502,11 +502,13 @@ class GnssFlowPipeline:
         self._arrivals = 0
         self._last_frame_s = -math.inf  # capture time of the newest camera frame kept, s
         self._imu: deque[ImuSample] = deque()
-        self._gyro_roll = GyroAidedAngle(cfg.gyro_roll_tau_s) if cfg.gyro_roll_tau_s > 0 else None
+        # the gyro blends exist only with an IMU (without one they would restart at every instant)
+        gyro = cfg.imu_sensor is not None
+        self._gyro_roll = GyroAidedAngle(cfg.gyro_roll_tau_s) if gyro and cfg.gyro_roll_tau_s > 0 else None
         # each path's (pitch, yaw) blends with the gyro, by source
         tau = cfg.gyro_pitch_yaw_tau_s
         self._gyro_pitch_yaw = {p.source: (GyroAidedAngle(tau), GyroAidedAngle(tau))
-                                for p in self.paths} if tau > 0 else {}
+                                for p in self.paths} if gyro and tau > 0 else {}
         self._pitch_offset: float | None = None  # the first path's pitch offsets averaged over PITCH_OFFSET_TAU_S, rad
 
     @property
