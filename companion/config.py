@@ -155,6 +155,35 @@ class TelemetryConfig:
 
 
 @dataclass
+class RecordConfig:
+    """The flight recorder (companion/recording/): MCAP files a user opens in Foxglove or replays with
+    ``companion replay``. Off by default."""
+
+    enabled: bool = field(default=False, metadata=meta(
+        "Record every sensor message, estimate, source selection, MAVLink message in and out, telemetry and "
+        "health change to MCAP."))
+    dir: str = field(default="recordings", metadata=meta(
+        "Directory of the recordings (relative: to the config file's); created if missing."))
+    max_file_mb: float = field(default=256.0, metadata=meta(
+        "A recording is split into parts of at most about this size (MB).", (1, 100000)))
+    max_total_mb: float = field(default=4096.0, metadata=meta(
+        "The recordings in `dir` are kept under this size (MB): the oldest parts are removed.", (2, 10000000)))
+    chunk_kb: int = field(default=512, metadata=meta(
+        "MCAP chunk size (kB, uncompressed): a chunk is compressed (zstd) and written when full.", (16, 65536)))
+    flush_s: float = field(default=1.0, metadata=meta(
+        "A chunk is written at least this often (s): a crash or power loss loses at most this much.", (0.1, 60)))
+    queue_size: int = field(default=8192, metadata=meta(
+        "Bounded queue between the daemon and the recorder's thread; a message that finds it full is dropped "
+        "and counted.", (64, 1000000)))
+    frame_rate_hz: float = field(default=10.0, metadata=meta(
+        "Camera frames recorded per second and camera at most (0: every frame); lossless PNG, so a replay of "
+        "a camera pipeline is exact when this is at least the camera's rate.", (0, 1000)))
+    mavlink: bool = field(default=True, metadata=meta("Record every MAVLink message in and out."))
+    telemetry: bool = field(default=True, metadata=meta(
+        "Record every telemetry message published (what the dashboard shows; its playback needs them)."))
+
+
+@dataclass
 class LoggingConfig:
     level: Literal["debug", "info", "warning", "error"] = field(default="info", metadata=meta("Log level (the CLI's --log-level overrides)."))
 
@@ -381,12 +410,17 @@ class Config:
     pipelines: PipelinesConfig = field(default_factory=PipelinesConfig, metadata=meta("Navigation pipelines."))
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig, metadata=meta("zenoh telemetry."))
     logging: LoggingConfig = field(default_factory=LoggingConfig, metadata=meta("Logging."))
+    record: RecordConfig = field(default_factory=RecordConfig, metadata=meta("Flight recorder (MCAP)."))
     control: ControlConfig = field(default_factory=ControlConfig, metadata=meta("Trajectory-following controller."))
     mission: MissionConfig = field(default_factory=MissionConfig, metadata=meta("Mission to fly."))
     sitl: SitlConfig = field(default_factory=SitlConfig, metadata=meta("Simulation harness settings."))
     base_dir: Path = field(default=Path("."), init=False, repr=False)
     source: str = field(default="<string>", init=False, repr=False)
     document: Document | None = field(default=None, init=False, repr=False, compare=False)  # for line_of
+    # {key path: file} of every file load_referenced loaded (the recorder keeps a copy of each), and
+    # files to read instead of what a key names (a replay reads the copies kept in its recording)
+    referenced: dict[str, Path] = field(default_factory=dict, init=False, repr=False, compare=False)
+    file_overrides: dict[str, Path] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def validate(self) -> tuple[str, str] | None:
         for name in self.sensors:
@@ -500,10 +534,13 @@ class Config:
         What the loader raises about the file (SchemaError: its content, naming its own file, line and key;
         OSError: it cannot be read; ValueError: its content, naming the file) is raised again as a
         ConfigError at this config file, the key's line and the key, with the loader's message after it.
+        A file in :attr:`file_overrides` under ``key_path`` is read instead of ``value``'s.
         """
-        path = self.resolve(value)
+        path = self.file_overrides.get(key_path) or self.resolve(value)
         try:
-            return loader(path)
+            loaded = loader(path)
+            self.referenced[key_path] = path
+            return loaded
         except SchemaError as exc:
             raise self._error_at(key_path, str(exc)) from exc
         except OSError as exc:

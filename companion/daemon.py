@@ -39,10 +39,10 @@ from companion.mission.context import MissionContext
 from companion.mission.failsafe import Geofence
 from companion.mission.runner import MissionRunner
 from companion.mission.steps import Mission, load_mission
-from companion.navloop import NavLoop, NavOutputs
-from companion.pipeline import GuidanceSource, Pipeline, PipelineContext
+from companion.navloop import NavLoop, NavOutputs, build_pipelines, build_selector
+from companion.pipeline import GuidanceSource, Pipeline
 from companion.sdnotify import Notifier, WatchdogGate, run_watchdog
-from companion.selection import SourceSelector
+from companion.recording.recorder import Recorder
 from companion.sensors import SensorContext, build_driver, check_sensor_files
 from companion.supervisor import Supervisor
 from companion.telemetry.publisher import TelemetryPublisher
@@ -118,6 +118,7 @@ class Daemon:
         self.started_wall = time.monotonic()
         self.drivers: dict[str, SensorDriver] = {}
         self.files: NamedFiles | None = None  # what the config names, loaded at the start of run()
+        self.recorder: Recorder | None = None  # the flight recorder, with record.enabled
         self._first_contact = True
         self._static_due = -math.inf  # daemon time the pipelines' static streams are next published
         self._stop = asyncio.Event()
@@ -144,12 +145,13 @@ class Daemon:
         self.origin = origin = OriginSetter(link, state, commander, cfg.origin, self.health)
         self.streams = streams = StreamNegotiator(link, state, commander, cfg.mavlink.streams, self.health)
         self.telemetry = telemetry = self._open_telemetry()
+        self.recorder = self._open_recorder()
         self.estimate = EstimateSender(link, cfg.mavlink.estimate_rate_hz, self.health, clock.now,
                                        on_alert=self.statustext)
         self.distance = DistanceSender(link)
         self.setpoints = setpoints = SetpointStream(link, state, cfg.mavlink.setpoint_rate_hz)
         pipelines = self.build_pipelines()
-        self.selector = self._build_selector(pipelines)
+        self.selector = build_selector(cfg, pipelines, on_switch=self._source_switched)
         self.mission = self._build_mission(pipelines)
         self.commands = self._build_inbound_commands(pipelines)
         gate = WatchdogGate(max_age=1.0, clock=clock.now)
@@ -159,6 +161,8 @@ class Daemon:
         outputs = NavOutputs(pose=self.estimate.submit, range=self.distance.submit, attitude=crosscheck.submit,
                              publish=telemetry.publish)
         self.nav = NavLoop(pipelines, self.selector, outputs, gate, p.fusion_rate_hz, clock.now)
+        if self.recorder is not None:
+            self.nav.on_cycle = self.recorder.cycle
         self.health.on_change(self._announce)
         link.on_connect(self._on_autopilot_found)
 
@@ -196,6 +200,8 @@ class Daemon:
         if guide is not None:
             ctx.guidance = lambda: guide.guidance(clock.now())
             ctx.request_guidance = lambda reason: guide.request_guidance(clock.now(), reason)
+        if guide is not None and self.recorder is not None:
+            ctx.request_guidance = self._recorded_guidance_request(ctx.request_guidance)
         if ctx.geofence is None:
             log.warning("mission %s: no companion geofence (mission.geofence disabled, or neither its box_ned_m "
                         "nor a pipeline's operating area); the autopilot's own fence still applies", mission.name)
@@ -227,6 +233,15 @@ class Daemon:
             self.selector.command(source)
         except ValueError as exc:
             raise CommandFailed(str(exc)) from exc
+        if self.recorder is not None:
+            self.recorder.event("/nav/source_command", clock.now(), {"source": source})
+
+    def _recorded_guidance_request(self, request: Callable[[str], str | None]) -> Callable[[str], str | None]:
+        """``request`` (start a guidance pipeline's return), recorded: it changes the pipeline from outside."""
+        def recorded(reason: str) -> str | None:
+            self.recorder.event("/nav/guidance_request", clock.now(), {"reason": reason})
+            return request(reason)
+        return recorded
 
     def _mission_estimate(self) -> PoseEstimate | None:
         """What missions fly on: the active pose source's newest estimate, or the autopilot's own
@@ -245,8 +260,10 @@ class Daemon:
         cfg = self.cfg
         ctx = SensorContext(cfg, self.health, self.link, self.state)
         self.drivers = {name: build_driver(name, sensor, ctx) for name, sensor in cfg.sensors.items()}
-        pipeline_ctx = PipelineContext(cfg, self.health)
-        pipelines = [plugins.pipeline(name).build(section, pipeline_ctx) for name, section in cfg.pipelines.enabled.items()]
+        pipelines = build_pipelines(cfg, self.health)
+        if self.recorder is not None:
+            for name, driver in self.drivers.items():
+                driver.subscribe(self.recorder.sensor(name))
         for pipeline in pipelines:
             for sensor, handler in pipeline.subscriptions().items():
                 self.drivers[sensor].subscribe(handler)
@@ -256,16 +273,6 @@ class Daemon:
                 log.warning("sensor %s feeds no pipeline; its data is counted and dropped", name)
             self.supervisor.spawn(f"driver:{name}", driver.run)
         return pipelines
-
-    def _build_selector(self, pipelines: list[Pipeline]) -> SourceSelector | None:
-        """The pose-source selection over ``pipelines.sources`` (None without a pose pipeline: missions
-        then fly on the autopilot's own estimate)."""
-        priority = self.cfg.source_priority()
-        if not pipelines or not priority:
-            return None
-        p = self.cfg.pipelines
-        return SourceSelector(priority, p.source_timeout_s, p.source_return_s, p.source_max_sigma_m,
-                              on_switch=self._source_switched)
 
     def _source_switched(self, old: str | None, new: str | None, reason: str) -> None:
         """Announce a change of the pose source (STATUSTEXT + telemetry ``sources``). Losing every
@@ -284,6 +291,37 @@ class Daemon:
         self.telemetry.publish("alerts", {"severity": severity, "text": text})
 
     # -- internals --------------------------------------------------------------------------
+
+    def _open_recorder(self) -> Recorder | None:
+        """The flight recorder (None with ``record.enabled`` off, or if its directory cannot be
+        written: health ``recorder`` says why, the daemon runs on). Hooked to the link, telemetry and
+        health here; to the drivers and nav loop where they are built."""
+        cfg = self.cfg
+        if not cfg.record.enabled:
+            return None
+        source = Path(cfg.source)
+        text = source.read_text() if source.is_file() else ""
+        recorder = Recorder(cfg.record, cfg.resolve(cfg.record.dir), text, cfg.source, dict(cfg.referenced), clock.now)
+        try:
+            recorder.start()
+        except OSError as exc:
+            self.health.report("recorder", State.DEGRADED, f"cannot record in {recorder.directory}: {exc}")
+            return None
+        if cfg.record.mavlink:
+            self.link.observe(lambda direction, msg: recorder.mavlink(direction, clock.now(), msg))
+        if cfg.record.telemetry:
+            self.telemetry.observer = recorder.telemetry
+        self.health.on_change(lambda name, new, old: recorder.event(
+            "/health/changes", clock.now(), {"component": name, "state": new.state.label, "reason": new.reason}))
+        self.health.report("recorder", State.OK, f"recording to {recorder.directory}")
+        log.info("recording to %s (%s)", recorder.directory, recorder.stats.parts[0])
+        return recorder
+
+    def _recorder_health(self) -> None:
+        """Health ``recorder`` degraded once the recording stopped (disk full): the daemon flies on."""
+        recorder = self.recorder
+        if recorder is not None and recorder.stats.stopped is not None:
+            self.health.report("recorder", State.DEGRADED, f"recording stopped: {recorder.stats.stopped}")
 
     def _open_telemetry(self) -> TelemetryPublisher:
         t = self.cfg.telemetry
@@ -328,6 +366,7 @@ class Daemon:
     async def _publish_status(self) -> None:
         period = 1.0 / self.cfg.telemetry.status_hz
         while True:
+            self._recorder_health()
             self.notifier.status(self.health.summary())
             self._publish_snapshots()
             await asyncio.sleep(period)
@@ -356,7 +395,8 @@ class Daemon:
                              "stage_ms": self.nav.stage_summaries(),
                              "pipelines": {p.name: p.snapshot() for p in self.nav.pipelines},
                              "drivers": {n: asdict(d.stats) for n, d in self.drivers.items()},
-                             "setpoints_sent": self.setpoints.sent})
+                             "setpoints_sent": self.setpoints.sent,
+                             "recorder": self.recorder.snapshot() if self.recorder is not None else None})
         t.publish("rates", {"streams": t.stats()})
         if self.mission is not None:
             t.publish("mission", self.mission.snapshot())
@@ -391,6 +431,8 @@ class Daemon:
         self.setpoints.stop()
         await self.supervisor.stop(timeout_s=0.5)  # cancelling the link task closes the port
         self.telemetry.close(timeout_s=0.4)
+        if self.recorder is not None:
+            self.recorder.close(timeout_s=0.5)
         if self.session is not None:
             closer = threading.Thread(target=self.session.close, daemon=True)
             closer.start()

@@ -14,10 +14,14 @@ import asyncio
 from collections.abc import Callable
 from dataclasses import dataclass
 
+from typing import Any
+
 import numpy as np
 
-from companion.messages import AttitudeEstimate, PoseEstimate, RangeEstimate
-from companion.pipeline import Pipeline
+from companion import plugins
+from companion.health import Health
+from companion.messages import AttitudeEstimate, Estimate, PoseEstimate, RangeEstimate
+from companion.pipeline import Pipeline, PipelineContext
 from companion.sdnotify import WatchdogGate
 from companion.selection import SourceSelector
 from companion.timing import Timings
@@ -33,11 +37,37 @@ class NavOutputs:
     publish: Callable[[str, dict], None]  # telemetry: (stream, payload)
 
 
+CycleHook = Callable[[float, list[Estimate], PoseEstimate | None], None]
+
+
+def build_pipelines(cfg: Any, health: Health, names: list[str] | None = None) -> list[Pipeline]:
+    """The enabled pipelines of ``cfg`` (only ``names`` of them if given), built by the registry,
+    in the order the config enables them. The daemon and ``companion replay`` both build them here."""
+    ctx = PipelineContext(cfg, health)
+    return [plugins.pipeline(name).build(section, ctx) for name, section in cfg.pipelines.enabled.items()
+            if names is None or name in names]
+
+
+def build_selector(cfg: Any, pipelines: list[Pipeline],
+                   on_switch: Callable[[str | None, str | None, str], None] | None = None) -> SourceSelector | None:
+    """The pose-source selection over ``pipelines.sources`` (None without a pose pipeline: missions
+    then fly on the autopilot's own estimate)."""
+    priority = cfg.source_priority()
+    if not pipelines or not priority:
+        return None
+    p = cfg.pipelines
+    extra = {} if on_switch is None else {"on_switch": on_switch}
+    return SourceSelector(priority, p.source_timeout_s, p.source_return_s, p.source_max_sigma_m, **extra)
+
+
 class NavLoop:
-    """Runs the pipelines at ``rate_hz`` on the daemon clock."""
+    """Runs the pipelines at ``rate_hz`` on the daemon clock. ``on_cycle``, if set, is called after
+    each cycle with its time, every estimate the pipelines made in it and the pose forwarded (the
+    flight recorder's hook; ``companion replay`` collects the replayed cycles with it)."""
 
     def __init__(self, pipelines: list[Pipeline], selector: SourceSelector | None, outputs: NavOutputs,
                  gate: WatchdogGate, rate_hz: float, clock: Callable[[], float]) -> None:
+        self.on_cycle: CycleHook | None = None
         self.pipelines = pipelines
         self.selector = selector
         self.outputs = outputs
@@ -72,8 +102,11 @@ class NavLoop:
     def cycle(self, now: float) -> None:
         """One nav cycle at daemon time ``now``."""
         poses: dict[str, PoseEstimate] = {}
+        made: list[Estimate] = []
+        chosen = None
         for pipeline in self.pipelines:
             for estimate in pipeline.step(now):
+                made.append(estimate)
                 if isinstance(estimate, PoseEstimate):
                     poses[estimate.source] = estimate
                     if self.selector is not None:
@@ -86,6 +119,8 @@ class NavLoop:
             chosen = self.selector.select(now, poses)
             if chosen is not None:
                 self._forward(chosen)
+        if self.on_cycle is not None:
+            self.on_cycle(now, made, chosen)
         self.gate.beat()
 
     def _forward(self, estimate: PoseEstimate) -> None:

@@ -159,6 +159,7 @@ class MavlinkLink:
         self._handlers: dict[str, list[Handler]] = defaultdict(list)
         self._addressed: list[Handler] = []  # COMMAND_LONGs addressed to this companion, from anyone
         self._on_connect: list[Callable[[], None]] = []
+        self._observers: list[Callable[[str, mavlink.MAVLink_message], None]] = []
         self._connected = False
         self._paused = False  # lockstep: reading stops at a tick until the loop is idle
         self._ticked = asyncio.Event()  # lockstep: the vehicle's first tick arrived
@@ -196,6 +197,11 @@ class MavlinkLink:
         """Call ``callback()`` whenever the autopilot is (re)found: first contact, link regained, reboot."""
         self._on_connect.append(callback)
 
+    def observe(self, callback: Callable[[str, mavlink.MAVLink_message], None]) -> None:
+        """Call ``callback("in", msg)`` for every message received that parsed (from anyone, before
+        the trust checks) and ``callback("out", msg)`` for every message sent (the flight recorder)."""
+        self._observers.append(callback)
+
     def send(self, msg: mavlink.MAVLink_message) -> bool:
         """Send ``msg`` to the autopilot; False if it was dropped (no port, non-finite field, I/O error)."""
         bad = nonfinite_fields(msg)
@@ -216,6 +222,8 @@ class MavlinkLink:
             self.stats.send_errors += 1  # the kernel's buffer is full (a stalled peer): dropped whole
             return False
         self.stats.messages_tx += 1
+        for observer in self._observers:
+            observer("out", msg)
         return True
 
     def target(self) -> tuple[int, int]:
@@ -377,6 +385,8 @@ class MavlinkLink:
                 self.stats.parse_errors += 1
             return
         self.stats.messages_rx += 1
+        for observer in self._observers:
+            observer("in", msg)
         if (msg_type == "COMMAND_LONG" and msg.target_system == self.ids.sysid
                 and msg.target_component == self.ids.compid):
             handlers = self._addressed

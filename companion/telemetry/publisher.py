@@ -129,6 +129,9 @@ class TelemetryPublisher:
         self._closing = False
         self._drain_deadline = math.inf  # time.monotonic() after which close() stops draining
         self._worker: threading.Thread | None = None
+        # Called with (stream, t, payload) for every message that passes its rate limit, zenoh or not
+        # (the flight recorder); on the caller's thread, so it must be as quick as publish itself.
+        self.observer: Callable[[str, float, dict[str, Any]], None] | None = None
         if session is not None:
             self._worker = threading.Thread(
                 target=self._run,
@@ -177,6 +180,8 @@ class TelemetryPublisher:
             interval = state.min_interval_s
             state.next_due_t = (now + interval if state.next_due_t is None
                                 else max(state.next_due_t + interval, now + interval / 2))
+            if self.observer is not None:
+                self.observer(stream, now, payload)
             if self._worker is None or self._closing:
                 return
             if len(self._queue) >= self._queue_size:
