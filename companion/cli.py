@@ -171,12 +171,18 @@ def _cmd_laser_dots_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
+    if args.log.endswith(".mcap"):
+        return _replay_recording(args)
     import json
 
     from companion.replay import replay_report
     from companion.schema import SchemaError
     from companion.world import load_world
 
+    if args.format is None or args.map is None:
+        print("companion replay: a scanner log needs --format and --map (a flight recording is a .mcap file)",
+              file=sys.stderr)
+        return EXIT_CONFIG_ERROR
     try:
         world_map = load_world(args.map)
         report = replay_report(args.log, args.format, world_map, args.map, laser=args.laser,
@@ -189,6 +195,32 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if args.report:
         Path(args.report).write_text(text + "\n")
     print(text)
+    return 0
+
+
+def _replay_recording(args: argparse.Namespace) -> int:
+    """``companion replay FILE.mcap``: the recording through its pipelines (companion/recording/replay.py),
+    the flight report scored again (sitl/replay_report.py: the report's module, as `companion sitl`'s)."""
+    import json
+
+    from companion.recording.reader import Recording
+    from companion.recording.replay import replay
+    from companion.schema import SchemaError
+    from sitl.replay_report import replay_report
+
+    setup_logging(args.log_level or "warning")
+    pipelines = [p for p in (args.pipelines or "").split(",") if p] or None
+    try:
+        recording = Recording.open(args.log)
+        result = replay(recording, pipelines, args.speed)
+        report = replay_report(recording, result)
+    except (OSError, ValueError, SchemaError) as exc:
+        print(f"companion replay: {exc}", file=sys.stderr)
+        return EXIT_CONFIG_ERROR
+    text = json.dumps(report, indent=2)
+    if args.report:
+        Path(args.report).write_text(text + "\n")
+    print(json.dumps(report["replay"], indent=2))
     return 0
 
 
@@ -263,6 +295,9 @@ def build_parser() -> argparse.ArgumentParser:
     sitl.add_argument("--lockstep", action="store_true", help="deterministic simulated clock")
     sitl.add_argument("--seed", type=int, default=0)
     sitl.add_argument("--report", help="write the truth-scored flight report (JSON) here")
+    sitl.add_argument("--record", metavar="DIR", help="record the flight (record: section, enabled) into DIR "
+                                                      "(*.mcap; with --report, also what the report was scored from, "
+                                                      "for `companion replay`)")
     sitl.add_argument("--control-law", choices=["rpt", "pid"], help="fly trajectories with this law (overrides control.law)")
     sitl.add_argument("--autopilot", help="use an external autopilot SITL at this pymavlink URL instead of the built-in "
                                           "vehicle (no truth: no --report)")
@@ -308,12 +343,19 @@ def build_parser() -> argparse.ArgumentParser:
     calibrate.add_argument("--out", help="write the beams section (YAML) here instead of to stdout")
     calibrate.set_defaults(func=_cmd_laser_dots_calibrate)
 
-    replay = sub.add_parser("replay", help="replay a scanner log through the lidar localizer, scored against the "
-                                           "log's own poses (companion/replay.py)")
-    replay.add_argument("log", help="the log (e.g. a CARMEN log, plain or .gz; a ROS 1 .bag, a ROS 2 bag directory)")
-    replay.add_argument("--format", required=True, choices=LOG_FORMATS, help="the log's format")
-    replay.add_argument("--map", required=True, help="the map (world YAML, e.g. from `companion map build`)")
+    replay = sub.add_parser("replay", help="replay a flight recording (.mcap) through its pipelines against the "
+                                           "recorded estimates (companion/recording/replay.py), or a scanner log "
+                                           "through the lidar localizer, scored against the log's own poses "
+                                           "(companion/replay.py)")
+    replay.add_argument("log", help="a flight recording (FILE.mcap, any part of it), or a scanner log (e.g. a CARMEN "
+                                    "log, plain or .gz; a ROS 1 .bag, a ROS 2 bag directory)")
     replay.add_argument("--report", help="also write the report (JSON) here")
+    replay.add_argument("--pipelines", help="recording: replay only these pipelines (comma-separated; default all)")
+    replay.add_argument("--speed", type=float, help="recording: replay at this multiple of recorded time "
+                                                    "(default: as fast as it runs)")
+    replay.add_argument("--log-level", choices=["debug", "info", "warning", "error"])
+    replay.add_argument("--format", choices=LOG_FORMATS, help="scanner log: its format")
+    replay.add_argument("--map", help="scanner log: the map (world YAML, e.g. from `companion map build`)")
     replay.add_argument("--laser", choices=["front", "rear"], default="front", help="carmen: which laser's messages")
     _add_topic_arguments(replay)
     replay.add_argument("--odometry", choices=["auto", "log", "noisy", "none"], default="auto",

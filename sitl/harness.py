@@ -42,12 +42,15 @@ import yaml
 
 from companion.config import Config, ConfigError, load_config
 from companion.dashboard.app import spawn_dashboard
+from companion.recording.reader import Recording
+from companion.recording.recorder import FILE_GLOB
 from companion.telemetry.keys import KEY_PREFIX
 from drivers.lidar_models import MODELS
 from sitl.ardupilot_observer import THREAD_NAME as OBSERVER_THREAD
 from sitl.ardupilot_run import ArduPilotRun, ArduPilotStartFailure
 from sitl.frame_shift import moved_origin, shift_mission, shift_world, shifted, takeoff_pose, write_shifted
 from sitl.report import PAIR_STREAM_KEYS, build_report
+from sitl.replay_report import write_scoring_file
 from companion.world import load_world
 
 log = logging.getLogger("companion.sitl")
@@ -120,12 +123,16 @@ def companion_url_for(vehicle_url: str) -> str:
 
 
 def write_run_config(cfg: Config, mission: str | None, out_dir: Path, autopilot_url: str | None,
-                     control_law: str | None = None, origin_at_takeoff: bool = False) -> Path:
+                     control_law: str | None = None, origin_at_takeoff: bool = False,
+                     record_dir: Path | None = None) -> Path:
     """A copy of the config with the mission (and control law) chosen, absolute paths and the matching
-    link URL; with ``origin_at_takeoff``, in the frame whose origin is the take-off point (sitl/frame_shift.py)."""
+    link URL; with ``origin_at_takeoff``, in the frame whose origin is the take-off point (sitl/frame_shift.py);
+    with ``record_dir``, the flight recorder on, recording there (the config's other record settings kept)."""
     raw = yaml.safe_load(Path(cfg.source).read_text()) or {}
     if control_law is not None:
         raw.setdefault("control", {})["law"] = control_law
+    if record_dir is not None:
+        raw["record"] = {**(raw.get("record") or {}), "enabled": True, "dir": str(record_dir.resolve())}
     mission_file = cfg.resolve(f"missions/{mission}.yaml") if mission else (
         cfg.resolve(cfg.mission.file) if cfg.mission.file else None)
     raw.setdefault("mission", {})["file"] = str(mission_file) if mission_file else None
@@ -414,7 +421,8 @@ def _start(session: Session, cfg: Config, args: argparse.Namespace, work: Path, 
     if session.ardupilot is not None:
         autopilot_url = session.ardupilot.start_tap()
     run_cfg = write_run_config(cfg, args.mission, work, autopilot_url, args.control_law,
-                               origin_at_takeoff=session.ardupilot is not None)
+                               origin_at_takeoff=session.ardupilot is not None,
+                               record_dir=Path(args.record) if args.record else None)
     if session.ardupilot is not None:
         try:
             session.ardupilot.boot(run_cfg)
@@ -487,6 +495,19 @@ class _QuietObserver(logging.Filter):
 
     def filter(self, record: logging.LogRecord) -> bool:
         return record.threadName != OBSERVER_THREAD or record.levelno >= logging.ERROR
+
+
+def _keep_scoring_inputs(record_dir: Path, inputs: dict, world_file: Path) -> None:
+    """Beside the flight's recording (the newest in ``record_dir``), what its report was scored from,
+    so that `companion replay` scores the replay's report the same way (sitl/replay_report.py)."""
+    parts = sorted(record_dir.glob(FILE_GLOB), key=lambda p: p.stat().st_mtime)
+    if not parts:
+        log.error("no recording in %s: the daemon recorded nothing (see its log)", record_dir)
+        return
+    recording = Recording.open(parts[-1])
+    path = write_scoring_file(record_dir, recording.id, inputs, world_file)
+    print(f"companion sitl: recording {', '.join(p.name for p in recording.parts)} in {record_dir}; "
+          f"scoring inputs {path.name}", flush=True)
 
 
 def run_harness(args: argparse.Namespace) -> int:
@@ -564,7 +585,7 @@ def run_harness(args: argparse.Namespace) -> int:
         frame = run_cfg.origin
         world = run_cfg.load_referenced("sitl.world", run_cfg.sitl.world, load_world)
         usage = session.usage
-        report = build_report(
+        inputs = dict(
             mission=mission_name, seconds=sim_log["sim_seconds"], lockstep=bool(args.lockstep), seed=args.seed,
             control_law=args.control_law or cfg.control.law, log=sim_log, telemetry=telemetry,
             origin=(frame.lat, frame.lon, frame.alt),
@@ -573,8 +594,11 @@ def run_harness(args: argparse.Namespace) -> int:
             rss_mb=None if usage is None else usage[1], base_ne=world.base,
             attitude_checks=session.listener.every("attitude_check") if session.listener is not None else [],
             pair_streams={stream: session.listener.every(stream) for stream in PAIR_STREAM_KEYS}
-            if session.listener is not None else None,
-            ground_height=world.floor_height_at)
+            if session.listener is not None else None)
+        if args.record:  # before build_report, which may not keep its inputs as they are
+            _keep_scoring_inputs(Path(args.record), json.loads(json.dumps(inputs)),
+                                 run_cfg.resolve(run_cfg.sitl.world))
+        report = build_report(**inputs, ground_height=world.floor_height_at)
         Path(args.report).write_text(json.dumps(report, indent=2) + "\n")
         print(json.dumps(report, indent=2), flush=True)
         print(f"companion sitl: flight log (truth, everything the autopilot received) in {vehicle_log}", flush=True)
