@@ -505,7 +505,11 @@ def _keep_scoring_inputs(record_dir: Path, inputs: dict, world_file: Path) -> No
         log.error("no recording in %s: the daemon recorded nothing (see its log)", record_dir)
         return
     recording = Recording.open(parts[-1])
-    path = write_scoring_file(record_dir, recording.id, inputs, world_file)
+    try:
+        path = write_scoring_file(record_dir, recording.id, inputs, world_file)
+    except OSError as exc:  # e.g. the disk the recording filled
+        log.error("cannot keep the scoring inputs beside the recording in %s: %s", record_dir, exc)
+        return
     print(f"companion sitl: recording {', '.join(p.name for p in recording.parts)} in {record_dir}; "
           f"scoring inputs {path.name}", flush=True)
 

@@ -9,6 +9,7 @@ listed in :attr:`Recording.truncated`.
 from __future__ import annotations
 
 import json
+import struct
 import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
@@ -17,6 +18,7 @@ from typing import Any
 
 from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Attachment, Channel, Message, Metadata, Schema
+from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 
 from companion.recording.recorder import CONFIG_METADATA, FILE_GLOB, RECORDING_METADATA, STATS_METADATA
@@ -48,7 +50,7 @@ class Recording:
     attachments: dict[str, bytes] = field(default_factory=dict)  # {config key: file content}
     first_part: int = 1  # the index of the oldest part still on disk (1: the recording is whole at its start)
     truncated: list[Path] = field(default_factory=list)  # parts read to a cut (a crash), filled while iterating
-    stats: dict[str, Any] = field(default_factory=dict)  # the recorder's snapshot at its last finished part
+    stats: dict[str, Any] = field(default_factory=dict)  # the recorder's snapshot when it finished ({}: cut by a crash)
 
     @classmethod
     def open(cls, path: str | Path) -> Recording:
@@ -71,6 +73,7 @@ class Recording:
         recording = cls(id=info["id"], parts=[p for _, p in parts], config_yaml=config["yaml"],
                         config_source=config["source"], first_part=parts[0][0])
         recording.attachments = _attachments(recording.parts[0])
+        recording.stats = _final_stats(recording.parts[-1])
         return recording
 
     def messages(self, topics: set[str] | None = None) -> Iterator[RecordedMessage]:
@@ -92,8 +95,6 @@ class Recording:
                         topic, schema = channels[record.channel_id]
                         if topics is None or topic in topics:
                             yield RecordedMessage(topic, schema, record.log_time * 1e-9, json.loads(record.data))
-                    elif isinstance(record, Metadata) and record.name == STATS_METADATA:
-                        self.stats = json.loads(record.metadata.get("snapshot", "{}"))
             except EndOfFile:  # cut short by a crash: read up to its last whole record
                 self.truncated.append(part)
             except (McapError, ValueError, KeyError) as exc:
@@ -139,6 +140,19 @@ def _head(path: Path, quiet: bool = False) -> dict[str, dict[str, str]]:
         if not found:
             raise RecordingError(f"{path}: not an MCAP file: {exc}") from exc
     return found
+
+
+def _final_stats(path: Path) -> dict[str, Any]:
+    """The recorder's snapshot written when it finished ``path`` (from its summary); {} for a part
+    cut by a crash (no summary)."""
+    try:
+        with open(path, "rb") as f:
+            for record in make_reader(f).iter_metadata():
+                if record.name == STATS_METADATA:
+                    return json.loads(record.metadata.get("snapshot", "{}"))
+    except (McapError, EOFError, ValueError, struct.error):
+        pass
+    return {}
 
 
 def _attachments(path: Path) -> dict[str, bytes]:

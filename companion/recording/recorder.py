@@ -100,6 +100,7 @@ class RecorderStats:
     parts: list[str] = field(default_factory=list)  # the files of this recording, in order
     removed: list[str] = field(default_factory=list)  # parts of older recordings removed by the size cap
     stopped: str | None = None  # why the recording stopped early (disk full, ...); None while it records
+    thread_cpu_s: float = 0.0  # CPU time of the writer thread (encoding, compression, writing), s
 
 
 @dataclass
@@ -188,7 +189,8 @@ class Recorder:
         s = self.stats
         return {"id": self.id, "queued": s.queued, "written": s.written, "dropped": dict(self._dropped),
                 "frames_skipped": s.frames_skipped, "encode_errors": s.encode_errors,
-                "bytes_written": s.bytes_written, "parts": list(s.parts), "removed": len(s.removed), "stopped": s.stopped}
+                "bytes_written": s.bytes_written, "parts": list(s.parts), "removed": len(s.removed), "stopped": s.stopped,
+                "thread_cpu_s": s.thread_cpu_s}
 
     def _put(self, topic: str, kind: str, t: float, obj: Any, sensor: str = "") -> None:
         if self.stats.stopped is not None:
@@ -216,9 +218,11 @@ class Recorder:
                 if time.monotonic() - last_flush >= self.settings.flush_s:
                     last_flush = time.monotonic()
                     self._flush()
+                    self.stats.thread_cpu_s = time.thread_time()
             except OSError as exc:
                 self._stop(exc)
                 return
+        self.stats.thread_cpu_s = time.thread_time()
         try:
             self._finish_part()
         except OSError as exc:

@@ -1,0 +1,259 @@
+"""The flight recorder (companion/recording/): exact encodings with schemas, the writer's bounds
+(parts, size cap, full queue), files cut by a crash, and record-then-replay of a lockstep SITL
+patrol end to end (`companion sitl --record`, `companion replay FILE.mcap --report`)."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+import socket
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import jsonschema
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from companion import messages as m
+from companion.config import RecordConfig
+from companion.recording import codec
+from companion.recording.reader import Recording
+from companion.recording.recorder import FILE_GLOB, Recorder
+from tests.conftest import REPO, free_port
+from tests.sitl_helpers import write_sitl_config
+
+RNG = np.random.default_rng(16)
+
+
+def sample_messages() -> list[object]:
+    """One of every typed message, with the awkward values a real one has (NaN, inf, None, grey and colour images)."""
+    ranges = RNG.uniform(0.1, 30.0, 1081)
+    ranges[[3, 9]] = [np.inf, np.nan]
+    valid = np.ones(1081, bool)
+    valid[[3, 9, 20]] = False
+    angles = np.linspace(-2.356, 2.356, 1081)
+    flows = RNG.normal(size=(6, 2))
+    flows[2] = np.nan
+    return [
+        m.Scan("lidar_h", 12.025, angles, ranges, valid, sweep_s=0.025, sequence=481),
+        m.Frame("down", 3.5, RNG.integers(0, 255, (48, 64), dtype=np.uint8), sequence=2, exposure_s=0.004),
+        m.Frame("front", 3.6, RNG.integers(0, 255, (48, 64, 3), dtype=np.uint8)),
+        m.ImuSample(1.0 / 3.0, RNG.normal(size=3), RNG.normal(size=3), (0.1, -0.2, 3.0), RNG.normal(size=3), 12.5),
+        m.ImuSample(2.0, RNG.normal(size=3), RNG.normal(size=3)),
+        m.GnssFix("gps", 7.1, 3, 1.2966, 103.7764, 10.0, np.array([1.0, 2.0, np.nan]), 0.8, 1.5, 0.1, 12),
+        m.GnssFix("gps", 7.2, 1, math.nan, math.nan, math.nan),
+        m.LandmarkSightings("markers", 4.0, np.array([3, 7]), RNG.uniform(1, 5, 2), RNG.normal(size=2), RNG.normal(size=2),
+                            (0.05, 0.01, 0.01), 5, RNG.uniform(0, 1, (2, 3))),
+        m.FlowField("front", 0.9, 1.0, RNG.normal(size=(6, 2)), flows, np.array([1, 1, 0, 1, 1, 1], bool), 4),
+        m.PoseEstimate(5.0, RNG.normal(size=3), (0.01, -0.02, 2.5), np.diag(RNG.uniform(0, 1, 6)), RNG.normal(size=3),
+                       np.eye(3) * 0.01, reset=True, source="lidar", degraded=True),
+        m.AttitudeEstimate(6.0, (0.1, 0.05, math.nan), np.diag([1e-4, 1e-4, math.inf]), source="gnss_flow.images"),
+        m.RangeEstimate(6.5, 12.25, 0.04, source="gnss_flow"),
+    ]
+
+
+def same(a: object, b: object) -> bool:
+    """Bit-for-bit equality of two messages (arrays by bytes, NaN equal to NaN)."""
+    if type(a) is not type(b):
+        return False
+    for name in a.__dataclass_fields__:
+        x, y = getattr(a, name), getattr(b, name)
+        if isinstance(x, np.ndarray):
+            if not (isinstance(y, np.ndarray) and x.dtype == y.dtype and x.shape == y.shape and x.tobytes() == y.tobytes()):
+                return False
+        elif isinstance(x, tuple) and isinstance(y, tuple):
+            if np.asarray(x, float).tobytes() != np.asarray(y, float).tobytes():
+                return False
+        elif isinstance(x, float) and isinstance(y, float):
+            if np.float64(x).tobytes() != np.float64(y).tobytes():
+                return False
+        elif x != y:
+            return False
+    return True
+
+
+@pytest.mark.parametrize("msg", sample_messages(), ids=lambda msg: type(msg).__name__)
+def test_every_message_comes_back_bit_for_bit_and_its_document_validates_against_its_schema(msg: object) -> None:
+    doc = json.loads(codec.dumps(codec.encode_message(msg)))
+    name, schema = codec.message_schema(type(msg))
+    jsonschema.Draft202012Validator.check_schema(schema)
+    jsonschema.validate(doc, schema)
+    assert same(codec.decode_message(type(msg), doc), msg)
+
+
+def test_the_foxglove_messages_carry_the_fields_foxglove_draws_from() -> None:
+    scan, frame, _, _, _, fix, _, _, _, pose, _, _ = sample_messages()
+    s = codec.encode_message(scan, "lidar_h")
+    assert codec.message_schema(m.Scan)[0] == "foxglove.LaserScan"
+    assert len(s["ranges"]) == 1081 and s["ranges"][3] == s["ranges"][9] == s["ranges"][20] == 0.0
+    assert s["ranges"][0] == scan.ranges_m[0] and s["start_angle"] == scan.angles_rad[0]
+    assert s["frame_id"] == "lidar_h" and s["timestamp"] == {"sec": 12, "nsec": 25_000_000}
+    f = codec.encode_message(frame)
+    assert codec.message_schema(m.Frame)[0] == "foxglove.CompressedImage" and f["format"] == "png"
+    g = codec.encode_message(fix)
+    assert codec.message_schema(m.GnssFix)[0] == "foxglove.LocationFix"
+    assert (g["latitude"], g["position_covariance"][0], g["position_covariance_type"]) == (1.2966, 0.8 ** 2, 2)
+    p = codec.encode_message(pose)
+    q = p["pose"]["orientation"]
+    assert codec.message_schema(m.PoseEstimate)[0] == "foxglove.PoseInFrame"
+    assert p["frame_id"] == "local_ned" and math.isclose(math.hypot(q["x"], q["y"], q["z"], q["w"]), 1.0)
+    assert math.isclose(2 * math.atan2(q["z"], q["w"]), 2.5, abs_tol=0.05)  # yaw, nearly level
+
+
+def test_an_estimate_in_a_nav_cycle_comes_back_bit_for_bit() -> None:
+    for e in sample_messages()[-3:]:
+        assert same(codec.decode_estimate(json.loads(codec.dumps(codec.encode_estimate(e)))), e)
+
+
+def test_a_text_field_that_reads_like_a_non_finite_number_stays_text() -> None:
+    scan = replace(sample_messages()[0], sensor_id="inf")
+    assert codec.decode_message(m.Scan, json.loads(codec.dumps(codec.encode_message(scan)))).sensor_id == "inf"
+
+
+# -- the writer ------------------------------------------------------------------------------------
+
+def recorder(directory: Path, **settings: object) -> Recorder:
+    config = directory / "companion.yaml"
+    config.write_text("# the config\n")
+    world = directory / "world.yaml"
+    world.write_text("walls: []\n")
+    clock = iter(np.arange(0.0, 1e6, 0.01))
+    return Recorder(replace(RecordConfig(enabled=True), **settings), directory / "rec", config.read_text(),
+                    str(config), {"pipelines.lidar.map": world}, lambda: float(next(clock)))
+
+
+def feed_scans(rec: Recorder, count: int) -> list[m.Scan]:
+    scan = sample_messages()[0]
+    handler = rec.sensor("lidar_h")
+    scans = [replace(scan, t_capture=0.025 * i, sequence=i, ranges_m=RNG.uniform(0.1, 30, 1081)) for i in range(count)]
+    for s in scans:
+        handler(s)
+    return scans
+
+
+def test_a_recording_keeps_every_message_in_order_with_its_config_and_files(tmp_path: Path) -> None:
+    rec = recorder(tmp_path)
+    rec.start()
+    scans = feed_scans(rec, 50)
+    rec.close(timeout_s=10)
+    recording = Recording.open(next((tmp_path / "rec").glob(FILE_GLOB)))
+    read = [codec.decode_message(m.Scan, msg.doc) for msg in recording.messages()]
+    assert len(read) == 50 and all(same(a, b) for a, b in zip(read, scans))
+    assert recording.config_yaml == "# the config\n"
+    assert recording.attachments == {"pipelines.lidar.map": b"walls: []\n"}
+    assert recording.truncated == [] and recording.stats["written"] == 50
+
+
+def test_a_long_recording_is_split_into_parts_and_the_oldest_removed_under_the_cap(tmp_path: Path) -> None:
+    rec = recorder(tmp_path, max_file_mb=1.0, max_total_mb=3.0, chunk_kb=64)
+    rec.start()
+    feed_scans(rec, 1200)  # about 12 MB of scans before compression
+    rec.close(timeout_s=30)
+    on_disk = sorted((tmp_path / "rec").glob(FILE_GLOB))
+    assert len(rec.stats.parts) >= 4 and rec.stats.removed
+    assert [p.name for p in on_disk] == rec.stats.parts[len(rec.stats.removed):]
+    assert sum(p.stat().st_size for p in on_disk) <= 3.0e6 + 1.2e6  # the cap, plus the part being written when checked
+    recording = Recording.open(on_disk[-1])
+    assert recording.first_part == len(rec.stats.removed) + 1
+    sequences = [msg.doc["sequence"] for msg in recording.messages()]
+    assert sequences == list(range(sequences[0], 1200))  # the kept parts, whole and in order
+
+
+def test_a_full_queue_drops_and_counts_instead_of_blocking(tmp_path: Path) -> None:
+    rec = recorder(tmp_path, queue_size=64)
+    feed_scans(rec, 100)  # the writer thread is not started: nothing drains the queue
+    assert rec.snapshot()["dropped"] == {"/sensors/lidar_h": 36}
+    rec.start()
+    rec.close(timeout_s=10)
+    assert Recording.open(next((tmp_path / "rec").glob(FILE_GLOB))).stats["dropped"] == {"/sensors/lidar_h": 36}
+
+
+def test_a_file_cut_anywhere_is_read_up_to_its_last_whole_chunk(tmp_path: Path) -> None:
+    rec = recorder(tmp_path, chunk_kb=64)
+    rec.start()
+    feed_scans(rec, 200)
+    rec.close(timeout_s=10)
+    path = next((tmp_path / "rec").glob(FILE_GLOB))
+    data = path.read_bytes()
+    whole = len(list(Recording.open(path).messages()))
+    counts = []
+    for fraction in (0.3, 0.55, 0.8, 0.97):
+        cut = tmp_path / "cut" / path.name
+        cut.parent.mkdir(exist_ok=True)
+        cut.write_bytes(data[: int(len(data) * fraction)])
+        recording = Recording.open(cut)
+        read = [msg.doc["sequence"] for msg in recording.messages()]
+        assert recording.truncated == [cut]
+        assert read == list(range(len(read)))  # a prefix, nothing garbled
+        counts.append(len(read))
+    assert counts == sorted(counts) and 0 < counts[0] and counts[-1] < whole
+    assert counts[-1] >= whole * 0.97 - 40  # one 64 kB chunk holds about 7 of these scans; a few chunks at most
+
+
+# -- record a lockstep SITL patrol, replay it ------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def patrol(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """`companion sitl --mission patrol --lockstep --report --record DIR` (config/sitl.yaml on free
+    ports), then `companion replay` of its recording with --report."""
+    directory = tmp_path_factory.mktemp("patrol-recording")
+    (directory / "missions").symlink_to(REPO / "config" / "missions")
+    cfg = write_sitl_config(directory / "sitl.yaml", vehicle_port=free_port(), gcs_port=free_port(),
+                            zenoh_port=free_port(socket.SOCK_STREAM), mission=None, source="sitl.yaml")
+    flight, replayed, record = directory / "flight.json", directory / "replay.json", directory / "rec"
+    proc = subprocess.run(
+        [sys.executable, "-m", "companion.cli", "sitl", "-c", str(cfg), "--mission", "patrol", "--lockstep",
+         "--seed", "1", "--seconds", "150", "--report", str(flight), "--record", str(record)],
+        cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    part = sorted(record.glob(FILE_GLOB))[0]
+    proc = subprocess.run([sys.executable, "-m", "companion.cli", "replay", str(part), "--report", str(replayed)],
+                          cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return {"flight": flight, "replay": replayed, "part": part, "record": record}
+
+
+def test_the_replayed_patrol_equals_the_recorded_one_bit_for_bit(patrol: dict[str, Path]) -> None:
+    r = json.loads(patrol["replay"].read_text())["replay"]
+    assert r["exact"] and r["mismatched_cycles"] == 0
+    assert r["max_position_diff_m"] == 0.0 and r["max_yaw_diff_deg"] == 0.0
+    assert r["cycles"] > 50 * 100 and r["messages"] > r["cycles"]  # 50 Hz cycles of a 2-minute flight, and the scans
+    assert r["recorder_dropped"] == {} and r["truncated_parts"] == []
+
+
+def test_the_replay_report_equals_the_flights_report(patrol: dict[str, Path]) -> None:
+    flight = json.loads(patrol["flight"].read_text())
+    replayed = json.loads(patrol["replay"].read_text())
+    assert set(replayed) == set(flight) | {"replay"}
+    replayed.pop("replay")
+    assert replayed == flight
+    assert flight["control"]["mission_completed"] and flight["estimate"]["position_rms_m"] is not None
+
+
+def test_every_channel_opens_with_the_mcap_reader_and_validates_against_its_schema(patrol: dict[str, Path]) -> None:
+    with open(patrol["part"], "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics.message_count > 0
+        validators: dict[int, jsonschema.Validator] = {}
+        seen: dict[str, int] = {}
+        for schema, channel, message in reader.iter_messages():
+            if channel.id not in validators:
+                body = json.loads(schema.data)
+                jsonschema.Draft202012Validator.check_schema(body)
+                assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
+                validators[channel.id] = jsonschema.Draft202012Validator(body)
+            validators[channel.id].validate(json.loads(message.data))
+            seen[schema.name] = seen.get(schema.name, 0) + 1
+    assert {"foxglove.LaserScan", "foxglove.PoseInFrame", "companion.ImuSample", "companion.NavCycle",
+            "companion.MavlinkMessage", "companion.Telemetry", "companion.HealthChange"} <= set(seen)
+
+
+def test_replaying_only_named_pipelines_and_refusing_an_unknown_one(patrol: dict[str, Path]) -> None:
+    proc = subprocess.run([sys.executable, "-m", "companion.cli", "replay", str(patrol["part"]), "--pipelines", "nope"],
+                          cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and "nope: not a pipeline of the recorded config (lidar)" in proc.stderr
