@@ -161,7 +161,7 @@ class RecordConfig:
 
     enabled: bool = field(default=False, metadata=meta(
         "Record every sensor message, estimate, source selection, MAVLink message in and out, telemetry and "
-        "health change to MCAP."))
+        "health change to MCAP files in `dir`."))
     dir: str = field(default="recordings", metadata=meta(
         "Directory of the recordings (relative: to the config file's); created if missing."))
     max_file_mb: float = field(default=256.0, metadata=meta(
@@ -178,9 +178,18 @@ class RecordConfig:
     frame_rate_hz: float = field(default=10.0, metadata=meta(
         "Camera frames recorded per second and camera at most (0: every frame); lossless PNG, so a replay of "
         "a camera pipeline is exact when this is at least the camera's rate.", (0, 1000)))
+    scan_view_hz: float = field(default=10.0, metadata=meta(
+        "Each scanner's scans also written as Foxglove's LaserScan (to view them in Foxglove) at most this often "
+        "(0: never); every scan is recorded exactly regardless.", (0, 1000)))
     mavlink: bool = field(default=True, metadata=meta("Record every MAVLink message in and out."))
     telemetry: bool = field(default=True, metadata=meta(
         "Record every telemetry message published (what the dashboard shows; its playback needs them)."))
+    foxglove_server: bool = field(default=False, metadata=meta(
+        "Also serve the recorder's channels live to the Foxglove app (its WebSocket protocol, foxglove-sdk), with or "
+        "without `enabled`."))
+    foxglove_host: str = field(default="127.0.0.1", metadata=meta(
+        "Address of the Foxglove server (loopback by default; 0.0.0.0 lets a ground laptop connect)."))
+    foxglove_port: int = field(default=8765, metadata=meta("TCP port of the Foxglove server (0: any free port).", (0, 65535)))
 
 
 @dataclass

@@ -15,6 +15,7 @@ import resource
 import signal
 import threading
 import time
+import uuid
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -42,7 +43,9 @@ from companion.mission.steps import Mission, load_mission
 from companion.navloop import NavLoop, NavOutputs, build_pipelines, build_selector
 from companion.pipeline import GuidanceSource, Pipeline
 from companion.sdnotify import Notifier, WatchdogGate, run_watchdog
-from companion.recording.recorder import Recorder
+from companion.recording.foxglove_live import FoxgloveLive
+from companion.recording.mcap_files import McapFiles
+from companion.recording.recorder import Recorder, Sink
 from companion.sensors import SensorContext, build_driver, check_sensor_files
 from companion.supervisor import Supervisor
 from companion.telemetry.publisher import TelemetryPublisher
@@ -293,28 +296,35 @@ class Daemon:
     # -- internals --------------------------------------------------------------------------
 
     def _open_recorder(self) -> Recorder | None:
-        """The flight recorder (None with ``record.enabled`` off, or if its directory cannot be
-        written: health ``recorder`` says why, the daemon runs on). Hooked to the link, telemetry and
-        health here; to the drivers and nav loop where they are built."""
-        cfg = self.cfg
-        if not cfg.record.enabled:
+        """The flight recorder (None with neither ``record.enabled`` nor ``record.foxglove_server``, or
+        if its sinks cannot start: health ``recorder`` says why, the daemon runs on). Hooked to the
+        link, telemetry and health here; to the drivers and nav loop where they are built."""
+        cfg, r = self.cfg, self.cfg.record
+        sinks: list[Sink] = []
+        recording_id = uuid.uuid4().hex
+        if r.enabled:
+            source = Path(cfg.source)
+            sinks.append(McapFiles(r, cfg.resolve(r.dir), recording_id, source.read_text() if source.is_file() else "",
+                                   cfg.source, dict(cfg.referenced)))
+        if r.foxglove_server:
+            sinks.append(FoxgloveLive(r.foxglove_host, r.foxglove_port))
+        if not sinks:
             return None
-        source = Path(cfg.source)
-        text = source.read_text() if source.is_file() else ""
-        recorder = Recorder(cfg.record, cfg.resolve(cfg.record.dir), text, cfg.source, dict(cfg.referenced), clock.now)
+        recorder = Recorder(r, sinks, clock.now, recording_id)
         try:
             recorder.start()
-        except OSError as exc:
-            self.health.report("recorder", State.DEGRADED, f"cannot record in {recorder.directory}: {exc}")
+        except (OSError, ImportError) as exc:
+            self.health.report("recorder", State.DEGRADED, f"cannot record: {exc}")
             return None
-        if cfg.record.mavlink:
+        if r.mavlink:
             self.link.observe(lambda direction, msg: recorder.mavlink(direction, clock.now(), msg))
-        if cfg.record.telemetry:
+        if r.telemetry:
             self.telemetry.observer = recorder.telemetry
         self.health.on_change(lambda name, new, old: recorder.event(
             "/health/changes", clock.now(), {"component": name, "state": new.state.label, "reason": new.reason}))
-        self.health.report("recorder", State.OK, f"recording to {recorder.directory}")
-        log.info("recording to %s (%s)", recorder.directory, recorder.stats.parts[0])
+        where = ", ".join(f"{k}: {v}" for k, v in recorder.snapshot().items() if k in ("parts", "foxglove_url"))
+        self.health.report("recorder", State.OK, f"recording ({where})")
+        log.info("recording (%s)", where)
         return recorder
 
     def _recorder_health(self) -> None:

@@ -43,7 +43,7 @@ import yaml
 from companion.config import Config, ConfigError, load_config
 from companion.dashboard.app import spawn_dashboard
 from companion.recording.reader import Recording
-from companion.recording.recorder import FILE_GLOB
+from companion.recording.mcap_files import FILE_GLOB
 from companion.telemetry.keys import KEY_PREFIX
 from drivers.lidar_models import MODELS
 from sitl.ardupilot_observer import THREAD_NAME as OBSERVER_THREAD

@@ -22,7 +22,8 @@ from companion import messages as m
 from companion.config import RecordConfig
 from companion.recording import codec
 from companion.recording.reader import Recording
-from companion.recording.recorder import FILE_GLOB, Recorder
+from companion.recording.mcap_files import FILE_GLOB, McapFiles
+from companion.recording.recorder import Recorder
 from tests.conftest import REPO, free_port
 from tests.sitl_helpers import write_sitl_config
 
@@ -79,7 +80,7 @@ def same(a: object, b: object) -> bool:
 @pytest.mark.parametrize("msg", sample_messages(), ids=lambda msg: type(msg).__name__)
 def test_every_message_comes_back_bit_for_bit_and_its_document_validates_against_its_schema(msg: object) -> None:
     doc = json.loads(codec.dumps(codec.encode_message(msg)))
-    name, schema = codec.message_schema(type(msg))
+    schema = json.loads(codec.message_schema(type(msg)).data)
     jsonschema.Draft202012Validator.check_schema(schema)
     jsonschema.validate(doc, schema)
     assert same(codec.decode_message(type(msg), doc), msg)
@@ -87,19 +88,19 @@ def test_every_message_comes_back_bit_for_bit_and_its_document_validates_against
 
 def test_the_foxglove_messages_carry_the_fields_foxglove_draws_from() -> None:
     scan, frame, _, _, _, fix, _, _, _, pose, _, _ = sample_messages()
-    s = codec.encode_message(scan, "lidar_h")
-    assert codec.message_schema(m.Scan)[0] == "foxglove.LaserScan"
-    assert len(s["ranges"]) == 1081 and s["ranges"][3] == s["ranges"][9] == s["ranges"][20] == 0.0
-    assert s["ranges"][0] == scan.ranges_m[0] and s["start_angle"] == scan.angles_rad[0]
-    assert s["frame_id"] == "lidar_h" and s["timestamp"] == {"sec": 12, "nsec": 25_000_000}
+    view = codec.laser_scan_view(scan, "lidar_h")
+    assert codec.LASER_SCAN_SCHEMA.name == "foxglove.LaserScan" and codec.LASER_SCAN_SCHEMA.encoding == "protobuf"
+    shown = np.where(scan.valid, scan.ranges_m, np.nan)
+    assert shown.tobytes() in view  # packed doubles: every range exact, NaN where the beam is invalid
+    assert b"lidar_h" in view
     f = codec.encode_message(frame)
-    assert codec.message_schema(m.Frame)[0] == "foxglove.CompressedImage" and f["format"] == "png"
+    assert codec.message_schema(m.Frame).name == "foxglove.CompressedImage" and f["format"] == "png"
     g = codec.encode_message(fix)
-    assert codec.message_schema(m.GnssFix)[0] == "foxglove.LocationFix"
+    assert codec.message_schema(m.GnssFix).name == "foxglove.LocationFix"
     assert (g["latitude"], g["position_covariance"][0], g["position_covariance_type"]) == (1.2966, 0.8 ** 2, 2)
     p = codec.encode_message(pose)
     q = p["pose"]["orientation"]
-    assert codec.message_schema(m.PoseEstimate)[0] == "foxglove.PoseInFrame"
+    assert codec.message_schema(m.PoseEstimate).name == "foxglove.PoseInFrame"
     assert p["frame_id"] == "local_ned" and math.isclose(math.hypot(q["x"], q["y"], q["z"], q["w"]), 1.0)
     assert math.isclose(2 * math.atan2(q["z"], q["w"]), 2.5, abs_tol=0.05)  # yaw, nearly level
 
@@ -122,8 +123,10 @@ def recorder(directory: Path, **settings: object) -> Recorder:
     world = directory / "world.yaml"
     world.write_text("walls: []\n")
     clock = iter(np.arange(0.0, 1e6, 0.01))
-    return Recorder(replace(RecordConfig(enabled=True), **settings), directory / "rec", config.read_text(),
-                    str(config), {"pipelines.lidar.map": world}, lambda: float(next(clock)))
+    record = replace(RecordConfig(enabled=True), **settings)
+    files = McapFiles(record, directory / "rec", "0123456789abcdef", config.read_text(), str(config),
+                      {"pipelines.lidar.map": world})
+    return Recorder(record, [files], lambda: float(next(clock)), files.id)
 
 
 def feed_scans(rec: Recorder, count: int) -> list[m.Scan]:
@@ -154,11 +157,12 @@ def test_a_long_recording_is_split_into_parts_and_the_oldest_removed_under_the_c
     feed_scans(rec, 1200)  # about 12 MB of scans before compression
     rec.close(timeout_s=30)
     on_disk = sorted((tmp_path / "rec").glob(FILE_GLOB))
-    assert len(rec.stats.parts) >= 4 and rec.stats.removed
-    assert [p.name for p in on_disk] == rec.stats.parts[len(rec.stats.removed):]
+    files = rec.sinks[0]
+    assert len(files.parts) >= 4 and files.removed
+    assert [p.name for p in on_disk] == files.parts[len(files.removed):]
     assert sum(p.stat().st_size for p in on_disk) <= 3.0e6 + 1.2e6  # the cap, plus the part being written when checked
     recording = Recording.open(on_disk[-1])
-    assert recording.first_part == len(rec.stats.removed) + 1
+    assert recording.first_part == len(files.removed) + 1
     sequences = [msg.doc["sequence"] for msg in recording.messages()]
     assert sequences == list(range(sequences[0], 1200))  # the kept parts, whole and in order
 
@@ -241,7 +245,13 @@ def test_every_channel_opens_with_the_mcap_reader_and_validates_against_its_sche
         assert summary is not None and summary.statistics.message_count > 0
         validators: dict[int, jsonschema.Validator] = {}
         seen: dict[str, int] = {}
+        topics: dict[str, int] = {}
         for schema, channel, message in reader.iter_messages():
+            topics[channel.topic] = topics.get(channel.topic, 0) + 1
+            if schema.encoding == "protobuf":  # Foxglove's view of a scan: its ranges are there, raw
+                assert schema.name == "foxglove.LaserScan" and channel.topic.endswith("/laser_scan")
+                seen[schema.name] = seen.get(schema.name, 0) + 1
+                continue
             if channel.id not in validators:
                 body = json.loads(schema.data)
                 jsonschema.Draft202012Validator.check_schema(body)
@@ -249,11 +259,62 @@ def test_every_channel_opens_with_the_mcap_reader_and_validates_against_its_sche
                 validators[channel.id] = jsonschema.Draft202012Validator(body)
             validators[channel.id].validate(json.loads(message.data))
             seen[schema.name] = seen.get(schema.name, 0) + 1
-    assert {"foxglove.LaserScan", "foxglove.PoseInFrame", "companion.ImuSample", "companion.NavCycle",
+    assert {"foxglove.LaserScan", "foxglove.PoseInFrame", "companion.Scan", "companion.ImuSample", "companion.NavCycle",
             "companion.MavlinkMessage", "companion.Telemetry", "companion.HealthChange"} <= set(seen)
+    # the views at record.scan_view_hz (10): every scan of the 10 Hz URG-04LX, one in four of the 40 Hz UTM-30LX
+    assert topics["/sensors/lidar_v/laser_scan"] == topics["/sensors/lidar_v"]
+    assert abs(topics["/sensors/lidar_h/laser_scan"] - topics["/sensors/lidar_h"] / 4) <= 2
 
 
 def test_replaying_only_named_pipelines_and_refusing_an_unknown_one(patrol: dict[str, Path]) -> None:
     proc = subprocess.run([sys.executable, "-m", "companion.cli", "replay", str(patrol["part"]), "--pipelines", "nope"],
                           cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and "nope: not a pipeline of the recorded config (lidar)" in proc.stderr
+
+
+# -- live to the Foxglove app -------------------------------------------------------------------------
+
+def test_the_recorders_channels_are_served_live_to_a_foxglove_client_with_their_schemas() -> None:
+    import asyncio
+    import struct
+
+    import websockets
+
+    from companion.recording.foxglove_live import FoxgloveLive
+
+    live = FoxgloveLive("127.0.0.1", 0)
+    rec = Recorder(replace(RecordConfig(), foxglove_server=True), [live], lambda: 4.0)
+    rec.start()
+    pose = sample_messages()[-3]
+    received: dict[str, dict] = {}
+
+    async def client() -> None:
+        async with websockets.connect(f"ws://127.0.0.1:{live.port}", subprotocols=["foxglove.sdk.v1"]) as ws:
+            channels: dict[int, dict] = {}
+            for _ in range(100):
+                rec.cycle(5.0, [pose], pose)
+                try:
+                    msg = await asyncio.wait_for(ws.recv(), 0.2)
+                except asyncio.TimeoutError:
+                    continue
+                if isinstance(msg, str) and json.loads(msg)["op"] == "advertise":
+                    for c in json.loads(msg)["channels"]:
+                        channels[c["id"]] = c
+                        await ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": c["id"], "channelId": c["id"]}]}))
+                elif isinstance(msg, bytes) and msg[0] == 1:  # message data: opcode, subscription id, log time, payload
+                    subscription, log_ns = struct.unpack_from("<IQ", msg, 1)
+                    received[channels[subscription]["topic"]] = {"channel": channels[subscription], "log_ns": log_ns,
+                                                                 "doc": json.loads(msg[13:])}
+                if len(received) == 2:
+                    return
+
+    try:
+        asyncio.run(asyncio.wait_for(client(), 30))
+    finally:
+        rec.close(timeout_s=5)
+    pose_channel = received["/nav/pose"]["channel"]
+    assert pose_channel["schemaName"] == "foxglove.PoseInFrame" and pose_channel["encoding"] == "json"
+    assert pose_channel["schemaEncoding"] == "jsonschema"
+    jsonschema.validate(received["/nav/pose"]["doc"], json.loads(pose_channel["schema"]))
+    assert same(codec.decode_message(m.PoseEstimate, received["/nav/pose"]["doc"]), pose)
+    assert received["/nav/cycle"]["log_ns"] == 5_000_000_000

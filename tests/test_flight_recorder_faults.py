@@ -17,7 +17,7 @@ import pytest
 
 from companion.config import RecordConfig
 from companion.recording.reader import Recording
-from companion.recording.recorder import FILE_GLOB
+from companion.recording.mcap_files import FILE_GLOB
 from tests.conftest import REPO, free_port
 from tests.sitl_helpers import wait_for, write_sitl_config
 

@@ -21,7 +21,7 @@ from mcap.records import Attachment, Channel, Message, Metadata, Schema
 from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 
-from companion.recording.recorder import CONFIG_METADATA, FILE_GLOB, RECORDING_METADATA, STATS_METADATA
+from companion.recording.mcap_files import CONFIG_METADATA, FILE_GLOB, RECORDING_METADATA, STATS_METADATA
 
 
 class RecordingError(ValueError):
@@ -77,7 +77,8 @@ class Recording:
         return recording
 
     def messages(self, topics: set[str] | None = None) -> Iterator[RecordedMessage]:
-        """Every message (of ``topics``, or all) in recorded order, part after part."""
+        """Every JSON message (of ``topics``, or all) in recorded order, part after part (the
+        protobuf views for Foxglove, ``/sensors/<name>/laser_scan``, are left out)."""
         for part in self.parts:
             yield from self._read_part(part, topics)
 
@@ -89,9 +90,9 @@ class Recording:
                 for record in StreamReader(f).records:
                     if isinstance(record, Schema):
                         schemas[record.id] = record.name
-                    elif isinstance(record, Channel):
+                    elif isinstance(record, Channel) and record.message_encoding == "json":
                         channels[record.id] = (record.topic, schemas.get(record.schema_id, ""))
-                    elif isinstance(record, Message):
+                    elif isinstance(record, Message) and record.channel_id in channels:
                         topic, schema = channels[record.channel_id]
                         if topics is None or topic in topics:
                             yield RecordedMessage(topic, schema, record.log_time * 1e-9, json.loads(record.data))

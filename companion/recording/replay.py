@@ -31,7 +31,7 @@ from companion.recording import codec
 from companion.recording.reader import Recording, RecordingError
 from companion.sdnotify import WatchdogGate
 
-SCHEMA_TYPES: dict[str, type] = {codec.message_schema(cls)[0]: cls for cls in codec.MESSAGE_TYPES.values()}
+SCHEMA_TYPES: dict[str, type] = {codec.message_schema(cls).name: cls for cls in codec.MESSAGE_TYPES.values()}
 REPLAYED_TOPICS_PREFIX = ("/sensors/", "/nav/cycle", "/nav/source_command", "/nav/guidance_request")
 
 
