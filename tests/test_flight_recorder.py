@@ -318,3 +318,24 @@ def test_the_recorders_channels_are_served_live_to_a_foxglove_client_with_their_
     jsonschema.validate(received["/nav/pose"]["doc"], json.loads(pose_channel["schema"]))
     assert same(codec.decode_message(m.PoseEstimate, received["/nav/pose"]["doc"]), pose)
     assert received["/nav/cycle"]["log_ns"] == 5_000_000_000
+
+
+def test_replay_at_a_speed_waits_for_each_messages_recorded_time_scaled_by_the_speed() -> None:
+    from companion.recording.replay import Pacer
+
+    wall = [100.0]
+    slept: list[float] = []
+
+    def sleep(seconds: float) -> None:
+        slept.append(seconds)
+        wall[0] += seconds
+
+    pacer = Pacer(4.0, clock=lambda: wall[0], sleep=sleep)
+    pacer.wait_for(10.0)  # the first message sets the origin
+    pacer.wait_for(12.0)  # 2 s recorded at 4x: 0.5 s of wall time
+    wall[0] += 1.0  # the replay itself took 1 s: the next message is late already
+    pacer.wait_for(14.0)
+    pacer.wait_for(18.0)
+    assert slept == [0.5, 0.5]  # 12: due at +0.5 s; 14: due at +1.0 s, at +1.5 s already (no sleep); 18: due at +2.0 s
+    with pytest.raises(ValueError):
+        Pacer(0.0)

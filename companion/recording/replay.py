@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -98,7 +99,7 @@ def replay(recording: Recording, pipelines: list[str] | None = None, speed: floa
         nav.on_cycle = lambda now, made, chosen: result.replayed.append(
             Cycle(now, made, chosen.source if chosen is not None else None))
         guide = next((p for p in built if isinstance(p, GuidanceSource)), None)
-        pace = _Pacer(speed)
+        pace = Pacer(speed)
         for msg in recording.messages():
             if not msg.topic.startswith(REPLAYED_TOPICS_PREFIX):
                 continue
@@ -167,20 +168,25 @@ def _max(values: list[float]) -> float | None:
     return max(values) if values else None
 
 
-class _Pacer:
+class Pacer:
     """Sleeps so that recorded time advances at ``speed`` times wall time (None: no pacing)."""
 
-    def __init__(self, speed: float | None) -> None:
+    def __init__(self, speed: float | None, clock: Callable[[], float] = time.monotonic,
+                 sleep: Callable[[float], None] = time.sleep) -> None:
+        if speed is not None and not speed > 0:
+            raise ValueError(f"--speed must be > 0, got {speed}")
         self.speed = speed
+        self.clock = clock
+        self.sleep = sleep
         self.start: tuple[float, float] | None = None  # (recorded t, wall t) of the first message
 
     def wait_for(self, t: float) -> None:
+        """Return when recorded time ``t`` (s) is due."""
         if self.speed is None:
             return
         if self.start is None:
-            self.start = (t, time.monotonic())
+            self.start = (t, self.clock())
             return
-        due = self.start[1] + (t - self.start[0]) / self.speed
-        delay = due - time.monotonic()
+        delay = self.start[1] + (t - self.start[0]) / self.speed - self.clock()
         if delay > 0:
-            time.sleep(delay)
+            self.sleep(delay)
