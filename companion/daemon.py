@@ -148,12 +148,13 @@ class Daemon:
         self.origin = origin = OriginSetter(link, state, commander, cfg.origin, self.health)
         self.streams = streams = StreamNegotiator(link, state, commander, cfg.mavlink.streams, self.health)
         self.telemetry = telemetry = self._open_telemetry()
-        self.recorder = self._open_recorder()
+        self.recorder = self._make_recorder()
         self.estimate = EstimateSender(link, cfg.mavlink.estimate_rate_hz, self.health, clock.now,
                                        on_alert=self.statustext)
         self.distance = DistanceSender(link)
         self.setpoints = setpoints = SetpointStream(link, state, cfg.mavlink.setpoint_rate_hz)
         pipelines = self.build_pipelines()
+        self._start_recorder()  # after the pipelines loaded their files: the recording keeps a copy of each
         self.selector = build_selector(cfg, pipelines, on_switch=self._source_switched)
         self.mission = self._build_mission(pipelines)
         self.commands = self._build_inbound_commands(pipelines)
@@ -295,37 +296,44 @@ class Daemon:
 
     # -- internals --------------------------------------------------------------------------
 
-    def _open_recorder(self) -> Recorder | None:
-        """The flight recorder (None with neither ``record.enabled`` nor ``record.foxglove_server``, or
-        if its sinks cannot start: health ``recorder`` says why, the daemon runs on). Hooked to the
-        link, telemetry and health here; to the drivers and nav loop where they are built."""
+    def _make_recorder(self) -> Recorder | None:
+        """The flight recorder (None with neither ``record.enabled`` nor ``record.foxglove_server``),
+        hooked to the link, telemetry and health here; to the drivers and nav loop where they are
+        built; started by :meth:`_start_recorder`."""
         cfg, r = self.cfg, self.cfg.record
         sinks: list[Sink] = []
         recording_id = uuid.uuid4().hex
         if r.enabled:
             source = Path(cfg.source)
             sinks.append(McapFiles(r, cfg.resolve(r.dir), recording_id, source.read_text() if source.is_file() else "",
-                                   cfg.source, dict(cfg.referenced)))
+                                   cfg.source, cfg.referenced))
         if r.foxglove_server:
             sinks.append(FoxgloveLive(r.foxglove_host, r.foxglove_port))
         if not sinks:
             return None
         recorder = Recorder(r, sinks, clock.now, recording_id)
-        try:
-            recorder.start()
-        except (OSError, ImportError) as exc:
-            self.health.report("recorder", State.DEGRADED, f"cannot record: {exc}")
-            return None
         if r.mavlink:
             self.link.observe(lambda direction, msg: recorder.mavlink(direction, clock.now(), msg))
         if r.telemetry:
             self.telemetry.observer = recorder.telemetry
         self.health.on_change(lambda name, new, old: recorder.event(
             "/health/changes", clock.now(), {"component": name, "state": new.state.label, "reason": new.reason}))
+        return recorder
+
+    def _start_recorder(self) -> None:
+        """Start the recorder's sinks and thread; if they cannot start (a directory it may not write, the
+        Foxglove port taken) health ``recorder`` says why and the daemon runs on without it."""
+        recorder = self.recorder
+        if recorder is None:
+            return
+        try:
+            recorder.start()
+        except (OSError, ImportError) as exc:
+            self.health.report("recorder", State.DEGRADED, f"cannot record: {exc}")
+            return
         where = ", ".join(f"{k}: {v}" for k, v in recorder.snapshot().items() if k in ("parts", "foxglove_url"))
         self.health.report("recorder", State.OK, f"recording ({where})")
         log.info("recording (%s)", where)
-        return recorder
 
     def _recorder_health(self) -> None:
         """Health ``recorder`` degraded once the recording stopped (disk full): the daemon flies on."""

@@ -49,7 +49,8 @@ class McapFiles:
 
     def __init__(self, settings: Any, directory: Path, recording_id: str, config_text: str, config_source: str,
                  files: dict[str, Path]) -> None:
-        """``settings``: the ``record`` config section; ``files``: {config key: file} to copy in."""
+        """``settings``: the ``record`` config section; ``files``: {config key: file} to copy in (read
+        when the recording opens: the daemon passes the config's ``referenced``, filled as files load)."""
         self.settings = settings
         self.directory = directory
         self.id = recording_id
@@ -58,7 +59,8 @@ class McapFiles:
         self.removed: list[str] = []  # parts (of any recording) removed by the size cap
         self.bytes_written = 0
         self._config = {"yaml": config_text, "source": config_source}
-        self._attachments = {key: path.read_bytes() for key, path in files.items() if path.is_file()}
+        self._files = files
+        self._attachments: dict[str, bytes] = {}
         self._part: _Part | None = None
         self._finished_bytes = 0
         self.final_stats: Callable[[], dict[str, Any]] = dict  # the recorder's counters, kept in each finished part
@@ -69,6 +71,7 @@ class McapFiles:
 
     def open(self) -> None:
         """Create the directory and the first part."""
+        self._attachments = {key: path.read_bytes() for key, path in self._files.items() if path.is_file()}
         self.directory.mkdir(parents=True, exist_ok=True)
         self._open_part()
 

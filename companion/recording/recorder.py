@@ -137,6 +137,7 @@ class Recorder:
         except BaseException:
             for sink in opened:
                 sink.abandon()
+            self.sinks = []  # every hook becomes a no-op: nothing is queued for a thread that will not run
             raise
         self._thread.start()
 
