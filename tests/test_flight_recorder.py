@@ -215,10 +215,11 @@ def patrol(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         cwd=REPO, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
     part = sorted(record.glob(FILE_GLOB))[0]
-    proc = subprocess.run([sys.executable, "-m", "companion.cli", "replay", str(part), "--report", str(replayed)],
-                          cwd=REPO, capture_output=True, text=True, timeout=600)
+    estimates = directory / "estimates.mcap"
+    proc = subprocess.run([sys.executable, "-m", "companion.cli", "replay", str(part), "--report", str(replayed),
+                           "--estimates", str(estimates)], cwd=REPO, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
-    return {"flight": flight, "replay": replayed, "part": part, "record": record}
+    return {"flight": flight, "replay": replayed, "part": part, "record": record, "estimates": estimates}
 
 
 def test_the_replayed_patrol_equals_the_recorded_one_bit_for_bit(patrol: dict[str, Path]) -> None:
@@ -264,6 +265,16 @@ def test_every_channel_opens_with_the_mcap_reader_and_validates_against_its_sche
     # the views at record.scan_view_hz (10): every scan of the 10 Hz URG-04LX, one in four of the 40 Hz UTM-30LX
     assert topics["/sensors/lidar_v/laser_scan"] == topics["/sensors/lidar_v"]
     assert abs(topics["/sensors/lidar_h/laser_scan"] - topics["/sensors/lidar_h"] / 4) <= 2
+
+
+def test_the_replayed_poses_are_written_next_to_the_recorded_ones_for_foxglove(patrol: dict[str, Path]) -> None:
+    poses: dict[str, list[tuple[int, bytes]]] = {"/recorded/nav/pose": [], "/replayed/nav/pose": []}
+    with open(patrol["estimates"], "rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages(topics=list(poses)):
+            assert schema.name == "foxglove.PoseInFrame"
+            poses[channel.topic].append((message.log_time, message.data))
+    assert len(poses["/recorded/nav/pose"]) > 5000
+    assert poses["/replayed/nav/pose"] == poses["/recorded/nav/pose"]
 
 
 def test_replaying_only_named_pipelines_and_refusing_an_unknown_one(patrol: dict[str, Path]) -> None:

@@ -28,11 +28,10 @@ import base64
 import errno
 import logging
 import math
-import queue
 import threading
 import time
 import uuid
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -43,7 +42,9 @@ from companion.telemetry.publisher import ENCODINGS, JSON_ENCODING, encode_json
 
 log = logging.getLogger("companion.recording")
 
-QUEUE_POLL_S = 0.1  # the writer thread wakes at least this often (flush, stop)
+# The writer thread wakes this often and writes everything queued since: one wake-up per message
+# (a queue.Queue's) cost more than the encoding, in thread switches and GIL hand-overs.
+BATCH_S = 0.05
 
 
 class Sink(Protocol):
@@ -117,7 +118,7 @@ class Recorder:
         self.clock = clock
         self.id = recording_id or uuid.uuid4().hex
         self.stats = RecorderStats()
-        self._queue: queue.Queue = queue.Queue(maxsize=settings.queue_size)
+        self._queue: deque[tuple[str, str, float, Any, str]] = deque()  # append/popleft are atomic under the GIL
         self._dropped: Counter[str] = Counter()
         self._closing = threading.Event()
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
@@ -196,36 +197,29 @@ class Recorder:
     def _put(self, topic: str, kind: str, t: float, obj: Any, sensor: str = "") -> None:
         if not self.sinks:
             return
-        try:
-            self._queue.put_nowait((topic, kind, t, obj, sensor))
-            self.stats.queued += 1
-        except queue.Full:
+        if len(self._queue) >= self.settings.queue_size:
             self._dropped[topic] += 1
+            return
+        self._queue.append((topic, kind, t, obj, sensor))
+        self.stats.queued += 1
 
     # -- the writer thread ----------------------------------------------------------------------
 
     def _run(self) -> None:
         last_flush = time.monotonic()
         while self.sinks:
-            try:
-                item = self._queue.get(timeout=QUEUE_POLL_S)
-            except queue.Empty:
-                item = None
-                if self._closing.is_set():
-                    break
-            if item is not None:
-                self._write(*item)
+            closing = self._closing.wait(BATCH_S)
+            while self._queue and self.sinks:
+                self._write(*self._queue.popleft())
             if time.monotonic() - last_flush >= self.settings.flush_s:
                 last_flush = time.monotonic()
                 self._each_sink(lambda sink: sink.flush())
                 self.stats.thread_cpu_s = time.thread_time()
+            if closing:
+                break
         self.stats.thread_cpu_s = time.thread_time()
         self._each_sink(lambda sink: sink.close())
-        while True:  # release what is queued (nothing more is queued without sinks)
-            try:
-                self._queue.get_nowait()
-            except queue.Empty:
-                break
+        self._queue.clear()  # what a stopped sink left (nothing more is queued without sinks)
 
     def _write(self, topic: str, kind: str, t: float, obj: Any, sensor: str) -> None:
         try:

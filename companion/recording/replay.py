@@ -9,7 +9,8 @@ source command or guidance request is given again where it happened. Nothing els
 pipelines in the daemon either (they do no I/O and read no clock), so the replay is deterministic:
 the same recording gives the same estimates, bit for bit, and equal to the recorded ones unless the
 recording lost messages (its queue was full: ``dropped``; frames over ``record.frame_rate_hz``) or
-the pipeline code changed since.
+the pipeline code changed since. :func:`write_estimates` puts the replayed estimates next to the
+recorded ones in an MCAP file (``--estimates``).
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from mcap.writer import CompressionType, Writer
 
 from companion.config import load_config
 from companion.health import Health
@@ -29,7 +31,9 @@ from companion.messages import AttitudeEstimate, Estimate, PoseEstimate, RangeEs
 from companion.navloop import NavLoop, NavOutputs, build_pipelines, build_selector
 from companion.pipeline import GuidanceSource
 from companion.recording import codec
+from companion.recording.mcap_files import LIBRARY, PROFILE
 from companion.recording.reader import Recording, RecordingError
+from companion.recording.recorder import EVENT_SCHEMAS
 from companion.sdnotify import WatchdogGate
 
 SCHEMA_TYPES: dict[str, type] = {codec.message_schema(cls).name: cls for cls in codec.MESSAGE_TYPES.values()}
@@ -121,6 +125,33 @@ def replay(recording: Recording, pipelines: list[str] | None = None, speed: floa
         result.recorder_dropped = dict(recording.stats.get("dropped") or {})
         compare(result, set(names))
         return result
+
+
+def write_estimates(result: ReplayResult, path: Path) -> None:
+    """The replayed estimates next to the recorded ones, as an MCAP file to open in Foxglove beside
+    the recording: ``/recorded/nav/cycle`` and ``/replayed/nav/cycle`` (companion.NavCycle, every
+    estimate), ``/recorded/nav/pose`` and ``/replayed/nav/pose`` (foxglove.PoseInFrame, the pose
+    selected), at each cycle's time."""
+    cycle_schema = EVENT_SCHEMAS["/nav/cycle"]
+    pose_schema = codec.message_schema(PoseEstimate)
+    with open(path, "wb") as f:
+        writer = Writer(f, compression=CompressionType.ZSTD)
+        writer.start(PROFILE, LIBRARY)
+        ids = {s.name: writer.register_schema(s.name, s.encoding, s.data) for s in (cycle_schema, pose_schema)}
+        channels = {f"/{side}/nav/{what}": writer.register_channel(
+            f"/{side}/nav/{what}", codec.MESSAGE_ENCODING, ids[(cycle_schema if what == "cycle" else pose_schema).name])
+            for side in ("recorded", "replayed") for what in ("cycle", "pose")}
+        for side, cycles in (("recorded", result.recorded), ("replayed", result.replayed)):
+            for cycle in cycles:
+                ns = max(0, int(round(cycle.now * 1e9)))
+                doc = {"now": codec.exact(cycle.now), "estimates": [codec.encode_estimate(e) for e in cycle.estimates],
+                       "selected": cycle.selected}
+                writer.add_message(channels[f"/{side}/nav/cycle"], log_time=ns, data=codec.dumps(doc), publish_time=ns)
+                pose = next((e for e in cycle.estimates if isinstance(e, PoseEstimate) and e.source == cycle.selected), None)
+                if pose is not None:
+                    writer.add_message(channels[f"/{side}/nav/pose"], log_time=ns,
+                                       data=codec.dumps(codec.encode_message(pose)), publish_time=ns)
+        writer.finish()
 
 
 def compare(result: ReplayResult, sources: set[str]) -> None:
