@@ -19,7 +19,9 @@ Events (the page's input, docs/dashboard.md):
 * ``{"type": "status", "now", "vehicles": {sysid: {"age_s", "streams": {stream: {"count",
   "rate_hz", "age_s", "bad"}}}}, "inbox_dropped", "browsers", ...}`` every second: ``age_s``
   is the time since the last sample of the vehicle or stream (s), ``bad`` counts samples that
-  could not be decoded.
+  could not be decoded;
+* ``{"type": "reset"}`` (playback only, on a seek): forget every vehicle's state, the samples
+  that follow rebuild it.
 """
 
 from __future__ import annotations
@@ -47,6 +49,7 @@ OUTBOX_SIZE = 256  # events waiting for one browser (one per key; each recent al
 ALERT_HISTORY = 50  # alerts a joining browser gets (the alerts stream is a list, not a state)
 PER_SOURCE_STREAMS = ("attitude_check",)  # their messages name a `source`: the newest per source is kept
 SUBSCRIPTION = f"{KEY_PREFIX}/*/*"
+RESET_EVENT = '{"type":"reset"}'
 
 
 class Browser:
@@ -134,9 +137,12 @@ class TelemetryHub:
             self._inbox.clear()
             self._drain_scheduled = False
         for key, encoding, payload, rx in items:
-            self._receive(key, encoding, payload, rx)
+            self.receive(key, encoding, payload, rx)
 
-    def _receive(self, key: str, encoding: str, payload: bytes, rx: float) -> None:
+    def receive(self, key: str, encoding: str, payload: bytes, rx: float) -> None:
+        """One sample as zenoh carries it (key expression, encoding, bytes), received at ``rx``
+        (the hub's clock, s): decoded, cached and offered to every browser. The zenoh samples
+        come here from the inbox; a playback (companion/dashboard/playback.py) calls it directly."""
         parts = key.split("/")
         if len(parts) != 3 or not (parts[1].isascii() and parts[1].isdigit()) or not is_stream_name(parts[2]):
             return  # not a vehicle stream: neither cached nor counted
@@ -174,6 +180,17 @@ class TelemetryHub:
             browser.offer(f"alert-history#{i}", text)
         self.browsers.add(browser)
         return browser
+
+    def reset(self) -> None:
+        """Forget every cached sample, alert and statistic (a playback seeks): every browser's
+        queued events are dropped and it gets ``{"type": "reset"}``, telling the page to forget its
+        own state before the samples that follow."""
+        self._cache.clear()
+        self._alerts.clear()
+        self._stats.clear()
+        for browser in self.browsers:
+            browser.take()
+            browser.offer("reset", RESET_EVENT)
 
     def detach(self, browser: Browser) -> None:
         self.browsers.discard(browser)

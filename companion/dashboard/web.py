@@ -4,7 +4,10 @@ Plain asyncio HTTP/1.1, one request per connection: ``GET /`` (the page), ``GET 
 (its scripts, style sheet and icon; the icon also as ``/favicon.ico``, where browsers look
 for it without a link) and ``GET /events`` (server-sent events: every hub event as one
 ``data:`` line, ``retry: 1000`` so the browser reconnects within a second). The dashboard is
-read-only and so is the server: another method is 405, another path 404. Bound to loopback
+read-only and so is the server: another method is 405, another path 404. Playing a recording
+(``--play``), it also takes ``POST /playback`` (a JSON request to the player: play, pause, seek,
+speed; the answer is the player's state), only with ``Content-Type: application/json`` and no
+foreign ``Origin``, so that another site's page cannot drive it. Bound to loopback
 (the default) it answers only requests whose Host header names loopback, so that a web page
 elsewhere cannot read the telemetry through DNS rebinding. The assets are package data (no
 CDN: the field laptop may be offline) and a Content-Security-Policy keeps the page to them.
@@ -15,8 +18,11 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import ipaddress
+import json
 import logging
+from collections.abc import Callable
 from importlib import resources
+from typing import Any
 
 from companion.dashboard.hub import TelemetryHub
 
@@ -34,6 +40,8 @@ SECURITY_HEADERS = (
     "Referrer-Policy: no-referrer\r\n"
 )
 LOOPBACK_NAMES = ("localhost", "127.0.0.1", "[::1]")
+MAX_CONTROL_BODY = 1024  # bytes of a POST /playback request
+Control = Callable[[dict[str, Any]], dict[str, Any]]  # a request -> the state after it; ValueError: refused
 
 
 def load_assets() -> dict[str, tuple[bytes, str]]:
@@ -66,10 +74,12 @@ def host_name(host_header: str) -> str:
 
 
 class DashboardServer:
-    """Serves one hub's page and events on ``host``:``port`` (0 = any free port)."""
+    """Serves one hub's page and events on ``host``:``port`` (0 = any free port); with
+    ``control`` (a playback), also ``POST /playback``."""
 
-    def __init__(self, hub: TelemetryHub, host: str, port: int) -> None:
+    def __init__(self, hub: TelemetryHub, host: str, port: int, control: Control | None = None) -> None:
         self.hub = hub
+        self.control = control
         self.host = host
         self.port = port
         self.assets = load_assets()
@@ -102,7 +112,7 @@ class DashboardServer:
         self._handlers[task] = writer
         try:
             head = await asyncio.wait_for(reader.readuntil(b"\r\n\r\n"), REQUEST_TIMEOUT_S)
-            await self._answer(head.decode("latin-1"), writer)
+            await self._answer(head.decode("latin-1"), reader, writer)
         except (asyncio.IncompleteReadError, asyncio.LimitOverrunError, TimeoutError, ConnectionError):
             pass  # a client that went away or sent garbage: nothing to answer
         finally:
@@ -111,7 +121,7 @@ class DashboardServer:
             with contextlib.suppress(ConnectionError):
                 await writer.wait_closed()
 
-    async def _answer(self, head: str, writer: asyncio.StreamWriter) -> None:
+    async def _answer(self, head: str, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         request_line, *header_lines = head.split("\r\n")
         parts = request_line.split(" ")
         if len(parts) != 3:
@@ -121,9 +131,11 @@ class DashboardServer:
                    for name, sep, value in (line.partition(":") for line in header_lines) if sep}
         if self._check_host and host_name(headers.get("host", "")) not in LOOPBACK_NAMES:
             return await _respond(writer, "403 Forbidden", b"this dashboard answers on loopback names only\n")
+        path = target.split("?", 1)[0]
+        if self.control is not None and path == "/playback" and method == "POST":
+            return await self._playback(headers, reader, writer)
         if method not in ("GET", "HEAD"):
             return await _respond(writer, "405 Method Not Allowed", b"the dashboard is read-only\n", "Allow: GET, HEAD\r\n")
-        path = target.split("?", 1)[0]
         if path == "/events" and method == "GET":
             return await self._stream_events(writer)
         asset = self.assets.get(path)
@@ -131,6 +143,27 @@ class DashboardServer:
             return await _respond(writer, "404 Not Found", b"not found\n")
         body, content_type = asset
         await _respond(writer, "200 OK", body, content_type=content_type, head_only=method == "HEAD")
+
+    async def _playback(self, headers: dict[str, str], reader: asyncio.StreamReader,
+                        writer: asyncio.StreamWriter) -> None:
+        assert self.control is not None
+        origin = headers.get("origin")
+        if origin is not None and origin.split("://", 1)[-1] != headers.get("host"):
+            return await _respond(writer, "403 Forbidden", b"playback requests come from the dashboard's own page\n")
+        if headers.get("content-type", "").split(";")[0].strip() != "application/json":
+            return await _respond(writer, "415 Unsupported Media Type", b"send application/json\n")
+        length = headers.get("content-length", "")
+        if not length.isdigit() or int(length) > MAX_CONTROL_BODY:
+            return await _respond(writer, "400 Bad Request", b"a playback request has a Content-Length up to 1 kB\n")
+        body = await asyncio.wait_for(reader.readexactly(int(length)), REQUEST_TIMEOUT_S)
+        try:
+            request = json.loads(body)
+            if not isinstance(request, dict):
+                raise ValueError("a playback request is a JSON object")
+            state = self.control(request)
+        except ValueError as exc:  # json.JSONDecodeError and UnicodeDecodeError included
+            return await _respond(writer, "400 Bad Request", f"{exc}\n".encode())
+        await _respond(writer, "200 OK", json.dumps(state).encode(), content_type="application/json")
 
     async def _stream_events(self, writer: asyncio.StreamWriter) -> None:
         writer.write(("HTTP/1.1 200 OK\r\nContent-Type: text/event-stream\r\nCache-Control: no-store\r\n"

@@ -1,5 +1,6 @@
 // The dashboard page: one server-sent event stream in, the selected vehicle's state drawn out.
-// Event formats: companion/dashboard/hub.py. Times ("rx", "now") are the hub's clock, seconds.
+// Event formats: companion/dashboard/hub.py. Times ("rx", "now") are the hub's clock, seconds:
+// playing a recording, the recording's daemon clock, which runs at the playback's speed.
 
 import { CameraView } from "./camera.js";
 import { setBadge } from "./dom.js";
@@ -7,6 +8,7 @@ import { FLOW_STREAMS, FlowView } from "./flow.js";
 import { MapView, ScanView } from "./map.js";
 import { TimePlot } from "./plots.js";
 import * as panels from "./panels.js";
+import { PlaybackBar } from "./playback.js";
 import { SlamView } from "./slam.js";
 
 const WINDOW_S = 60; // time plots
@@ -89,6 +91,8 @@ const page = {
   positionPlots: ["north", "east", "down"].map((axis) => new TimePlot($("position-plots"), axis, "m")),
   sigmaPlots: [new TimePlot($("sigma-plots"), "position σ (north, east, down)", "m"),
     new TimePlot($("sigma-plots"), "yaw σ", "°")],
+  playback: new PlaybackBar({ bar: $("playback-bar"), toggle: $("playback-toggle"), seek: $("playback-seek"),
+    time: $("playback-time"), speed: $("playback-speed"), file: $("playback-file") }),
 };
 const vehicles = new Map();
 let selected = null;
@@ -102,9 +106,20 @@ function vehicle(sysid) {
   return vehicles.get(sysid);
 }
 
+/** The hub's clock (s) elapsed since its last status (a playback's runs at its speed, not when paused). */
+function sinceStatus() {
+  return ((performance.now() - statusAt) / 1000) * page.playback.rate();
+}
+
 /** The hub's clock now (s), from its last status and the time since. */
 function hubNow() {
-  return status ? status.now + (performance.now() - statusAt) / 1000 : 0;
+  return status ? status.now + sinceStatus() : 0;
+}
+
+/** A playback seeked: forget every vehicle's state, the samples that follow rebuild it. */
+function forgetVehicles() {
+  vehicles.clear();
+  if (selected !== null) choose(selected);
 }
 
 function onEvent(event) {
@@ -112,8 +127,11 @@ function onEvent(event) {
     status = event;
     statusAt = performance.now();
     for (const id of Object.keys(event.vehicles)) vehicle(Number(id));
+    page.playback.update(event.playback);
   } else if (event.type === "sample") {
     vehicle(event.sysid).apply(event);
+  } else if (event.type === "reset") {
+    forgetVehicles();
   }
 }
 
@@ -146,7 +164,7 @@ function choose(sysid) {
 function renderBadges(v) {
   setBadge($("server-badge"), serverUp ? "dashboard: connected" : "dashboard: reconnecting", serverUp ? "ok" : "lost");
   const seen = status?.vehicles?.[String(selected)];
-  const age = seen ? seen.age_s + (performance.now() - statusAt) / 1000 : Infinity;
+  const age = seen ? seen.age_s + sinceStatus() : Infinity;
   if (!serverUp || !seen) {
     setBadge($("link-badge"), "telemetry: waiting", "unknown");
   } else {
@@ -203,6 +221,7 @@ function renderPlots(v, now) {
 }
 
 function render() {
+  page.playback.render();
   updateSelector();
   const v = vehicles.get(selected);
   renderBadges(v);
