@@ -120,6 +120,10 @@ def _cmd_dashboard(args: argparse.Namespace) -> int:
     cfg = _config_with_logging(args)
     if cfg is None:
         return EXIT_CONFIG_ERROR
+    if args.play is not None:
+        from companion.dashboard.app import run_playback
+
+        return run_playback(Path(args.play), args.host, args.port, announce=lambda line: print(line, flush=True))
     return run_dashboard(cfg.telemetry, args.host, args.port, announce=lambda line: print(line, flush=True))
 
 
@@ -204,16 +208,18 @@ def _replay_recording(args: argparse.Namespace) -> int:
     import json
 
     from companion.recording.reader import Recording
-    from companion.recording.replay import replay
+    from companion.recording.replay import replay, write_estimates
     from companion.schema import SchemaError
     from sitl.replay_report import replay_report
 
-    setup_logging(args.log_level or "warning")
+    setup_logging(args.log_level or "error")  # the pipelines' health changes are the flight's, not news
     pipelines = [p for p in (args.pipelines or "").split(",") if p] or None
     try:
         recording = Recording.open(args.log)
         result = replay(recording, pipelines, args.speed)
         report = replay_report(recording, result)
+        if args.estimates:
+            write_estimates(result, Path(args.estimates))
     except (OSError, ValueError, SchemaError) as exc:
         print(f"companion replay: {exc}", file=sys.stderr)
         return EXIT_CONFIG_ERROR
@@ -312,6 +318,8 @@ def build_parser() -> argparse.ArgumentParser:
                       help="config whose telemetry section says where to connect (default: config/sitl.yaml)")
     dash.add_argument("--host", default="127.0.0.1", help="address to serve the page on (default: loopback only)")
     dash.add_argument("--port", type=int, default=8080, help="HTTP port (0: any free port; default 8080)")
+    dash.add_argument("--play", metavar="FILE.mcap", help="play a flight recording (any of its parts) on the page "
+                                                      "instead of joining zenoh: play, pause, seek, speed")
     dash.set_defaults(func=_cmd_dashboard)
 
     bench = sub.add_parser("bench", help="per-stage timings (median, p99) of every pipeline present")
@@ -353,6 +361,8 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--pipelines", help="recording: replay only these pipelines (comma-separated; default all)")
     replay.add_argument("--speed", type=float, help="recording: replay at this multiple of recorded time "
                                                     "(default: as fast as it runs)")
+    replay.add_argument("--estimates", metavar="OUT.mcap", help="recording: write the replayed estimates next to the "
+                                                                "recorded ones (MCAP, to open in Foxglove)")
     replay.add_argument("--log-level", choices=["debug", "info", "warning", "error"])
     replay.add_argument("--format", choices=LOG_FORMATS, help="scanner log: its format")
     replay.add_argument("--map", help="scanner log: the map (world YAML, e.g. from `companion map build`)")
