@@ -28,12 +28,13 @@ from mcap.records import Channel, Message, Schema
 from mcap.stream_reader import StreamReader
 
 from companion.recording.reader import Recording, RecordingError
+from companion.recording.recorder import TELEMETRY_BINARY_SCHEMA, TELEMETRY_SCHEMA
 from companion.telemetry.keys import KEY_PREFIX
 from companion.telemetry.publisher import JSON_ENCODING
 
 TOPIC_PREFIX = "/telemetry/"
-JSON_SCHEMA = "companion.Telemetry"  # the message is the JSON zenoh carried
-BINARY_SCHEMA = "companion.TelemetryBinary"  # {"t", "encoding", "base64": the bytes zenoh carried}
+JSON_SCHEMA = TELEMETRY_SCHEMA.name  # the message is the JSON zenoh carried
+BINARY_SCHEMA = TELEMETRY_BINARY_SCHEMA.name  # {"t", "encoding", "base64": the bytes zenoh carried}
 DEFAULT_SYSID = 1  # vehicle.sysid when the recorded config does not set it
 CHUNKS_CACHED = 8
 _CHUNK_HEAD = struct.Struct("<BQQQQI")  # opcode, length, start time, end time, uncompressed size, crc
