@@ -178,9 +178,9 @@ class RecordConfig:
     frame_rate_hz: float = field(default=10.0, metadata=meta(
         "Camera frames recorded per second and camera at most (0: every frame); lossless PNG, so a replay of "
         "a camera pipeline is exact when this is at least the camera's rate.", (0, 1000)))
-    scan_view_hz: float = field(default=10.0, metadata=meta(
-        "Each scanner's scans also written as Foxglove's LaserScan (to view them in Foxglove) at most this often "
-        "(0: never); every scan is recorded exactly regardless.", (0, 1000)))
+    view_hz: float = field(default=10.0, metadata=meta(
+        "Foxglove's views, at most this often: each scanner's scans as LaserScan, the pose sent to the autopilot as "
+        "PoseInFrame (0: none); every scan and estimate is recorded exactly regardless.", (0, 1000)))
     mavlink: bool = field(default=True, metadata=meta("Record every MAVLink message in and out."))
     telemetry: bool = field(default=True, metadata=meta(
         "Record every telemetry message published (what the dashboard shows; its playback needs them)."))

@@ -22,10 +22,12 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import yaml
 from mcap.records import Attachment, Metadata
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
+from companion.config import ControlConfig
 from companion.messages import AttitudeEstimate, PoseEstimate
 from companion.recording.reader import Recording
 from companion.recording.replay import Cycle, ReplayResult
@@ -76,7 +78,7 @@ def replay_report(recording: Recording, result: ReplayResult) -> dict[str, Any]:
     """The flight report of the replay, with its ``replay`` block (module docstring)."""
     scoring = read_scoring_file(recording)
     if scoring is None:
-        report = _report_without_truth(recording)
+        report = _report_without_truth(recording, result)
     else:
         inputs, world_text = scoring
         inputs["log"] = with_replayed_poses(inputs["log"], result.replayed)
@@ -132,14 +134,18 @@ def with_replayed_attitudes(checks: list[dict[str, Any]], cycles: list[Cycle]) -
     return out
 
 
-def _report_without_truth(recording: Recording) -> dict[str, Any]:
-    """The report's schema from the recording alone: no truth, so the scored fields are null."""
+def _report_without_truth(recording: Recording, result: ReplayResult) -> dict[str, Any]:
+    """The report's schema from the recording alone: no truth, so the scored fields are null; the
+    mission, control law and the daemon's own figures from the recorded config and telemetry."""
     telemetry: dict[str, dict] = {}
     for msg in recording.messages():
         if msg.topic.startswith("/telemetry/"):
             telemetry[msg.topic.removeprefix("/telemetry/")] = msg.doc
     empty = FlightLog(seed=0, lockstep=False, monotonic_at_sim_zero=None).to_dict(0.0)
-    mission = telemetry.get("mission", {}).get("name") or "none"
-    return build_report(mission=mission, seconds=0.0, lockstep=False, seed=0, control_law="", log=empty,
+    config = yaml.safe_load(recording.config_yaml) or {}
+    mission = Path(str((config.get("mission") or {}).get("file") or "none")).stem
+    law = (config.get("control") or {}).get("law") or ControlConfig().law
+    seconds = result.recorded[-1].now - result.recorded[0].now if result.recorded else 0.0
+    return build_report(mission=mission, seconds=seconds, lockstep=False, seed=0, control_law=law, log=empty,
                         telemetry=telemetry, origin=(math.nan, math.nan, math.nan), cpu_percent=None, rss_mb=None,
                         attitude_checks=[], ground_height=lambda north, east: 0.0)

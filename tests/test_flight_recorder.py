@@ -261,8 +261,8 @@ def test_every_channel_opens_with_the_mcap_reader_and_validates_against_its_sche
             validators[channel.id].validate(json.loads(message.data))
             seen[schema.name] = seen.get(schema.name, 0) + 1
     assert {"foxglove.LaserScan", "foxglove.PoseInFrame", "companion.Scan", "companion.ImuSample", "companion.NavCycle",
-            "companion.MavlinkMessage", "companion.Telemetry", "companion.HealthChange"} <= set(seen)
-    # the views at record.scan_view_hz (10): every scan of the 10 Hz URG-04LX, one in four of the 40 Hz UTM-30LX
+            "companion.MavlinkMessages", "companion.Telemetry", "companion.HealthChange"} <= set(seen)
+    # the views at record.view_hz (10): every scan of the 10 Hz URG-04LX, one in four of the 40 Hz UTM-30LX
     assert topics["/sensors/lidar_v/laser_scan"] == topics["/sensors/lidar_v"]
     assert abs(topics["/sensors/lidar_h/laser_scan"] - topics["/sensors/lidar_h"] / 4) <= 2
 
@@ -302,8 +302,8 @@ def test_the_recorders_channels_are_served_live_to_a_foxglove_client_with_their_
     async def client() -> None:
         async with websockets.connect(f"ws://127.0.0.1:{live.port}", subprotocols=["foxglove.sdk.v1"]) as ws:
             channels: dict[int, dict] = {}
-            for _ in range(100):
-                rec.cycle(5.0, [pose], pose)
+            for i in range(100):
+                rec.cycle(5.0 + 0.2 * i, [pose], pose)  # a pose view is due every 0.1 s (record.view_hz)
                 try:
                     msg = await asyncio.wait_for(ws.recv(), 0.2)
                 except asyncio.TimeoutError:
@@ -328,7 +328,8 @@ def test_the_recorders_channels_are_served_live_to_a_foxglove_client_with_their_
     assert pose_channel["schemaEncoding"] == "jsonschema"
     jsonschema.validate(received["/nav/pose"]["doc"], json.loads(pose_channel["schema"]))
     assert same(codec.decode_message(m.PoseEstimate, received["/nav/pose"]["doc"]), pose)
-    assert received["/nav/cycle"]["log_ns"] == 5_000_000_000
+    cycle = received["/nav/cycle"]
+    assert cycle["log_ns"] == round(cycle["doc"]["now"] * 1e9) and cycle["doc"]["selected"] == "lidar"
 
 
 def test_replay_at_a_speed_waits_for_each_messages_recorded_time_scaled_by_the_speed() -> None:
@@ -350,3 +351,20 @@ def test_replay_at_a_speed_waits_for_each_messages_recorded_time_scaled_by_the_s
     assert slept == [0.5, 0.5]  # 12: due at +0.5 s; 14: due at +1.0 s, at +1.5 s already (no sleep); 18: due at +2.0 s
     with pytest.raises(ValueError):
         Pacer(0.0)
+
+
+def test_a_recording_without_its_scoring_file_gets_the_report_schema_with_the_truth_scored_fields_null(
+        patrol: dict[str, Path], tmp_path: Path) -> None:
+    alone = tmp_path / patrol["part"].name
+    shutil.copy(patrol["part"], alone)  # as from a real vehicle: no truth beside it
+    out = tmp_path / "r.json"
+    proc = subprocess.run([sys.executable, "-m", "companion.cli", "replay", str(alone), "--pipelines", "lidar",
+                           "--report", str(out)], cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    report, flight = json.loads(out.read_text()), json.loads(patrol["flight"].read_text())
+    assert set(report) == set(flight) | {"replay"}
+    assert all(set(report[k]) == set(flight[k]) for k in flight if isinstance(flight[k], dict))
+    assert report["estimate"]["position_rms_m"] is None and report["control"]["tracking_rms_m"] is None
+    assert report["control"]["law"] == "rpt" and report["mission"] == "patrol"
+    assert report["autopilot"]["firmware"] == flight["autopilot"]["firmware"]  # from the recorded telemetry
+    assert report["replay"]["exact"] and report["replay"]["pipelines"] == ["lidar"]

@@ -64,6 +64,7 @@ class ReplayResult:
     first_mismatch_t: float | None = None  # the recorded time (s) of the first cycle that differs
     truncated_parts: list[str] = field(default_factory=list)
     recorder_dropped: dict[str, int] = field(default_factory=dict)
+    first_part: int = 1  # > 1: the recording's first parts were removed (size cap): replayed from mid-flight
 
     def summary(self) -> dict[str, Any]:
         """The report's ``replay`` block (issue 16's contract names: messages, max_position_diff_m, max_yaw_diff_deg)."""
@@ -71,7 +72,8 @@ class ReplayResult:
                 "max_position_diff_m": self.max_position_diff_m, "max_yaw_diff_deg": self.max_yaw_diff_deg,
                 "max_range_diff_m": self.max_range_diff_m, "mismatched_cycles": self.mismatched_cycles,
                 "exact": self.mismatched_cycles == 0, "first_mismatch_t": self.first_mismatch_t,
-                "truncated_parts": self.truncated_parts, "recorder_dropped": self.recorder_dropped}
+                "truncated_parts": self.truncated_parts, "recorder_dropped": self.recorder_dropped,
+                "first_part": self.first_part}
 
 
 def replay(recording: Recording, pipelines: list[str] | None = None, speed: float | None = None) -> ReplayResult:
@@ -99,7 +101,7 @@ def replay(recording: Recording, pipelines: list[str] | None = None, speed: floa
         nav = NavLoop(built, selector, NavOutputs(pose=nop, range=nop, attitude=nop, publish=nop),
                       WatchdogGate(max_age=math.inf, clock=lambda: replay_time[0]), cfg.pipelines.fusion_rate_hz,
                       lambda: replay_time[0])
-        result = ReplayResult(pipelines=names)
+        result = ReplayResult(pipelines=names, first_part=recording.first_part)
         nav.on_cycle = lambda now, made, chosen: result.replayed.append(
             Cycle(now, made, chosen.source if chosen is not None else None))
         guide = next((p for p in built if isinstance(p, GuidanceSource)), None)
