@@ -31,6 +31,7 @@ RECORDING_METADATA = "companion.recording"
 CONFIG_METADATA = "companion.config"
 STATS_METADATA = "companion.recorder_stats"
 MB = 1_000_000
+SIZE_CHECK_EVERY = 64  # messages between two looks at a part's size (a tell() each: a system call)
 
 
 @dataclass
@@ -39,6 +40,7 @@ class _Part:
     file: Any
     writer: Writer
     channels: dict[str, int] = field(default_factory=dict)  # topic -> channel id
+    messages: int = 0
 
 
 class McapFiles:
@@ -84,15 +86,23 @@ class McapFiles:
             schema_id = part.writer.register_schema(schema.name, schema.encoding, schema.data)
             channel = part.channels[topic] = part.writer.register_channel(topic, schema.message_encoding, schema_id)
         part.writer.add_message(channel, log_time=log_ns, data=data, publish_time=publish_ns)
-        self.bytes_written = self._finished_bytes + part.file.tell()
-        if part.file.tell() >= self.settings.max_file_mb * MB:
-            self._finish_part()
-            self._open_part()
+        part.messages += 1
+        if part.messages % SIZE_CHECK_EVERY == 0:
+            self._check_size()
 
     def flush(self) -> None:
         """Write the chunk in progress (what a crash from now on cannot take)."""
         if self._part is not None:
             self._part.writer.flush()
+            self._check_size()
+
+    def _check_size(self) -> None:
+        """Count the bytes written; a part past ``record.max_file_mb`` is finished and the next begun."""
+        size = self._part.file.tell()
+        self.bytes_written = self._finished_bytes + size
+        if size >= self.settings.max_file_mb * MB:
+            self._finish_part()
+            self._open_part()
 
     def close(self) -> None:
         """Finish the current part (summary, footer)."""
