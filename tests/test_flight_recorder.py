@@ -368,3 +368,15 @@ def test_a_recording_without_its_scoring_file_gets_the_report_schema_with_the_tr
     assert report["control"]["law"] == "rpt" and report["mission"] == "patrol"
     assert report["autopilot"]["firmware"] == flight["autopilot"]["firmware"]  # from the recorded telemetry
     assert report["replay"]["exact"] and report["replay"]["pipelines"] == ["lidar"]
+
+
+def test_camera_frames_are_recorded_at_most_at_the_frame_rate_cap_and_the_rest_counted(tmp_path: Path) -> None:
+    rec = recorder(tmp_path, frame_rate_hz=10.0)
+    handler = rec.sensor("down")
+    frame = sample_messages()[1]
+    for i in range(30):  # a 30 Hz camera for one second
+        handler(replace(frame, t_capture=i / 30.0, sequence=i))
+    rec.start()
+    rec.close(timeout_s=10)
+    read = [msg.doc["sequence"] for msg in Recording.open(next((tmp_path / "rec").glob(FILE_GLOB))).messages()]
+    assert read == list(range(0, 30, 3)) and rec.stats.frames_skipped == 20

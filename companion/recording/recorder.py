@@ -102,7 +102,7 @@ class RecorderStats:
     """Counters of the recorder (published as ``system.recorder``)."""
 
     queued: int = 0
-    written: int = 0  # messages encoded and handed to the sinks
+    written: int = 0  # messages encoded and handed to the sinks (a batch of MAVLink messages counts once)
     frames_skipped: int = 0  # camera frames not recorded by the rate cap (record.frame_rate_hz)
     encode_errors: int = 0
     stopped: str | None = None  # why a sink stopped early (disk full, ...); None while all work
