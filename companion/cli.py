@@ -177,8 +177,6 @@ def _cmd_laser_dots_calibrate(args: argparse.Namespace) -> int:
 def _cmd_replay(args: argparse.Namespace) -> int:
     if args.log.endswith(".mcap"):
         return _replay_recording(args)
-    import json
-
     from companion.replay import replay_report
     from companion.schema import SchemaError
     from companion.world import load_world
@@ -195,11 +193,18 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     except (OSError, ValueError, SchemaError) as exc:
         print(f"companion replay: {exc}", file=sys.stderr)
         return EXIT_CONFIG_ERROR
-    text = json.dumps(report, indent=2)
-    if args.report:
-        Path(args.report).write_text(text + "\n")
-    print(text)
+    print(_written_report(report, args.report))
     return 0
+
+
+def _written_report(report: dict, path: str | None) -> str:
+    """``report`` as indented JSON, also written to ``path`` if given."""
+    import json
+
+    text = json.dumps(report, indent=2)
+    if path:
+        Path(path).write_text(text + "\n")
+    return text
 
 
 def _replay_recording(args: argparse.Namespace) -> int:
@@ -223,9 +228,7 @@ def _replay_recording(args: argparse.Namespace) -> int:
     except (OSError, ValueError, SchemaError) as exc:
         print(f"companion replay: {exc}", file=sys.stderr)
         return EXIT_CONFIG_ERROR
-    text = json.dumps(report, indent=2)
-    if args.report:
-        Path(args.report).write_text(text + "\n")
+    _written_report(report, args.report)
     print(json.dumps(report["replay"], indent=2))
     return 0
 
