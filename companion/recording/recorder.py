@@ -42,8 +42,10 @@ from companion.telemetry.publisher import ENCODINGS, JSON_ENCODING, encode_json
 
 log = logging.getLogger("companion.recording")
 
-# The writer thread wakes this often and writes everything queued since: one wake-up per message
-# (a queue.Queue's) cost more than the encoding, in thread switches and GIL hand-overs.
+# The writer thread writes everything queued at most every BATCH_S, right after a nav cycle (the
+# loop is then idle until its next tick, so the writer's hold of the GIL does not stretch a cycle),
+# or after BATCH_S without one. One wake-up per message (a queue.Queue's) cost more than the
+# encoding, in thread switches and GIL hand-overs; one per cycle (50 Hz) a point of a core more.
 BATCH_S = 0.05
 
 
@@ -125,6 +127,7 @@ class Recorder:
         self._dropped: Counter[str] = Counter()
         self._pose_views = _RateCap(settings.view_hz)
         self._closing = threading.Event()
+        self._wake = threading.Event()  # set after each nav cycle
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
         for sink in sinks:
             if hasattr(sink, "final_stats"):
@@ -166,6 +169,7 @@ class Recorder:
         self._put("/nav/cycle", "cycle", now, (now, estimates, selected))
         if selected is not None and self.settings.view_hz > 0 and self._pose_views.due(now):
             self._put("/nav/pose", "message", now, selected)
+        self._wake.set()
 
     def event(self, topic: str, t: float, payload: dict[str, Any]) -> None:
         """One of :data:`EVENT_SCHEMAS`' events at daemon time ``t``."""
@@ -182,6 +186,7 @@ class Recorder:
     def close(self, timeout_s: float = 1.0) -> None:
         """Write what is queued, finish the sinks (a file's summary and footer), stop the thread."""
         self._closing.set()
+        self._wake.set()
         if self._thread.is_alive():
             self._thread.join(timeout=timeout_s)
         if self._thread.is_alive():
@@ -210,9 +215,14 @@ class Recorder:
     # -- the writer thread ----------------------------------------------------------------------
 
     def _run(self) -> None:
-        last_flush = time.monotonic()
+        last_flush = last_batch = time.monotonic()
         while self.sinks:
-            closing = self._closing.wait(BATCH_S)
+            self._wake.wait(BATCH_S)
+            self._wake.clear()
+            closing = self._closing.is_set()
+            if not closing and time.monotonic() - last_batch < BATCH_S:
+                continue  # a cycle ended, but the last batch was written less than BATCH_S ago
+            last_batch = time.monotonic()
             mavlink: dict[str, list[tuple[float, Any]]] = {}
             while self._queue and self.sinks:
                 item = self._queue.popleft()
