@@ -380,3 +380,14 @@ def test_camera_frames_are_recorded_at_most_at_the_frame_rate_cap_and_the_rest_c
     rec.close(timeout_s=10)
     read = [msg.doc["sequence"] for msg in Recording.open(next((tmp_path / "rec").glob(FILE_GLOB))).messages()]
     assert read == list(range(0, 30, 3)) and rec.stats.frames_skipped == 20
+
+
+def test_a_renamed_part_still_opens_as_a_recording(tmp_path: Path) -> None:
+    rec = recorder(tmp_path)
+    rec.start()
+    feed_scans(rec, 5)
+    rec.close(timeout_s=10)
+    renamed = tmp_path / "flight-to-look-at.mcap"
+    next((tmp_path / "rec").glob(FILE_GLOB)).rename(renamed)
+    recording = Recording.open(renamed)
+    assert recording.parts == [renamed] and len(list(recording.messages())) == 5

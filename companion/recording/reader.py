@@ -60,10 +60,9 @@ class Recording:
         info = head.get(RECORDING_METADATA)
         if info is None:
             raise RecordingError(f"{path}: not a companion recording (no {RECORDING_METADATA} metadata)")
-        parts = []
+        parts = [(int(info["part"]), path)]  # and its siblings (a renamed part stands alone)
         for candidate in sorted(path.parent.glob(FILE_GLOB)):
-            other = candidate if candidate == path else None
-            meta = head if other is not None else _head(candidate, quiet=True)
+            meta = {} if candidate.samefile(path) else _head(candidate, quiet=True)
             if meta.get(RECORDING_METADATA, {}).get("id") == info["id"]:
                 parts.append((int(meta[RECORDING_METADATA]["part"]), candidate))
         parts.sort()
