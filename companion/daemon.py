@@ -46,6 +46,7 @@ from companion.sdnotify import Notifier, WatchdogGate, run_watchdog
 from companion.recording.foxglove_live import FoxgloveLive
 from companion.recording.mcap_files import McapFiles
 from companion.recording.recorder import Recorder, Sink
+from companion.selection import SourceSelector
 from companion.sensors import SensorContext, build_driver, check_sensor_files
 from companion.supervisor import Supervisor
 from companion.telemetry.publisher import TelemetryPublisher
@@ -155,7 +156,7 @@ class Daemon:
         self.setpoints = setpoints = SetpointStream(link, state, cfg.mavlink.setpoint_rate_hz)
         pipelines = self.build_pipelines()
         self._start_recorder()  # after the pipelines loaded their files: the recording keeps a copy of each
-        self.selector = build_selector(cfg, pipelines, on_switch=self._source_switched)
+        self.selector = self._build_selector(pipelines)
         self.mission = self._build_mission(pipelines)
         self.commands = self._build_inbound_commands(pipelines)
         gate = WatchdogGate(max_age=1.0, clock=clock.now)
@@ -277,6 +278,10 @@ class Daemon:
                 log.warning("sensor %s feeds no pipeline; its data is counted and dropped", name)
             self.supervisor.spawn(f"driver:{name}", driver.run)
         return pipelines
+
+    def _build_selector(self, pipelines: list[Pipeline]) -> SourceSelector | None:
+        """The pose-source selection over ``pipelines.sources`` (companion.navloop.build_selector)."""
+        return build_selector(self.cfg, pipelines, on_switch=self._source_switched)
 
     def _source_switched(self, old: str | None, new: str | None, reason: str) -> None:
         """Announce a change of the pose source (STATUSTEXT + telemetry ``sources``). Losing every
