@@ -42,10 +42,10 @@ from companion.mission.runner import MissionRunner
 from companion.mission.steps import Mission, load_mission
 from companion.navloop import NavLoop, NavOutputs, build_pipelines, build_selector
 from companion.pipeline import GuidanceSource, Pipeline
-from companion.sdnotify import Notifier, WatchdogGate, run_watchdog
 from companion.recording.foxglove_live import FoxgloveLive
 from companion.recording.mcap_files import McapFiles
 from companion.recording.recorder import Recorder, Sink
+from companion.sdnotify import Notifier, WatchdogGate, run_watchdog
 from companion.selection import SourceSelector
 from companion.sensors import SensorContext, build_driver, check_sensor_files
 from companion.supervisor import Supervisor
