@@ -175,7 +175,7 @@ def _cmd_laser_dots_calibrate(args: argparse.Namespace) -> int:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-    if args.log.endswith(".mcap"):
+    if args.format is None and args.log.endswith(".mcap"):  # with --format ros, a ROS 2 bag in MCAP
         return _replay_recording(args)
     from companion.replay import replay_report
     from companion.schema import SchemaError

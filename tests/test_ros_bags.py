@@ -131,7 +131,7 @@ def _distance_to_walls(points: np.ndarray, walls: np.ndarray) -> np.ndarray:
     return np.min(np.hypot(*(rel - u[..., None] * d).transpose(2, 0, 1)), axis=1)
 
 
-@pytest.mark.parametrize("layout", ["ros1", "ros2"])
+@pytest.mark.parametrize("layout", ["ros1", "ros2", "mcap"])  # mcap: a ROS 2 bag, not a flight recording
 def test_a_bag_of_the_arena_is_replayed_and_scored_against_its_pose_topic(
         layout: str, arena: dict[str, np.ndarray], tmp_path: Path) -> None:
     """The arena flown as a bag with its true poses on an Odometry topic: the replay starts at the
