@@ -137,15 +137,11 @@ def with_replayed_attitudes(checks: list[dict[str, Any]], cycles: list[Cycle]) -
 def _report_without_truth(recording: Recording, result: ReplayResult) -> dict[str, Any]:
     """The report's schema from the recording alone: no truth, so the scored fields are null; the
     mission, control law and the daemon's own figures from the recorded config and telemetry."""
-    telemetry: dict[str, dict] = {}
-    for msg in recording.messages():
-        if msg.topic.startswith("/telemetry/"):
-            telemetry[msg.topic.removeprefix("/telemetry/")] = msg.doc
     empty = FlightLog(seed=0, lockstep=False, monotonic_at_sim_zero=None).to_dict(0.0)
     config = yaml.safe_load(recording.config_yaml) or {}
     mission = Path(str((config.get("mission") or {}).get("file") or "none")).stem
     law = (config.get("control") or {}).get("law") or ControlConfig().law
     seconds = result.recorded[-1].now - result.recorded[0].now if result.recorded else 0.0
     return build_report(mission=mission, seconds=seconds, lockstep=False, seed=0, control_law=law, log=empty,
-                        telemetry=telemetry, origin=(math.nan, math.nan, math.nan), cpu_percent=None, rss_mb=None,
+                        telemetry=result.last_telemetry, origin=(math.nan, math.nan, math.nan), cpu_percent=None, rss_mb=None,
                         attitude_checks=[], ground_height=lambda north, east: 0.0)

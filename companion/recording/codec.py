@@ -160,13 +160,12 @@ def exact(value: Any) -> Any:
     if kind is str or kind is int or kind is bool or value is None:
         return value
     if kind is float:
-        return value if math.isfinite(value) else ("nan" if math.isnan(value) else ("inf" if value > 0 else "-inf"))
+        return _exact_float(value)
     if kind is np.ndarray:
         return {"dtype": value.dtype.str, "shape": list(value.shape),
                 "base64": base64.b64encode(np.ascontiguousarray(value).tobytes()).decode()}
     if isinstance(value, (float, np.floating)):
-        v = float(value)
-        return v if math.isfinite(v) else ("nan" if math.isnan(v) else ("inf" if v > 0 else "-inf"))
+        return _exact_float(float(value))
     if isinstance(value, (bool, np.bool_)):
         return bool(value)
     if isinstance(value, (int, np.integer)):
@@ -178,6 +177,10 @@ def exact(value: Any) -> Any:
     if value is None or isinstance(value, str):
         return value
     raise TypeError(f"cannot record a {type(value).__name__}")
+
+
+def _exact_float(v: float) -> float | str:
+    return v if math.isfinite(v) else ("nan" if math.isnan(v) else ("inf" if v > 0 else "-inf"))
 
 
 def unexact(value: Any) -> Any:
@@ -202,9 +205,14 @@ def stamp(t: float) -> dict[str, int]:
 
 def _pose(position: tuple[float, float, float], euler: tuple[float, float, float]) -> dict[str, Any]:
     q = quat_from_euler(*euler)  # w, x, y, z
-    finite = lambda v: float(v) if math.isfinite(v) else 0.0  # noqa: E731 (Foxglove's fields are plain numbers)
-    return {"position": {"x": finite(position[0]), "y": finite(position[1]), "z": finite(position[2])},
-            "orientation": {"x": finite(q[1]), "y": finite(q[2]), "z": finite(q[3]), "w": finite(q[0])}}
+    return {"position": {"x": _plain(position[0]), "y": _plain(position[1]), "z": _plain(position[2])},
+            "orientation": {"x": _plain(q[1]), "y": _plain(q[2]), "z": _plain(q[3]), "w": _plain(q[0])}}
+
+
+def _plain(x: float) -> float:
+    """A value for one of Foxglove's plain-number fields: a non-finite one as 0 (the exact value
+    is in the message's own fields)."""
+    return float(x) if math.isfinite(x) else 0.0
 
 
 # -- messages ----------------------------------------------------------------------------------
@@ -226,9 +234,8 @@ def encode_message(msg: Any, frame_id: str = "") -> dict[str, Any]:
         if h is not None and v is not None:
             cov[0] = cov[4] = h * h
             cov[8] = v * v
-        finite = lambda x: float(x) if math.isfinite(x) else 0.0  # noqa: E731
-        doc.update(timestamp=stamp(msg.t_capture), frame_id=frame_id or msg.receiver_id, latitude=finite(msg.lat_deg),
-                   longitude=finite(msg.lon_deg), altitude=finite(msg.alt_m), position_covariance=cov,
+        doc.update(timestamp=stamp(msg.t_capture), frame_id=frame_id or msg.receiver_id, latitude=_plain(msg.lat_deg),
+                   longitude=_plain(msg.lon_deg), altitude=_plain(msg.alt_m), position_covariance=cov,
                    position_covariance_type=2 if h is not None and v is not None else 0)
     elif isinstance(msg, messages.PoseEstimate):
         doc.update(timestamp=stamp(msg.t_capture), frame_id=FRAME_ID_WORLD,

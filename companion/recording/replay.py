@@ -65,6 +65,7 @@ class ReplayResult:
     truncated_parts: list[str] = field(default_factory=list)
     recorder_dropped: dict[str, int] = field(default_factory=dict)
     first_part: int = 1  # > 1: the recording's first parts were removed (size cap): replayed from mid-flight
+    last_telemetry: dict[str, dict[str, Any]] = field(default_factory=dict)  # {stream: its last recorded message}
 
     def summary(self) -> dict[str, Any]:
         """The report's ``replay`` block (issue 16's contract names: messages, max_position_diff_m, max_yaw_diff_deg)."""
@@ -107,6 +108,8 @@ def replay(recording: Recording, pipelines: list[str] | None = None, speed: floa
         guide = next((p for p in built if isinstance(p, GuidanceSource)), None)
         pace = Pacer(speed)
         for msg in recording.messages():
+            if msg.topic.startswith("/telemetry/"):
+                result.last_telemetry[msg.topic.removeprefix("/telemetry/")] = msg.doc
             if not msg.topic.startswith(REPLAYED_TOPICS_PREFIX):
                 continue
             replay_time[0] = msg.t
