@@ -10,6 +10,7 @@ thread. A Foxglove app that connects gets what is logged from then on.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import Any
 
 from companion.recording import codec
@@ -30,8 +31,9 @@ class FoxgloveLive:
         self._context: Any = None
         self._channels: dict[str, Any] = {}
 
-    def open(self) -> None:
-        """Start the server (OSError if the port is taken; ImportError without foxglove-sdk)."""
+    def open(self, stats: Callable[[], dict[str, Any]]) -> None:
+        """Start the server (OSError if the port is taken; ImportError without foxglove-sdk); the
+        recorder's counters (``stats``) are not served."""
         import foxglove
 
         self._foxglove = foxglove

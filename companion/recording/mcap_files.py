@@ -65,14 +65,16 @@ class McapFiles:
         self._attachments: dict[str, bytes] = {}
         self._part: _Part | None = None
         self._finished_bytes = 0
-        self.final_stats: Callable[[], dict[str, Any]] = dict  # the recorder's counters, kept in each finished part
+        self._stats: Callable[[], dict[str, Any]] = dict  # the recorder's counters, kept in each finished part
 
     @property
     def current(self) -> Path | None:
         return self._part.path if self._part is not None else None
 
-    def open(self) -> None:
-        """Create the directory and the first part."""
+    def open(self, stats: Callable[[], dict[str, Any]]) -> None:
+        """Create the directory and the first part; ``stats`` gives the recorder's counters, kept in
+        each part as it is finished."""
+        self._stats = stats
         self._attachments = {key: path.read_bytes() for key, path in self._files.items() if path.is_file()}
         self.directory.mkdir(parents=True, exist_ok=True)
         self._open_part()
@@ -139,7 +141,7 @@ class McapFiles:
         if part is None:
             return
         self._part = None
-        part.writer.add_metadata(STATS_METADATA, {"snapshot": codec.dumps(self.final_stats()).decode()})
+        part.writer.add_metadata(STATS_METADATA, {"snapshot": codec.dumps(self._stats()).decode()})
         part.writer.finish()
         part.file.close()
         self._finished_bytes += part.path.stat().st_size

@@ -55,7 +55,8 @@ class Sink(Protocol):
 
     name: str
 
-    def open(self) -> None: ...
+    def open(self, stats: Callable[[], dict[str, Any]]) -> None:
+        """Start; ``stats`` gives the recorder's counters (MCAP parts keep them when they end)."""
     def write(self, topic: str, schema: codec.ChannelSchema, data: bytes, log_ns: int, publish_ns: int) -> None: ...
     def flush(self) -> None: ...
     def close(self) -> None: ...
@@ -129,9 +130,6 @@ class Recorder:
         self._closing = threading.Event()
         self._wake = threading.Event()  # set after each nav cycle
         self._thread = threading.Thread(target=self._run, name="recorder", daemon=True)
-        for sink in sinks:
-            if hasattr(sink, "final_stats"):
-                sink.final_stats = self.snapshot
 
     # -- the event loop's side: O(1), never blocks ---------------------------------------------------
 
@@ -140,7 +138,7 @@ class Recorder:
         opened: list[Sink] = []
         try:
             for sink in self.sinks:
-                sink.open()
+                sink.open(self.snapshot)
                 opened.append(sink)
         except BaseException:
             for sink in opened:
