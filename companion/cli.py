@@ -38,7 +38,7 @@ def _config_with_logging(args: argparse.Namespace) -> Config | None:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from companion.clock import LockstepEventLoop
+    from companion.clock import LockstepEventLoop, realtime_event_loop
     from companion.daemon import GIL_SWITCH_INTERVAL_S, Daemon
 
     cfg = _config_with_logging(args)
@@ -46,7 +46,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         return EXIT_CONFIG_ERROR
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)  # the daemon's process: see GIL_SWITCH_INTERVAL_S
     daemon = Daemon(cfg, args.mavlink)
-    loop = LockstepEventLoop() if args.lockstep else asyncio.new_event_loop()
+    loop = LockstepEventLoop() if args.lockstep else realtime_event_loop()
     try:
         code = loop.run_until_complete(daemon.run())
     except ConfigError as exc:  # a file the config names (map, world, mission, signing key) is bad

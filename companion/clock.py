@@ -21,12 +21,16 @@ Lockstep protocol (the vehicle side is sitl/vehicle.py):
 from __future__ import annotations
 
 import asyncio
+import resource
 import selectors
 import time
 from collections.abc import Callable
 from typing import TypeVar
 
 T = TypeVar("T")
+
+# select(2) takes file descriptors below FD_SETSIZE (1024 on Linux) only.
+FD_SETSIZE = 1024
 
 
 class _IdleAwareSelector(selectors.BaseSelector):
@@ -112,6 +116,23 @@ class LockstepEventLoop(asyncio.SelectorEventLoop):
             except Exception as exc:  # never let a callback break the selector
                 self.call_exception_handler({"message": "lockstep idle callback failed", "exception": exc})
         return True
+
+
+def realtime_event_loop() -> asyncio.AbstractEventLoop:
+    """The daemon's real-time loop, waiting in select(2) rather than epoll(7).
+
+    The 50 Hz nav cycle waits for its tick in the loop's selector. epoll's timeout counts whole
+    milliseconds (Python rounds it up), so every tick woke 0-1 ms late (median 0.8 ms, p99 1.4 ms
+    on the 2-core test machine, before any work); select's counts microseconds (median 0.33 ms,
+    p99 0.5-0.7 ms there). The daemon watches a handful of descriptors, where select costs
+    nothing more. select takes descriptors below FD_SETSIZE only: the process's soft
+    RLIMIT_NOFILE is lowered to FD_SETSIZE if it is higher (systemd's default for a service is
+    that already), so no descriptor it opens can be out of select's range.
+    """
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft == resource.RLIM_INFINITY or soft > FD_SETSIZE:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (FD_SETSIZE, hard))
+    return asyncio.SelectorEventLoop(selectors.SelectSelector())
 
 
 def is_lockstep() -> bool:
