@@ -16,7 +16,7 @@ import signal
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -201,6 +201,8 @@ class Daemon:
             estimate=self._mission_estimate, nav_health=lambda: self.health.worst("nav:"), publish=self.telemetry.publish,
             control=cfg.control, failsafe=cfg.mission.failsafe, payload=cfg.mission.payload,
             geofence=Geofence.from_config(cfg.mission.geofence, area), select_source=self._select_source)
+        if cfg.control.rate_hz <= cfg.pipelines.fusion_rate_hz:  # else its own timer: faster than the estimate
+            ctx.control_tick = lambda due: self.nav.after_cycle(due)
         guide = next((p for p in pipelines if isinstance(p, GuidanceSource)), None)
         if guide is not None:
             ctx.guidance = lambda: guide.guidance(clock.now())
@@ -371,9 +373,11 @@ class Daemon:
         stream they read.
         """
         t = self.cfg.telemetry
-        self.supervisor.spawn("telemetry:setpoint", lambda: every(1.0 / t.setpoint_hz, self._publish_setpoint))
+        self.supervisor.spawn("telemetry:setpoint",
+                              lambda: every(1.0 / t.setpoint_hz, self._publish_setpoint, self.nav.after_cycle))
         if self.cfg.pipelines.enabled:
-            self.supervisor.spawn("telemetry:pipelines", lambda: every(1.0 / t.scan_hz, self._publish_pipeline_streams))
+            self.supervisor.spawn("telemetry:pipelines",
+                                  lambda: every(1.0 / t.scan_hz, self._publish_pipeline_streams, self.nav.after_cycle))
 
     def _on_autopilot_found(self) -> None:
         if self._first_contact:
@@ -392,7 +396,7 @@ class Daemon:
             self._recorder_health()
             self.notifier.status(self.health.summary())
             self._publish_snapshots()
-            await asyncio.sleep(period)
+            await self.nav.after_cycle(clock.now() + period)
 
     def _publish_snapshots(self) -> None:
         t, link, state = self.telemetry, self.link, self.state
@@ -463,10 +467,11 @@ class Daemon:
         log.info("stopped")
 
 
-async def every(period_s: float, action: Callable[[], None]) -> None:
-    """Call ``action()`` every ``period_s`` seconds of the daemon clock, the first time after one period."""
+async def every(period_s: float, action: Callable[[], None], until: Callable[[float], Awaitable[None]]) -> None:
+    """Call ``action()`` every ``period_s`` seconds of the daemon clock, the first time after one
+    period; ``until(t)`` waits for daemon time ``t`` (NavLoop.after_cycle: between nav cycles)."""
     while True:
-        await asyncio.sleep(period_s)
+        await until(clock.now() + period_s)
         action()
 
 

@@ -75,6 +75,7 @@ class NavLoop:
         self.rate_hz = rate_hz
         self.clock = clock
         self.jitter_ms = Timings()
+        self._waiters: list[tuple[float, asyncio.Future[None]]] = []  # (earliest tick, waiter): after_cycle()
 
     @property
     def last_estimate(self) -> PoseEstimate | None:
@@ -98,6 +99,34 @@ class NavLoop:
             if now - next_tick > 5 * period:
                 next_tick = now  # we fell far behind (suspend, overload): do not burst to catch up
             self.cycle(now)
+            self._release_waiters(next_tick)
+
+    async def after_cycle(self, due: float) -> None:
+        """Return right after the first cycle that ticks at or after daemon time ``due`` (s; a tick
+        up to half a period before it counts), or at ``due`` plus two periods if none has by then.
+
+        Periodic work on the event loop (the mission's control step, telemetry) waits here instead
+        of on a timer of its own: it then runs between two cycles, never at a tick, so the cycle
+        wakes on time (a 1 ms control step whose timer fell just before the tick, at the same rate,
+        made every tick of a flight late), and it sees the estimate the cycle has just made.
+        """
+        loop = asyncio.get_running_loop()
+        waiter: asyncio.Future[None] = loop.create_future()
+        entry = (due - 0.5 / self.rate_hz, waiter)
+        self._waiters.append(entry)
+        fallback = loop.call_at(due + 2.0 / self.rate_hz, _release, waiter)
+        try:
+            await waiter
+        finally:
+            fallback.cancel()
+            if entry in self._waiters:
+                self._waiters.remove(entry)
+
+    def _release_waiters(self, tick: float) -> None:
+        due = [entry for entry in self._waiters if entry[0] <= tick]
+        for entry in due:
+            self._waiters.remove(entry)
+            _release(entry[1])
 
     def cycle(self, now: float) -> None:
         """One nav cycle at daemon time ``now``."""
@@ -132,3 +161,8 @@ class NavLoop:
             "yaw_variance_rad2": float(estimate.pose_covariance[5, 5]),
             "t_capture": estimate.t_capture, "source": estimate.source,
         })
+
+
+def _release(waiter: asyncio.Future[None]) -> None:
+    if not waiter.done():
+        waiter.set_result(None)

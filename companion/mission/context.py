@@ -9,7 +9,7 @@ from __future__ import annotations
 import asyncio
 import logging
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -55,6 +55,11 @@ def _cannot_guide(reason: str) -> str | None:
     return "no pipeline can fly the vehicle (none is a guidance source)"
 
 
+async def sleep_until(due: float) -> None:
+    """Wait until daemon time ``due`` (s)."""
+    await asyncio.sleep(max(0.0, due - clock.now()))
+
+
 @dataclass
 class MissionContext:
     """The mission's view of the daemon (one per runner)."""
@@ -73,6 +78,9 @@ class MissionContext:
     select_source: Callable[[str | None], None]  # pin a pose source (None: the priority order again)
     guidance: Callable[[], Guidance | None] = _no_guidance  # the guidance source's wish now (None: not active)
     request_guidance: Callable[[str], str | None] = _cannot_guide  # ask it to start: None, or why not
+    # Wait for the control step due at a daemon time (s): the daemon runs it right after the nav
+    # cycle of that tick (NavLoop.after_cycle), on the estimate just made.
+    control_tick: Callable[[float], Awaitable[None]] = sleep_until
     following_guidance: bool = False  # a return_to_base is flying the guidance (no takeover into itself)
     takeover: asyncio.Event = field(default_factory=asyncio.Event)
     takeover_reason: str = ""  # who changed the mode and to what (on_mode_taken)
@@ -193,7 +201,7 @@ class MissionContext:
         started = clock.now()
         healthy_since: float | None = None
         while clock.now() - started < self.failsafe.lost_hold_s:
-            await asyncio.sleep(1.0 / self.control.rate_hz)
+            await self.control_tick(clock.now() + 1.0 / self.control.rate_hz)
             self.check_takeover()
             if self.estimate_status().state == State.LOST:
                 healthy_since = None

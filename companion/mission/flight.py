@@ -19,7 +19,6 @@ Failsafes here (``MissionContext`` has the shared ones):
 
 from __future__ import annotations
 
-import asyncio
 import dataclasses
 import logging
 import math
@@ -199,7 +198,7 @@ class TrajectoryFlight:
                     ctx.setpoints.command(Setpoint(position_ned=goal, yaw_rad=yaw))
                     return ()
             next_tick = max(next_tick + period, clock.now())  # after a stall: no burst to catch up
-            await asyncio.sleep(next_tick - clock.now())
+            await ctx.control_tick(next_tick)
 
     @staticmethod
     def _left_to_fly(flight: FlightPlan, timeline: Timeline) -> tuple[Waypoint, ...]:

@@ -320,7 +320,7 @@ class MissionRunner:
                     deadline += clock.now() - started
                 if clock.now() > deadline:
                     raise MissionFailed(f"return_to_base: not landed after {step.timeout_s:g} s ({wish.reason})")
-                await asyncio.sleep(1.0 / ctx.control.rate_hz)
+                await ctx.control_tick(clock.now() + 1.0 / ctx.control.rate_hz)
         finally:
             ctx.following_guidance = False
 
