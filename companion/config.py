@@ -143,7 +143,9 @@ class TelemetryConfig:
     pose_hz: float = field(default=20.0, metadata=meta("Pose/velocity publish rate.", (1, 50)))
     scan_hz: float = field(default=5.0, metadata=meta(
         "Horizontal scan (binary) with its extracted lines and matched corners: publish rate. The map follows every 2 s.", (2, 10)))
-    setpoint_hz: float = field(default=10.0, metadata=meta("Setpoint publish rate while commanding.", (1, 50)))
+    setpoint_hz: float = field(default=10.0, metadata=meta(
+        "Setpoint publish rate while commanding (like scan_hz and status_hz: published between nav cycles, at most at "
+        "`pipelines.fusion_rate_hz`).", (1, 50)))
     status_hz: float = field(default=1.0, metadata=meta(
         "Health, link, autopilot, system, estimate_stats, rates and mission publish rate.", (0.2, 10)))
     dashboard_mode: Literal["peer", "client"] = field(default="peer", metadata=meta(
@@ -232,7 +234,9 @@ class AutopilotGainsConfig:
 class ControlConfig:
     """The outer loop that flies mission trajectories (companion/control/, Wang et al. section IV)."""
 
-    rate_hz: float = field(default=50.0, metadata=meta("Control loop and setpoint rate while flying a trajectory.", (10, 200)))
+    rate_hz: float = field(default=50.0, metadata=meta(
+        "Control loop and setpoint rate while flying a trajectory. At or below `pipelines.fusion_rate_hz` each "
+        "control step runs right after a nav cycle, on the estimate it made; above it, on its own timer.", (10, 200)))
     law: Literal["rpt", "pid"] = field(default="rpt", metadata=meta(
         "rpt: the paper's robust and perfect tracking law; pid: the baseline with the same closed-loop poles and no "
         "feed-forward (for comparison flights)."))
