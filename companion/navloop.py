@@ -5,7 +5,8 @@ their poses to the source selection and forward the selected one (``on_pose``: t
 output to the autopilot); hand range estimates (``on_range``: DISTANCE_SENSOR) and attitude
 estimates (``on_attitude``: the cross-check) on; publish the forwarded pose on telemetry;
 record timings; beat the watchdog gate (systemd keeps the service alive only while this loop
-turns).
+turns). Periodic work elsewhere on the event loop (the mission's control step, telemetry) waits
+for a cycle with :meth:`NavLoop.after_cycle` rather than on its own timer, so it never runs at a tick.
 """
 
 from __future__ import annotations
