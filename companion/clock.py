@@ -145,6 +145,11 @@ def now() -> float:
     return asyncio.get_running_loop().time()
 
 
+async def sleep_until(due: float) -> None:
+    """Wait until daemon time ``due`` (s); at once if it has passed."""
+    await asyncio.sleep(max(0.0, due - now()))
+
+
 async def compute(fn: Callable[..., T], *args: object) -> T:
     """``fn(*args)`` for CPU work that can take long (e.g. planning a trajectory, ~0.2 s).
 

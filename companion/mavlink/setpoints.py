@@ -152,7 +152,7 @@ class SetpointStream:
                 await self._wake.wait()
                 continue
             due = self._last_sent + period
-            await asyncio.sleep(max(0.0, due - clock.now()))
+            await clock.sleep_until(due)
             now = clock.now()
             if self._commanding and now >= self._last_sent + period and not self._answered_waypoint():
                 # Count from the deadline, not the (slightly late) wake-up: no drift below rate_hz.

@@ -148,7 +148,7 @@ class StreamNegotiator:
             asked_at = clock.now()
             if not await self._ask_again(stalled, asked_at):
                 await self.negotiate()
-            await asyncio.sleep(max(0.0, asked_at + REASK_EVERY_S - clock.now()))
+            await clock.sleep_until(asked_at + REASK_EVERY_S)
 
     async def _until_stalled(self) -> list[str]:
         """The watched messages once they have stopped on two checks in a row (see the module docstring)."""

@@ -55,11 +55,6 @@ def _cannot_guide(reason: str) -> str | None:
     return "no pipeline can fly the vehicle (none is a guidance source)"
 
 
-async def sleep_until(due: float) -> None:
-    """Wait until daemon time ``due`` (s)."""
-    await asyncio.sleep(max(0.0, due - clock.now()))
-
-
 @dataclass
 class MissionContext:
     """The mission's view of the daemon (one per runner)."""
@@ -80,7 +75,7 @@ class MissionContext:
     request_guidance: Callable[[str], str | None] = _cannot_guide  # ask it to start: None, or why not
     # Wait for the control step due at a daemon time (s): the daemon runs it right after the nav
     # cycle of that tick (NavLoop.after_cycle), on the estimate just made.
-    control_tick: Callable[[float], Awaitable[None]] = sleep_until
+    control_tick: Callable[[float], Awaitable[None]] = clock.sleep_until
     following_guidance: bool = False  # a return_to_base is flying the guidance (no takeover into itself)
     takeover: asyncio.Event = field(default_factory=asyncio.Event)
     takeover_reason: str = ""  # who changed the mode and to what (on_mode_taken)
