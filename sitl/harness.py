@@ -394,11 +394,21 @@ class Session:
             self.usage = process_cpu_rss(self.daemon.pid) or self.usage
         telemetry = self.listener.snapshot() if self.listener else {}
         bridge_ended_early = self.bridge is not None and self.bridge.poll() is not None
+        ardupilot_flew_the_run = self.ardupilot is not None and self.ardupilot.alive
+        errors_in_run = len(self.ardupilot.internal_errors()) if self.ardupilot is not None else 0
         daemon_rc = _terminate(self.daemon, "daemon", interrupted) if self.daemon is not None else 0
         vehicle_rc = (_terminate(self.vehicle, "vehicle", interrupted, VEHICLE_STOP_GRACE_S)
                       if self.vehicle is not None else 0)
         if self.ardupilot is not None:
             vehicle_rc = self.ardupilot.stop() or 0
+            teardown_errors = self.ardupilot.internal_errors()[errors_in_run:]
+            if vehicle_rc and ardupilot_flew_the_run and teardown_errors:
+                # ArduPlane 4.0.7 SITL can panic writing to SERIAL0 once the daemon has hung up
+                # ("Short write on UART"): a teardown fault of the firmware, not of the run. It is
+                # still reported (report autopilot.internal_errors), not counted as the vehicle dying.
+                log.warning("ArduPilot SITL exited %d while being stopped, after the run: %s", vehicle_rc,
+                            "; ".join(teardown_errors))
+                vehicle_rc = 0
         if self.bridge is not None:
             rc = _terminate(self.bridge, "SCIP bridge", interrupted)
             self.bridge_rc = (rc or 1) if bridge_ended_early else rc

@@ -70,7 +70,8 @@ def test_arduplane_takes_off_flies_guided_waypoints_and_the_cross_check_alarms_o
 
     assert report["autopilot"]["firmware"] == "ArduPilot plane 4.0.7"
     # ArduPlane 4.0.7 SITL sometimes panics writing to SERIAL0 just after the daemon hung up at the end
-    # of the run ("Short write on UART"; seen in 1 of 3 runs): after the flight, so it is tolerated
+    # of the run ("Short write on UART"; seen in 1 of 3 runs): after the flight, so it is tolerated (the
+    # harness reports it but does not count that exit as the vehicle dying: `companion sitl` exits 0)
     assert set(report["autopilot"]["internal_errors"]) <= {"Short write on UART: 0 < 10"}
     assert report["control"]["mission_completed"]
     modes = [mode for _, mode, _ in log["modes"]]
