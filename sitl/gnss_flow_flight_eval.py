@@ -27,7 +27,8 @@ import numpy as np
 from companion.frames import GRAVITY_MPS2, quat_from_euler, rotation_from_euler, wrap_pi
 from companion.health import Health
 from companion.messages import GNSS_3D, AttitudeEstimate, GnssFix, ImuSample
-from companion.nav.gnss_flow.pipeline import GnssFlowConfig, GnssFlowPipeline
+from companion.nav.gnss_flow.config import GnssFlowConfig
+from companion.nav.gnss_flow.pipeline import GnssFlowPipeline
 from companion.nav.gnss_flow.pseudo_attitude import body_rates_from_euler_rates
 from sitl.pseudo_attitude_eval import Errors, Flight, FlightPlan, Gyro, Receiver, fly, manoeuvring
 from drivers.mount import Mount

@@ -12,7 +12,7 @@ loop does, first order (``roll_tau_s``, RLL2SRV_TCONST) within a roll-rate limit
 as the lift, banked and normal to the air velocity, makes it (coordinated: no lateral specific
 force). Integrated at ``step_s``. A steady wind (``wind_ned_mps``) changes the ground velocity the
 GNSS measures but not the acceleration; the pseudo-roll, about the ground velocity, then differs
-from the bank by the crab (the flow's offsets turn it to the body, pipeline.true_euler), so the
+from the bank by the crab (the flow's offsets turn it to the body, true_attitude.true_euler), so the
 gyro blend's truth is only the bank in still air.
 
 The receiver: fixes at epochs ``k / rate_hz`` (s) with the true NED velocity plus white noise

@@ -26,7 +26,8 @@ from companion.config import ConfigError, load_config
 from companion.frames import GRAVITY_MPS2, euler_from_rotation, quat_from_euler, rotation_from_euler, wrap_pi
 from companion.health import Health, State
 from companion.messages import GNSS_3D, AttitudeEstimate, FlowField, Frame, GnssFix, ImuSample, RangeEstimate
-from companion.nav.gnss_flow.pipeline import GnssFlowConfig, GnssFlowPipeline
+from companion.nav.gnss_flow.config import GnssFlowConfig
+from companion.nav.gnss_flow.pipeline import GnssFlowPipeline
 from companion.pipeline import PipelineContext
 from drivers.mount import OPTICAL_TO_SENSOR, Mount
 from sitl.flow_sim import SimFlowSettings, SimulatedFlowSensor

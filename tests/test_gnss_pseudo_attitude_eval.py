@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from sitl.gnss_flow_flight_eval import run
-from companion.nav.gnss_flow.pipeline import GnssFlowConfig
+from companion.nav.gnss_flow.config import GnssFlowConfig
 from companion.nav.gnss_flow.pseudo_attitude import DopplerAccelerationFilter, GyroAidedAngle
 from sitl.pseudo_attitude_eval import (Estimator, Flight, FlightPlan, Gyro, Receiver, evaluate,
                                                           fly)

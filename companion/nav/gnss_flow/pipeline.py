@@ -5,7 +5,8 @@ Data flow (in the daemon's event loop, no I/O here):
 
 - GNSS fixes (Doppler velocity, NED m/s) -> :class:`~.pseudo_attitude.DopplerAccelerationFilter`
   -> pseudo roll, pitch, yaw (the attitude of the velocity vector) at each frame's capture time;
-- the flow of a pair of instants, normalised image coordinates, by either path (or both):
+- the flow of a pair of instants, normalised image coordinates, by either path (or both,
+  :mod:`.paths`):
   the camera's, each new pair of frames (at most ``pair_rate_hz``) -> grid Lucas-Kanade flow
   (:func:`.flow.grid_flow`) -> undistorted normalised flow; or a flow sensor's (``flow``: a
   :class:`FlowField` spans its two instants and is normalised already, e.g. the seed's synthetic
@@ -14,12 +15,12 @@ Data flow (in the daemon's event loop, no I/O here):
   frame interval (the autopilot's gyro when ``imu_sensor`` is configured and has samples in the
   interval, else the rates of the pseudo Euler angles over ``rate_baseline_s``,
   :func:`.pseudo_attitude.body_rates_from_euler_rates`, their spin about the direction of travel
-  then re-estimated from the flow, :func:`spin_about_travel`) -> focus of expansion ->
+  then re-estimated from the flow, :func:`.true_attitude.spin_about_travel`) -> focus of expansion ->
   the direction of travel in the body at mid-interval -> its pitch and yaw offsets (the angle of
   attack and the drift angle) -> the true attitude: the pseudo-attitude's frame (x along the
   velocity, z along minus the normal specific force) turned by those offsets, the seed's "pseudo
   pitch plus the pitch offset normal to the roll, pseudo yaw plus the yaw offset tangential to it"
-  done exactly -> an :class:`AttitudeEstimate` at mid-interval (the attitude cross-check,
+  done exactly (:mod:`.true_attitude`) -> an :class:`AttitudeEstimate` at mid-interval (the attitude cross-check,
   companion/crosscheck.py, against the autopilot's ATTITUDE; threshold and hold are the daemon's
   ``pipelines.attitude_alarm_deg`` / ``attitude_alarm_s``, one alarm for every attitude source);
 - the translational flow and the GNSS speed -> depths (eqs. 9-11) -> the height above flat
@@ -70,400 +71,44 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
 
 from companion.calibration import CameraCalibration, load_calibration
-from companion.frames import euler_from_rotation, rotation_from_euler, wrap_pi
+from companion.frames import rotation_from_euler
 from companion.health import Health, State
-from companion.messages import (GNSS_3D, AttitudeEstimate, Estimate, FlowField, Frame, GnssFix, ImuSample,
-                                RangeEstimate)
-from companion.nav.gnss_flow.flow import (FocusOfExpansion, depths, derotate, focus_of_expansion, grid_flow,
-                                          height_above_ground, normalised_flow, velocity_offsets)
+from companion.messages import AttitudeEstimate, Estimate, FlowField, Frame, GnssFix, ImuSample, RangeEstimate
+from companion.nav.gnss_flow.config import GnssFlowConfig
+from companion.nav.gnss_flow.flow import FocusOfExpansion, depths, derotate, focus_of_expansion, height_above_ground
+from companion.nav.gnss_flow.paths import CameraPath, FlowPath, FlowSensorPath, GnssFlowStats, Instant, PairResult
 from companion.nav.gnss_flow.pseudo_attitude import (DopplerAccelerationFilter, GyroAidedAngle, PseudoAttitude,
                                                      PseudoAttitudeLimits, body_rates_from_euler_rates,
                                                      coordination_check, euler_rates_from_body_rates, pseudo_attitude,
                                                      pseudo_attitude_refusal, pseudo_euler_rates)
+from companion.nav.gnss_flow.true_attitude import (midway, spin_about_travel, true_euler, true_euler_covariance,
+                                                   wind_to_body)
 from companion.pipeline import PipelineContext
 from companion.plugins import register_pipeline
-from companion.schema import meta
 from companion.timing import Timings
-from drivers.mount import OPTICAL_TO_SENSOR, Mount
+from drivers.mount import Mount
 
 STREAM = "gnss_flow"
 PITCH_OFFSET_TAU_S = 5.0  # the pitch offset in the gyro roll blend's Euler conversion is averaged over this, s
 IMU_HISTORY_S = 2.0  # IMU samples kept beyond the smoothing lag, s: a frame interval and the wait for its fix
 FRAME_SLACK = 0.1  # a frame up to this fraction of 1 / pair_rate_hz early is used (capture-time jitter)
 LOST_AFTER_S = 2.0  # no frame pair processed for this long (no frames, or no GNSS): health lost, s
-JACOBIAN_STEP = 1e-6  # central-difference step of the attitude covariance, rad and normalised units
 IMU_HOLD_S = 0.1  # a blend span with no IMU sample in it takes the newest sample up to this old; older: restart, s
 SAME_INSTANT_S = 1e-6  # capture times this close are one instant (the two paths' frames at 0.2 and 0.2 + 4e-17 s), s
 HISTORY_MARGIN_S = 1.0  # fixes kept for the smoother beyond its lag, s: covers a frame captured before a fused fix
 
 
 @dataclass
-class GnssFlowConfig:
-    """``pipelines.gnss_flow``: a fixed wing's attitude and height above ground from GNSS and optic flow."""
-
-    gnss: str = field(metadata=meta("Name (in `sensors`) of the GNSS receiver (kind gnss, with Doppler velocity)."))
-    camera: str | None = field(default=None, metadata=meta(
-        "Name (in `sensors`) of the forward-looking camera (kind camera): the image path, grid Lucas-Kanade flow; "
-        "null: none (give `flow`). Its estimates' source is `gnss_flow`, or `gnss_flow.images` when `flow` is "
-        "given too."))
-    calibration: str | None = field(default=None, metadata=meta(
-        "The camera's intrinsics (OpenCV or ROS YAML, relative to this file), for the frames' resolution; "
-        "needed with `camera`."))
-    flow: str | None = field(default=None, metadata=meta(
-        "Name (in `sensors`) of a flow sensor (kind flow: flow fields in normalised image coordinates, e.g. the "
-        "seed's synthetic flow, `backend: sim`): the flow path, from the derotation on (no tracking, no "
-        "calibration); its estimates' source is `gnss_flow`. null: none (give `camera`)."))
-    imu_sensor: str | None = field(default=None, metadata=meta(
-        "Name (in `sensors`) of the autopilot's IMU (kind imu), optional: its gyro derotates the flow and its "
-        "accelerometer checks the coordination; null: GNSS-derived body rates and the drift-angle check."))
-    pair_rate_hz: float = field(default=10.0, metadata=meta(
-        "Camera frames are used at most this often (the others are skipped; a flow sensor's fields all are): one "
-        "flow per interval, each costing a grid_flow (`companion bench`) in the nav loop; a longer interval gives "
-        "the far ground more flow.",
-        (0.5, 100)))
-    grid: tuple[int, int] = field(default=(45, 45), metadata=meta(
-        "Flow grid, [columns, rows] of points spread over the image (seed: 45 x 45).", (2, 200)))
-    lk_window_px: int = field(default=16, metadata=meta(
-        "Lucas-Kanade window side, pixels: a larger one biases the ground's flow, whose expansion varies across "
-        "the window (21 px put the angle of attack 0.6 deg low in tests/test_gnss_flow_pipeline.py, 16 px within "
-        "0.1 deg); OpenCV is fastest at multiples of 8 (flow.grid_flow).", (4, 101)))
-    lk_levels: int = field(default=3, metadata=meta("Lucas-Kanade pyramid levels above the image.", (0, 8)))
-    fb_max_px: float = field(default=0.5, metadata=meta(
-        "A grid point whose forward-backward tracking error exceeds this is dropped, pixels.", (0.01, 10)))
-    foe_min_flow_px: float = field(default=1.0, metadata=meta(
-        "Translational flow vectors shorter than this are not used for the focus of expansion (the far ground's: "
-        "their directions are tracking noise), pixels.", (0, 50)))
-    foe_min_flow_n: float = field(default=2e-4, metadata=meta(
-        "The flow path's `foe_min_flow_px`: shorter translational flow vectors of a flow sensor are not used for "
-        "the focus of expansion, normalised image units (about radians near the axis).", (0, 1)))
-    foe_threshold_deg: float = field(default=5.0, metadata=meta(
-        "A translational flow vector within this angle of its line from the focus of expansion is a RANSAC "
-        "inlier, degrees.", (0.1, 45)))
-    foe_iterations: int = field(default=50, metadata=meta(
-        "RANSAC draws of two flow lines for the focus of expansion (each votes over every flow vector; the least "
-        "squares fit on the winner's inliers follows): 50 find an inlier pair at once with half the flow outliers.",
-        (1, 1000)))
-    receiver_latency_s: float = field(default=0.0, metadata=meta(
-        "GNSS receiver latency the backend did not remove: a fix is used at t_capture minus this, s (0 when the "
-        "backend's latency_s is set or it stamps the solution's epoch, as `backend: sim` does).", (0, 2)))
-    speed_sigma_mps: float = field(default=0.1, metadata=meta(
-        "1-sigma of a Doppler velocity component when the receiver does not report its speed accuracy, m/s.",
-        (0.001, 10)))
-    rate_baseline_s: float = field(default=1.0, metadata=meta(
-        "Without IMU samples: the pseudo Euler rates are differenced over this span of fixes, s. The flow's focus "
-        "of expansion is very sensitive to a roll-rate error (1 deg/s turns the far ground's flow lines by tens of "
-        "degrees), and the pseudo-roll's noise differenced over a frame interval gives several deg/s; longer is "
-        "smoother and lags a roll-in by half of it.", (0.05, 5)))
-    spin_sweeps: int = field(default=2, metadata=meta(
-        "With GNSS-derived rates: times the turn rate about the direction of travel is re-estimated from the "
-        "flow's spiral around the focus of expansion (the pseudo roll rate's error), 0 = never.", (0, 10)))
-    jerk_psd: float = field(default=0.2, metadata=meta(
-        "White-jerk spectral density of the Doppler acceleration filter, m^2/s^5: lower is smoother but follows "
-        "a bank change less (pseudo_attitude.DopplerAccelerationFilter); 0.2 gives the least roll error with "
-        "`smoothing_lag_s` 0.6 at 5 or 10 Hz and 0.05 m/s Doppler noise (sitl/pseudo_attitude_eval.py).",
-        (0.001, 1000)))
-    gyro_roll_tau_s: float = field(default=3.0, metadata=meta(
-        "With IMU samples: the roll is blended with the gyro's roll rate, following the gyro over spans shorter "
-        "than this and the GNSS beyond, the gyro's bias estimated (pseudo_attitude.GyroAidedAngle), s; 0: the "
-        "GNSS roll alone. The attitude then checks the autopilot's gyro only over longer spans; none is given for "
-        "this long after the blend (re)starts.", (0, 60)))
-    gyro_pitch_yaw_tau_s: float = field(default=3.0, metadata=meta(
-        "With IMU samples: each path's pitch and yaw (the flow's, from pair to pair) are blended with the gyro's "
-        "Euler rates, following the gyro over spans shorter than this and the flow beyond, the gyro's bias "
-        "estimated (pseudo_attitude.GyroAidedAngle), s; 0: each pair's own. Pairs without an attitude (no focus "
-        "of expansion) are bridged on the gyro alone for at most this long.", (0, 60)))
-    smoothing_lag_s: float = field(default=0.6, metadata=meta(
-        "The pseudo-attitude of an instant is smoothed with the GNSS fixes up to this long after it (fixed-lag "
-        "Rauch-Tung-Striebel): the attitude still describes its instant but is given this much later, s "
-        "(0: filtered, from the fixes up to the instant only; sitl/pseudo_attitude_eval.py measures both).", (0, 3)))
-    min_fix_type: int = field(default=GNSS_3D, metadata=meta(
-        "A fix is used from this MAVLink GPS_FIX_TYPE on (3 = 3-D), unless it reports jamming.", (2, 6)))
-    min_speed_mps: float = field(default=5.0, metadata=meta(
-        "Below this ground speed the course, and so the attitude, is undefined: nothing is given, m/s.", (0.5, 100)))
-    max_lateral_deg: float = field(default=3.0, metadata=meta(
-        "With an IMU: a lateral specific force beyond this angle from the body's -z (a slip or skid) flags the "
-        "frame pair uncoordinated, and keeps the pseudo-roll out of the gyro roll blend over that span, degrees.",
-        (0.1, 45)))
-    max_drift_deg: float = field(default=10.0, metadata=meta(
-        "Without an IMU: a drift angle (the FOE's yaw offset) beyond this flags the pair uncoordinated, degrees; "
-        "a crosswind's crab counts too.", (0.1, 60)))
-    max_pitch_offset_deg: float = field(default=20.0, metadata=meta(
-        "A focus of expansion putting the velocity more than this above or below the body's x axis (an angle of "
-        "attack past the stall) is a wrong fit: its pair gives no attitude, degrees. Derotated by the GNSS-derived "
-        "rates in bank changes the flow gave a few such fits (40 to 120 deg), whose attitudes were off by up to "
-        "180 deg (sitl/gnss_flow_flight_eval.py).", (1, 90)))
-    min_depression_deg: float = field(default=5.0, metadata=meta(
-        "Flow points at least this far below the horizon are ground for the height above it, degrees.", (0.5, 89)))
-    agl_range_m: tuple[float, float] = field(default=(1.0, 100.0), metadata=meta(
-        "Heights above ground sent as DISTANCE_SENSOR (also its min and max distance), m.", (0.1, 1000)))
-    agl_sigma_fraction: float = field(default=0.1, metadata=meta(
-        "1-sigma of the height above ground stated to the autopilot, as a fraction of it.", (0.001, 1)))
-    flow_vectors_shown: int = field(default=200, metadata=meta(
-        "Flow vectors on telemetry per frame pair, at most (every k-th valid one).", (0, 10000)))
-
-    def validate(self) -> tuple[str, str] | None:
-        if self.camera is None and self.flow is None:
-            return "camera", "give a camera, a flow sensor (`flow`) or both"
-        if (self.camera is None) != (self.calibration is None):
-            return "calibration", "give it with `camera`, and only then"
-        low, high = self.agl_range_m
-        if low >= high:
-            return "agl_range_m", "give [lowest, highest] with lowest < highest"
-        return None
-
-    def sensor_inputs(self) -> dict[str, str]:
-        optional = {"camera": "camera", "flow": "flow", "imu_sensor": "imu"}
-        return {"gnss": "gnss", **{key: kind for key, kind in optional.items() if getattr(self, key) is not None}}
-
-    def moved(self, raw: dict[str, Any], offset: tuple[float, float], move_map: Callable[[str], str]) -> dict[str, Any]:
-        """Unchanged: nothing in this section is a position."""
-        return raw
-
-
-@dataclass
 class GnssStats:
     fixes: int = 0  # GNSS fixes fed to the acceleration filter
     fixes_refused: int = 0  # no 3-D fix, no Doppler velocity, jamming, or out of time order
-
-
-@dataclass
-class GnssFlowStats:
-    """One flow path's counters."""
-
-    frames: int = 0  # camera frames, or flow fields, received
-    skipped_frames: int = 0  # camera frames within 1 / pair_rate_hz of the previous frame used
-    flows: int = 0  # pairs whose flow gave a focus of expansion
-    attitudes: int = 0  # attitude estimates given
-    ranges: int = 0  # height-above-ground range estimates given
-    uncoordinated: int = 0  # pairs flagged as an uncoordinated manoeuvre (no attitude given)
-    refused: dict[str, int] = field(default_factory=dict)  # pairs without an attitude, per reason
-
-
-@dataclass(frozen=True)
-class _Instant:
-    """The GNSS at one capture instant of a flow path: the pseudo-attitude (None where undefined)."""
-
-    t: float  # daemon clock, s
-    pseudo: PseudoAttitude | None
-    speed_mps: float  # GNSS ground-relative speed, 3-D, m/s (NaN without an estimate)
-    refusal: str  # why ``pseudo`` is None ("" when it is not)
-
-
-@dataclass(frozen=True)
-class PairResult:
-    """What one pair (two frames, or one flow field) gave (telemetry)."""
-
-    t_capture: float  # the attitude's time, mid-interval, s
-    pseudo_euler_rad: tuple[float, float, float]  # at t_capture
-    points: np.ndarray  # (N, 2) valid flow start points as measured: px (camera), normalised (flow sensor)
-    flows: np.ndarray  # (N, 2) their flows, in the same units
-    status: str = ""
-    rates_source: str = ""  # "imu" or "gnss" ("" when not reached)
-    foe: FocusOfExpansion | None = None
-    offsets_rad: tuple[float, float] | None = None  # (pitch offset, drift angle)
-    coordinated: bool | None = None
-    lateral_rad: float | None = None  # the coordination check's angle (IMU lateral angle, or the drift angle)
-    euler_rad: tuple[float, float, float] | None = None
-    depth_m: np.ndarray | None = None  # (N,) per valid point, NaN where unobservable
-    agl_m: float | None = None
-
-
-def true_euler(pseudo_rad: np.ndarray, foe_n: np.ndarray, forward: float,
-               cam_to_body: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
-    """(roll, pitch, yaw) rad of body FRD in NED, and the (pitch offset, drift angle) rad, from the
-    pseudo Euler angles ``pseudo_rad`` (3,) (the frame whose x is the velocity and whose -z the
-    normal specific force) and the focus of expansion ``foe_n`` (2,) (normalised coordinates of the
-    camera ``cam_to_body``; ``forward`` +1 when the flow expands from it, -1 when it converges).
-
-    The velocity in the body is ``(cos a cos b, sin b, sin a cos b)`` (a the pitch offset, b the
-    drift angle, :func:`.flow.velocity_offsets`), so body = pseudo frame turned by the
-    wind-to-body rotation (:func:`wind_to_body`): ``R_nb = R_nw C_bw^T``.
-    Level and wings level this is pitch = flight path + a, yaw = course - b."""
-    direction = forward * np.append(foe_n, 1.0) / math.hypot(foe_n[0], foe_n[1], 1.0)
-    a, b = velocity_offsets(direction, cam_to_body)
-    r_nb = rotation_from_euler(*(float(x) for x in pseudo_rad)) @ wind_to_body(a, b).T
-    return np.array(euler_from_rotation(r_nb)), (a, b)
-
-
-def wind_to_body(pitch_offset: float, drift: float) -> np.ndarray:
-    """``C_bw`` (3x3, ``v_body = C_bw @ v_wind``) for the velocity at ``pitch_offset`` (a) below
-    the nose and ``drift`` (b) to its right, both rad: ``R_y(-a) R_z(b)`` (aerodynamic convention),
-    whose first column is the velocity's direction in the body ``(cos a cos b, sin b, sin a cos b)``."""
-    ca, sa, cb, sb = math.cos(pitch_offset), math.sin(pitch_offset), math.cos(drift), math.sin(drift)
-    return np.array([[ca * cb, -ca * sb, -sa], [sb, cb, 0.0], [sa * cb, -sa * sb, ca]])
-
-
-def true_euler_covariance(pseudo: PseudoAttitude, foe: FocusOfExpansion, forward: float,
-                          cam_to_body: np.ndarray) -> np.ndarray:
-    """(3, 3) rad^2: the pseudo-attitude's and the FOE's covariances (independent) through a
-    central-difference Jacobian of :func:`true_euler`."""
-    x = np.array([pseudo.roll, pseudo.pitch, pseudo.yaw, *foe.point_n])
-    cov_in = np.zeros((5, 5))
-    cov_in[:3, :3] = pseudo.covariance
-    cov_in[3:, 3:] = foe.covariance_n
-    jacobian = np.zeros((3, 5))
-    for i in range(5):
-        dx = np.zeros(5)
-        dx[i] = JACOBIAN_STEP
-        plus = true_euler(x[:3] + dx[:3], x[3:] + dx[3:], forward, cam_to_body)[0]
-        minus = true_euler(x[:3] - dx[:3], x[3:] - dx[3:], forward, cam_to_body)[0]
-        jacobian[:, i] = [wrap_pi(float(d)) / (2 * JACOBIAN_STEP) for d in plus - minus]
-    cov = jacobian @ cov_in @ jacobian.T
-    return 0.5 * (cov + cov.T)
-
-
-def spin_about_travel(points_n: np.ndarray, flows_n: np.ndarray, translational: np.ndarray,
-                      foe: FocusOfExpansion, rates: np.ndarray, dt: float, cam_to_body: np.ndarray) -> float:
-    """The turn rate (rad/s) about the direction of travel that the derotation by ``rates`` (body
-    FRD rad/s over ``dt`` s) missed, from the flow itself: such a spin adds flow across every line
-    from the FOE (the flow lines spiral), the more so the farther the ground, where a shift of the
-    FOE turns the near lines most. Linearised least squares on the sines of the inliers' angles
-    to their lines from the FOE, for the spin and the FOE's shift together (the shift is left to
-    the next :func:`.flow.focus_of_expansion`). ``points_n``, ``flows_n`` and ``translational``
-    (its derotation by ``rates``) (N, 2) normalised; the camera ``cam_to_body``."""
-    inl = foe.inliers
-    points, flows = points_n[inl], translational[inl]
-
-    def sines(foe_n: np.ndarray, flow: np.ndarray) -> np.ndarray:
-        radial = points - foe_n
-        cross = radial[:, 0] * flow[:, 1] - radial[:, 1] * flow[:, 0]
-        return cross / (np.linalg.norm(radial, axis=1) * np.linalg.norm(flows, axis=1))
-
-    step = 1e-3  # rad/s and normalised units: the sines are linear in both to well below this
-    axis = cam_to_body @ foe.direction_cam  # body FRD
-    spun = derotate(points, flows_n[inl], rates + step * axis, dt, cam_to_body)
-    base = sines(foe.point_n, flows)
-    columns = [sines(foe.point_n, spun) - base] + [sines(foe.point_n + d, flows) - base for d in np.eye(2) * step]
-    solution, *_ = np.linalg.lstsq(np.column_stack(columns) / step, -base, rcond=None)
-    return float(solution[0])
-
-
-def midway(earlier: PseudoAttitude, later: PseudoAttitude) -> PseudoAttitude:
-    """The pseudo-attitude half way between two (angles interpolated, yaw and roll wrapped;
-    the covariance averaged)."""
-    return PseudoAttitude(0.5 * (earlier.time_s + later.time_s),
-                          wrap_pi(earlier.roll + 0.5 * wrap_pi(later.roll - earlier.roll)),
-                          0.5 * (earlier.pitch + later.pitch),
-                          wrap_pi(earlier.yaw + 0.5 * wrap_pi(later.yaw - earlier.yaw)),
-                          0.5 * (earlier.covariance + later.covariance))
-
-
-class FlowPath:
-    """One way the pipeline gets its flow, with its own estimates' ``source``, health component
-    ``nav:<source>``, telemetry stream, counters and pair in progress. A path turns the instants
-    the pipeline stamps with the GNSS (:meth:`complete`) into pairs and measures their flow
-    (:meth:`measure`); the rest of the chain is the pipeline's."""
-
-    def __init__(self, source: str, cam_to_body: np.ndarray, min_flow_n: float, health: Health) -> None:
-        self.source = source
-        self.stream = source.replace(".", "_")  # a telemetry stream name is a lower-case word
-        self.component = f"nav:{source}"
-        self.cam_to_body = cam_to_body  # v_body = cam_to_body @ v_optical
-        self.min_flow_n = min_flow_n  # shortest translational flow for the FOE, normalised units
-        self.health = health
-        self.stats = GnssFlowStats()
-        self.offsets = (0.0, 0.0)  # the newest pair's (pitch offset, drift) rad: the GNSS rates' frame
-        self.last_pair_s: float | None = None  # the later instant of the newest pair, s
-        self.last_result: PairResult | None = None
-        self.published: PairResult | None = None
-        health.report(self.component, State.LOST, "waiting for GNSS fixes and flow")
-
-    def refuse(self, reason: str) -> None:
-        """Count a pair without an attitude and report the reason (health degraded)."""
-        key = reason.split(":")[0]
-        self.stats.refused[key] = self.stats.refused.get(key, 0) + 1
-        self.health.report(self.component, State.DEGRADED, reason)
-
-    def reset(self) -> None:
-        """Forget the pair in progress (the GNSS did not come for it)."""
-
-    def complete(self, instant: _Instant, payload: Any) -> tuple[_Instant, _Instant, Any, Any] | str | None:
-        """The pair ``instant`` (with its message part ``payload``) completes: (earlier and later
-        instants, the payloads to :meth:`measure`), or why it is refused, or None (no pair yet)."""
-        raise NotImplementedError
-
-    def measure(self, earlier: Any, later: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(points, flows) (N, 2) each in normalised image coordinates, then (points, flows) as
-        measured (for telemetry), of the valid flow of a pair."""
-        raise NotImplementedError
-
-    def telemetry_flow(self, result: PairResult, shown: slice) -> dict[str, Any]:
-        """The path's own telemetry keys: the ``shown`` flow vectors and the FOE in its units."""
-        raise NotImplementedError
-
-
-class CameraPath(FlowPath):
-    """Camera frames -> grid Lucas-Kanade flow between consecutive frames, undistorted."""
-
-    def __init__(self, source: str, cfg: GnssFlowConfig, calibration: CameraCalibration, mount: Mount,
-                 health: Health) -> None:
-        super().__init__(source, mount.rotation @ OPTICAL_TO_SENSOR, cfg.foe_min_flow_px / calibration.K[0, 0],
-                         health)
-        self.cfg = cfg
-        self.calibration = calibration
-        self._previous: tuple[_Instant, np.ndarray] | None = None  # the newest frame's instant and grey image
-
-    def reset(self) -> None:
-        self._previous = None
-
-    def complete(self, instant: _Instant, payload: Frame) -> tuple[_Instant, _Instant, Any, Any] | str | None:
-        grey = payload.image if payload.image.ndim == 2 else cv2.cvtColor(payload.image, cv2.COLOR_BGR2GRAY)
-        previous, self._previous = self._previous, (instant, grey)
-        if previous is None:
-            return None
-        size = grey.shape[::-1]
-        if size != (self.calibration.width, self.calibration.height) or previous[1].shape != grey.shape:
-            return (f"frame size {size[0]}x{size[1]}: the calibration is for "
-                    f"{self.calibration.width}x{self.calibration.height}")
-        return previous[0], instant, previous[1], grey
-
-    def measure(self, earlier: np.ndarray, later: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        cfg = self.cfg
-        flow = grid_flow(earlier, later, grid=tuple(cfg.grid), win=cfg.lk_window_px, levels=cfg.lk_levels,
-                         fb_max_px=cfg.fb_max_px)
-        points_px, flows_px = flow.points_px[flow.valid], flow.flows_px[flow.valid]
-        return *normalised_flow(points_px, flows_px, self.calibration), points_px, flows_px
-
-    def telemetry_flow(self, result: PairResult, shown: slice) -> dict[str, Any]:
-        foe_px = None
-        if result.foe is not None:
-            foe_px = self.calibration.project(np.append(result.foe.point_n, 1.0)[None, :])[0]
-        return {"image_size": (self.calibration.width, self.calibration.height),
-                "flow_points_px": result.points[shown], "flow_px": result.flows[shown], "foe_px": foe_px}
-
-
-class FlowSensorPath(FlowPath):
-    """A flow sensor's fields (:class:`FlowField`, normalised already): each one pair."""
-
-    def __init__(self, source: str, cfg: GnssFlowConfig, mount: Mount, health: Health) -> None:
-        super().__init__(source, mount.rotation @ OPTICAL_TO_SENSOR, cfg.foe_min_flow_n, health)
-        self._earlier: _Instant | None = None  # the newest instant stamped: the next field's earlier one
-        self.last_queued_s = -math.inf  # the later instant of the newest field queued, s
-
-    def reset(self) -> None:
-        self._earlier = None
-
-    def complete(self, instant: _Instant, payload: FlowField | None) -> tuple[_Instant, _Instant, Any, Any] | None:
-        """``payload`` None: the earlier instant of a field, kept; a field: its later instant (kept
-        too: the next field's earlier instant when the fields follow each other)."""
-        earlier, self._earlier = self._earlier, instant
-        if payload is None or earlier is None or earlier.t != payload.t_earlier:  # no pair, or its start dropped
-            return None
-        return earlier, instant, None, payload
-
-    def measure(self, earlier: None, later: FlowField) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        points, flows = later.points_n[later.valid], later.flows_n[later.valid]
-        return points, flows, points, flows
-
-    def telemetry_flow(self, result: PairResult, shown: slice) -> dict[str, Any]:
-        return {"flow_points_n": result.points[shown], "flow_n": result.flows[shown]}
 
 
 class GnssFlowPipeline:
@@ -616,23 +261,23 @@ class GnssFlowPipeline:
                 self.gnss_stats.fixes_refused += 1
         self._fixes = keep
 
-    def _stamp(self, t: float) -> _Instant:
+    def _stamp(self, t: float) -> Instant:
         """The pseudo-attitude and speed at capture time ``t`` (s), from the fixes up to
         ``smoothing_lag_s`` after it (fused by the caller), the roll blended with the gyro's (the
         blend advanced to ``t``: :meth:`step` also calls this at every fix's epoch, so the blend
         has settled when the first frames come). None, with the reason, while the blend settles."""
         estimate = self.filter.smoothed(t)
         if estimate is None:
-            return _Instant(t, None, math.nan, "no GNSS velocity")
+            return Instant(t, None, math.nan, "no GNSS velocity")
         refusal = pseudo_attitude_refusal(estimate.velocity_ned, estimate.acceleration_ned, self.limits)
         pseudo = None if refusal else pseudo_attitude(estimate, self.limits)
         if pseudo is not None and self._gyro_roll is not None:
             pseudo = dataclasses.replace(pseudo, roll=self._gyro_aided_roll(self._gyro_roll, pseudo))
             if self._imu and not self._gyro_roll.settled:
                 pseudo, refusal = None, "gyro roll blend settling"
-        return _Instant(t, pseudo, float(np.linalg.norm(estimate.velocity_ned)), refusal or "")
+        return Instant(t, pseudo, float(np.linalg.norm(estimate.velocity_ned)), refusal or "")
 
-    def _process(self, path: FlowPath, instant: _Instant, payload: Any) -> list[Estimate]:
+    def _process(self, path: FlowPath, instant: Instant, payload: Any) -> list[Estimate]:
         pair = path.complete(instant, payload)
         if pair is None:
             return []
@@ -685,7 +330,7 @@ class GnssFlowPipeline:
         return focus_of_expansion(points_n, translational, threshold_deg=self.cfg.foe_threshold_deg,
                                   iterations=self.cfg.foe_iterations, min_flow=path.min_flow_n)
 
-    def _pair(self, path: FlowPath, earlier: _Instant, later: _Instant,
+    def _pair(self, path: FlowPath, earlier: Instant, later: Instant,
               measured: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]) -> tuple[PairResult, list[Estimate]]:
         """What the ``measured`` flow (:meth:`FlowPath.measure`) of one pair gives (see the module docstring)."""
         cfg = self.cfg

@@ -1,0 +1,100 @@
+"""The true attitude from the pseudo-attitude and the flow's focus of expansion (the seed's
+"pseudo pitch plus the pitch offset normal to the roll, pseudo yaw plus the yaw offset tangential
+to it", done exactly), its covariance, and the spin about the direction of travel that a
+derotation by the GNSS-derived rates missed.
+
+Frames: world LOCAL_NED, body FRD, the camera's optical frame (companion/calibration.py) placed in
+the body by ``cam_to_body``; normalised image coordinates; Euler angles ZYX rad.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from companion.frames import euler_from_rotation, rotation_from_euler, wrap_pi
+from companion.nav.gnss_flow.flow import FocusOfExpansion, derotate, velocity_offsets
+from companion.nav.gnss_flow.pseudo_attitude import PseudoAttitude
+
+JACOBIAN_STEP = 1e-6  # central-difference step of the attitude covariance, rad and normalised units
+
+
+def true_euler(pseudo_rad: np.ndarray, foe_n: np.ndarray, forward: float,
+               cam_to_body: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
+    """(roll, pitch, yaw) rad of body FRD in NED, and the (pitch offset, drift angle) rad, from the
+    pseudo Euler angles ``pseudo_rad`` (3,) (the frame whose x is the velocity and whose -z the
+    normal specific force) and the focus of expansion ``foe_n`` (2,) (normalised coordinates of the
+    camera ``cam_to_body``; ``forward`` +1 when the flow expands from it, -1 when it converges).
+
+    The velocity in the body is ``(cos a cos b, sin b, sin a cos b)`` (a the pitch offset, b the
+    drift angle, :func:`.flow.velocity_offsets`), so body = pseudo frame turned by the
+    wind-to-body rotation (:func:`wind_to_body`): ``R_nb = R_nw C_bw^T``.
+    Level and wings level this is pitch = flight path + a, yaw = course - b."""
+    direction = forward * np.append(foe_n, 1.0) / math.hypot(foe_n[0], foe_n[1], 1.0)
+    a, b = velocity_offsets(direction, cam_to_body)
+    r_nb = rotation_from_euler(*(float(x) for x in pseudo_rad)) @ wind_to_body(a, b).T
+    return np.array(euler_from_rotation(r_nb)), (a, b)
+
+
+def wind_to_body(pitch_offset: float, drift: float) -> np.ndarray:
+    """``C_bw`` (3x3, ``v_body = C_bw @ v_wind``) for the velocity at ``pitch_offset`` (a) below
+    the nose and ``drift`` (b) to its right, both rad: ``R_y(-a) R_z(b)`` (aerodynamic convention),
+    whose first column is the velocity's direction in the body ``(cos a cos b, sin b, sin a cos b)``."""
+    ca, sa, cb, sb = math.cos(pitch_offset), math.sin(pitch_offset), math.cos(drift), math.sin(drift)
+    return np.array([[ca * cb, -ca * sb, -sa], [sb, cb, 0.0], [sa * cb, -sa * sb, ca]])
+
+
+def true_euler_covariance(pseudo: PseudoAttitude, foe: FocusOfExpansion, forward: float,
+                          cam_to_body: np.ndarray) -> np.ndarray:
+    """(3, 3) rad^2: the pseudo-attitude's and the FOE's covariances (independent) through a
+    central-difference Jacobian of :func:`true_euler`."""
+    x = np.array([pseudo.roll, pseudo.pitch, pseudo.yaw, *foe.point_n])
+    cov_in = np.zeros((5, 5))
+    cov_in[:3, :3] = pseudo.covariance
+    cov_in[3:, 3:] = foe.covariance_n
+    jacobian = np.zeros((3, 5))
+    for i in range(5):
+        dx = np.zeros(5)
+        dx[i] = JACOBIAN_STEP
+        plus = true_euler(x[:3] + dx[:3], x[3:] + dx[3:], forward, cam_to_body)[0]
+        minus = true_euler(x[:3] - dx[:3], x[3:] - dx[3:], forward, cam_to_body)[0]
+        jacobian[:, i] = [wrap_pi(float(d)) / (2 * JACOBIAN_STEP) for d in plus - minus]
+    cov = jacobian @ cov_in @ jacobian.T
+    return 0.5 * (cov + cov.T)
+
+
+def spin_about_travel(points_n: np.ndarray, flows_n: np.ndarray, translational: np.ndarray,
+                      foe: FocusOfExpansion, rates: np.ndarray, dt: float, cam_to_body: np.ndarray) -> float:
+    """The turn rate (rad/s) about the direction of travel that the derotation by ``rates`` (body
+    FRD rad/s over ``dt`` s) missed, from the flow itself: such a spin adds flow across every line
+    from the FOE (the flow lines spiral), the more so the farther the ground, where a shift of the
+    FOE turns the near lines most. Linearised least squares on the sines of the inliers' angles
+    to their lines from the FOE, for the spin and the FOE's shift together (the shift is left to
+    the next :func:`.flow.focus_of_expansion`). ``points_n``, ``flows_n`` and ``translational``
+    (its derotation by ``rates``) (N, 2) normalised; the camera ``cam_to_body``."""
+    inl = foe.inliers
+    points, flows = points_n[inl], translational[inl]
+
+    def sines(foe_n: np.ndarray, flow: np.ndarray) -> np.ndarray:
+        radial = points - foe_n
+        cross = radial[:, 0] * flow[:, 1] - radial[:, 1] * flow[:, 0]
+        return cross / (np.linalg.norm(radial, axis=1) * np.linalg.norm(flows, axis=1))
+
+    step = 1e-3  # rad/s and normalised units: the sines are linear in both to well below this
+    axis = cam_to_body @ foe.direction_cam  # body FRD
+    spun = derotate(points, flows_n[inl], rates + step * axis, dt, cam_to_body)
+    base = sines(foe.point_n, flows)
+    columns = [sines(foe.point_n, spun) - base] + [sines(foe.point_n + d, flows) - base for d in np.eye(2) * step]
+    solution, *_ = np.linalg.lstsq(np.column_stack(columns) / step, -base, rcond=None)
+    return float(solution[0])
+
+
+def midway(earlier: PseudoAttitude, later: PseudoAttitude) -> PseudoAttitude:
+    """The pseudo-attitude half way between two (angles interpolated, yaw and roll wrapped;
+    the covariance averaged)."""
+    return PseudoAttitude(0.5 * (earlier.time_s + later.time_s),
+                          wrap_pi(earlier.roll + 0.5 * wrap_pi(later.roll - earlier.roll)),
+                          0.5 * (earlier.pitch + later.pitch),
+                          wrap_pi(earlier.yaw + 0.5 * wrap_pi(later.yaw - earlier.yaw)),
+                          0.5 * (earlier.covariance + later.covariance))
