@@ -82,6 +82,9 @@ class SimLidarSettings:
     mount_error_deg: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0), metadata=meta(
         "The scanner really sits turned from its configured mount by this roll, pitch, yaw (degrees, in its own "
         "frame): rendered so, unknown to the daemon.", (-10, 10)))
+    whole_mm: bool = field(default=True, metadata=meta(
+        "Ranges in whole millimetres, as SCIP reports them (the real driver's mm / 1000.0); false: unquantised "
+        "(geometry tests)."))
     motion_distortion: bool = field(default=False, metadata=meta(
         "Render every beam from the pose at its own time in the sweep (scans carry the model's sweep_s); "
         "false: the whole scan from the capture-time pose, sweep_s 0."))
@@ -182,14 +185,16 @@ class SimulatedLidar(Backend[Scan]):
 
     def measure(self, true_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(ranges m, valid) the scanner reports for true distances ``true_m`` (inf = no hit), in
-        beam order: mixed pixels at depth edges, the model's range noise, its min/max range and
-        the configured dropouts; 0 where invalid."""
+        beam order: mixed pixels at depth edges, the model's range noise, whole millimetres
+        (``whole_mm``), its min/max range and the configured dropouts; 0 where invalid."""
         true_m = self.mix_edges(true_m)
         hit = np.isfinite(true_m)
         true_m = np.where(hit, true_m, 0.0)
         bound = self.model.accuracy_bound_m(true_m) * self.settings.noise_scale
         noise = np.clip(self._rng.standard_normal(len(true_m)) * (bound / 3.0), -bound, bound)
         ranges = true_m + noise
+        if self.settings.whole_mm:
+            ranges = np.rint(ranges * 1000.0) / 1000.0
         valid = (hit & (ranges >= self.model.min_range_m) & (ranges <= self.model.max_range_m)
                  & (self._rng.random(len(true_m)) >= self.settings.dropout_prob))
         return np.where(valid, ranges, 0.0), valid

@@ -52,6 +52,7 @@ class MovingTruth:
 def make_sim(world: World, truth: MovingTruth | None = None, rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0),
              **settings: object) -> SimulatedLidar:
     settings.setdefault("noise_scale", 0.0)
+    settings.setdefault("whole_mm", False)  # exact ranges: the geometry tests resolve tenths of a mm
     return SimulatedLidar("lidar", SimLidarSettings(**settings),  # type: ignore[arg-type]
                           Mount.from_config(MountConfig(rpy_deg=rpy_deg)), world, truth or MovingTruth())
 
@@ -87,9 +88,10 @@ def test_the_new_options_are_off_by_default() -> None:
 
 def test_with_the_options_off_scans_are_the_static_cast_with_the_same_noise_draws() -> None:
     """The scans before the error sources existed: the static ray cast at the capture pose plus
-    the seed's noise and dropout draws, nothing else drawn, sweep_s 0 (depth edges present)."""
+    the seed's noise and dropout draws, in whole millimetres, nothing else drawn, sweep_s 0 (depth
+    edges present)."""
     world = walls_world([FAR_WALL, PILLAR])
-    sim = make_sim(world, seed=11, noise_scale=1.0, dropout_prob=0.2)
+    sim = make_sim(world, seed=11, noise_scale=1.0, dropout_prob=0.2, whole_mm=True)
     model = sim.model
     rng = np.random.default_rng(11)
     geometry = WorldGeometry.from_world(world)
@@ -100,7 +102,8 @@ def test_with_the_options_off_scans_are_the_static_cast_with_the_same_noise_draw
         hit = np.isfinite(true_m)
         true_m = np.where(hit, true_m, 0.0)
         bound = model.accuracy_bound_m(true_m)
-        ranges = true_m + np.clip(rng.standard_normal(len(true_m)) * bound / 3, -bound, bound)
+        noisy = true_m + np.clip(rng.standard_normal(len(true_m)) * bound / 3, -bound, bound)
+        ranges = np.rint(noisy * 1000.0) / 1000.0  # whole millimetres, as SCIP reports them
         valid = (hit & (ranges >= model.min_range_m) & (ranges <= model.max_range_m)
                  & (rng.random(len(true_m)) >= 0.2))
         np.testing.assert_array_equal(scan.valid, valid)
