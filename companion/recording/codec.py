@@ -5,7 +5,10 @@ Exactness: a message decoded from its document equals the one encoded, bit for b
 written with Python's shortest round-trip repr; a non-finite float as the string ``"nan"``,
 ``"inf"`` or ``"-inf"``; a numpy array as ``{"dtype", "shape", "base64"}``, its raw bytes, which is
 also some 40 times cheaper than a JSON list of floats; a camera image as lossless PNG). This is
-what makes ``companion replay`` deterministic.
+what makes ``companion replay`` deterministic. Two arrays have a compact form, used only where it
+decodes to the very same bits: a bool array as packed bits (``"bits"``, a scan's valid mask), and
+a float64 array of whole millimetres (``"mm_dtype"``, ``"mm"``: the integers, decoded as
+``int / 1000.0``; a Hokuyo's ranges, which SCIP gives in mm) in 2 or 4 bytes a value.
 
 Foxglove: a camera frame, a GNSS fix and a pose are written as Foxglove's well-known schema
 (``foxglove.CompressedImage``, ``foxglove.LocationFix``, ``foxglove.PoseInFrame``: its fields, its
@@ -44,11 +47,23 @@ FRAME_ID_WORLD = "local_ned"  # MAVLink LOCAL_NED at the autopilot's EKF origin
 # -- JSON Schema building blocks ------------------------------------------------------------
 
 NUMBER: dict[str, Any] = {"anyOf": [{"type": "number"}, {"enum": list(NON_FINITE)}]}
-ARRAY: dict[str, Any] = {
-    "type": "object", "required": ["dtype", "shape", "base64"], "additionalProperties": False,
-    "properties": {"dtype": {"type": "string", "description": "numpy dtype string, byte order included (e.g. <f8)"},
-                   "shape": {"type": "array", "items": {"type": "integer", "minimum": 0}},
-                   "base64": {"type": "string", "contentEncoding": "base64", "description": "the C-order bytes"}}}
+_DTYPE = {"type": "string", "description": "numpy dtype string, byte order included (e.g. <f8)"}
+_SHAPE = {"type": "array", "items": {"type": "integer", "minimum": 0}}
+ARRAY: dict[str, Any] = {"oneOf": [
+    {"type": "object", "required": ["dtype", "shape", "base64"], "additionalProperties": False,
+     "properties": {"dtype": _DTYPE, "shape": _SHAPE,
+                    "base64": {"type": "string", "contentEncoding": "base64", "description": "the C-order bytes"}}},
+    {"type": "object", "required": ["dtype", "shape", "bits"], "additionalProperties": False,
+     "properties": {"dtype": {"const": "|b1"}, "shape": _SHAPE,
+                    "bits": {"type": "string", "contentEncoding": "base64",
+                             "description": "a bool array's values in C order, 8 a byte, first value in the high bit "
+                                            "(numpy.packbits)"}}},
+    {"type": "object", "required": ["dtype", "shape", "mm_dtype", "mm"], "additionalProperties": False,
+     "properties": {"dtype": {"const": "<f8"}, "shape": _SHAPE, "mm_dtype": {"enum": ["<u2", "<i4"]},
+                    "mm": {"type": "string", "contentEncoding": "base64",
+                           "description": "float64 values that are whole thousandths (a range in mm): the integers "
+                                          "value * 1000 in C order, as mm_dtype; each value is integer / 1000.0"}}}]}
+MM_MIN_SIZE = 64  # float64 arrays from this many values are tried as whole millimetres (scans, not covariances)
 TIME: dict[str, Any] = {
     "type": "object", "required": ["sec", "nsec"],
     "properties": {"sec": {"type": "integer", "minimum": 0}, "nsec": {"type": "integer", "minimum": 0, "maximum": 999_999_999}}}
@@ -162,8 +177,7 @@ def exact(value: Any) -> Any:
     if kind is float:
         return _exact_float(value)
     if kind is np.ndarray:
-        return {"dtype": value.dtype.str, "shape": list(value.shape),
-                "base64": base64.b64encode(np.ascontiguousarray(value).tobytes()).decode()}
+        return _exact_array(value)
     if isinstance(value, (float, np.floating)):
         return _exact_float(float(value))
     if isinstance(value, (bool, np.bool_)):
@@ -179,6 +193,37 @@ def exact(value: Any) -> Any:
     raise TypeError(f"cannot record a {type(value).__name__}")
 
 
+def _exact_array(value: np.ndarray) -> dict[str, Any]:
+    """An array's exact encoding: packed bits for bool, integer millimetres for a float64 array
+    whose values all are (and decode to the same bits), else its raw bytes (see the module doc)."""
+    shape = list(value.shape)
+    if value.dtype == np.bool_:
+        return {"dtype": "|b1", "shape": shape, "bits": _b64(np.packbits(value, axis=None))}
+    if value.dtype == np.float64 and value.size >= MM_MIN_SIZE:
+        mm = _whole_millimetres(value)
+        if mm is not None:
+            return {"dtype": "<f8", "shape": shape, "mm_dtype": mm.dtype.str, "mm": _b64(mm)}
+    return {"dtype": value.dtype.str, "shape": shape, "base64": _b64(value)}
+
+
+def _whole_millimetres(value: np.ndarray) -> np.ndarray | None:
+    """``value * 1000`` as little-endian uint16 or int32 if every value is a whole millimetre that
+    ``integer / 1000.0`` gives back bit for bit (a negative zero or a NaN is not), else None."""
+    flat = value.reshape(-1)
+    for v in (flat.item(0), flat.item(-1)):  # most arrays that are not (a scan's angles) fail here, cheaply
+        if not math.isfinite(v * 1000.0) or round(v * 1000.0) / 1000.0 != v:
+            return None
+    with np.errstate(invalid="ignore", over="ignore"):  # NaN, inf and out-of-range values fail the round trip
+        ints = np.rint(flat * 1000.0).astype("<i4")
+    if not np.array_equal((ints / 1000.0).view(np.int64), flat.astype("<f8", copy=False).view(np.int64)):
+        return None
+    return ints.astype("<u2") if 0 <= ints.min() and ints.max() <= 0xFFFF else ints
+
+
+def _b64(array: np.ndarray) -> str:
+    return base64.b64encode(np.ascontiguousarray(array).tobytes()).decode()
+
+
 def _exact_float(v: float) -> float | str:
     return v if math.isfinite(v) else ("nan" if math.isnan(v) else ("inf" if v > 0 else "-inf"))
 
@@ -190,9 +235,17 @@ def unexact(value: Any) -> Any:
     if isinstance(value, list):
         return tuple(unexact(v) for v in value)
     if isinstance(value, dict):
-        if value.keys() == {"dtype", "shape", "base64"}:
+        keys = value.keys()
+        if keys == {"dtype", "shape", "base64"}:
             raw = base64.b64decode(value["base64"])
             return np.frombuffer(raw, dtype=np.dtype(value["dtype"])).reshape(value["shape"]).copy()
+        if keys == {"dtype", "shape", "bits"}:
+            count = math.prod(value["shape"])
+            bits = np.unpackbits(np.frombuffer(base64.b64decode(value["bits"]), dtype=np.uint8), count=count)
+            return bits.astype(bool).reshape(value["shape"])
+        if keys == {"dtype", "shape", "mm_dtype", "mm"}:
+            ints = np.frombuffer(base64.b64decode(value["mm"]), dtype=np.dtype(value["mm_dtype"]))
+            return (ints / 1000.0).reshape(value["shape"])
         return {k: unexact(v) for k, v in value.items()}
     return value
 
