@@ -316,8 +316,21 @@ def encode_json(t: float, payload: dict[str, Any]) -> bytes:
     Raises:
         TypeError: a value of another type (e.g. a datetime or an arbitrary object).
     """
-    document = _jsonable({"v": SCHEMA_VERSION, "t": t, **payload})
-    return json.dumps(document, allow_nan=False, separators=(",", ":")).encode()
+    document = {"v": SCHEMA_VERSION, "t": t, **payload}
+    try:  # in C: numpy values through _numpy_default, refused (ValueError) at the first non-finite float
+        return json.dumps(document, allow_nan=False, separators=(",", ":"), default=_numpy_default).encode()
+    except ValueError:  # a NaN or an infinity somewhere: walk the document in Python to make them null
+        return json.dumps(_jsonable(document), allow_nan=False, separators=(",", ":")).encode()
+
+
+def _numpy_default(value: Any) -> Any:
+    """What the json module cannot encode itself: a numpy array as (nested) lists, a numpy scalar
+    as its Python value; anything else is a TypeError, as json raises it."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"cannot encode {type(value).__name__} as telemetry JSON")
 
 
 def _jsonable(value: Any) -> Any:
