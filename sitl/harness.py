@@ -301,6 +301,24 @@ def process_cpu_rss(pid: int) -> tuple[float, float] | None:
         return None
 
 
+def cpu_jiffies() -> tuple[int, int] | None:
+    """(steal, total) CPU time of the whole machine so far, in clock ticks, from /proc/stat (None
+    where there is none): steal is the time a hypervisor ran something else while this VM's CPUs
+    had work."""
+    try:
+        fields = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:9]]
+    except (OSError, ValueError):
+        return None
+    return (fields[7], sum(fields)) if len(fields) == 8 else None
+
+
+def steal_percent(start: tuple[int, int] | None, end: tuple[int, int] | None) -> float | None:
+    """The share (%) of the CPU time between two :func:`cpu_jiffies` readings that was stolen."""
+    if start is None or end is None or end[1] <= start[1]:
+        return None
+    return 100.0 * (end[0] - start[0]) / (end[1] - start[1])
+
+
 SELF_EXIT_GRACE_S = 2.0  # after Ctrl-C, which the whole foreground group receives
 MISSION_END_GRACE_S = 1.0  # --report without --seconds: the run ends this long (wall) after the mission
 
@@ -357,6 +375,7 @@ class Session:
     listener: TelemetryListener | None = None
     started: float = field(default_factory=time.monotonic)
     usage: tuple[float, float] | None = None  # daemon (CPU s, peak RSS MB)
+    cpu_at_start: tuple[int, int] | None = None  # the machine's (steal, total) CPU ticks when the run began
 
     def wait(self, seconds: float | None, until_mission_end: bool = False) -> None:
         """Until the built-in vehicle ends the run (--seconds), the daemon or ArduPilot SITL dies,
@@ -559,6 +578,7 @@ def run_harness(args: argparse.Namespace) -> int:
         try:
             session.run_config = _start(session, cfg, args, work, vehicle_log)
             session.started = time.monotonic()
+            session.cpu_at_start = cpu_jiffies()
             bridge = f"; SCIP bridge serving {', '.join(cfg.sitl.scip_sensors)}" if session.bridge else ""
             vehicle = f"ArduPilot SITL {ardupilot.name}" if ardupilot is not None else "vehicle"
             print(f"companion sitl: {vehicle} + daemon running (mission {mission_name}, "
@@ -577,6 +597,7 @@ def run_harness(args: argparse.Namespace) -> int:
             session.stop()
             raise
         wall = time.monotonic() - session.started
+        stolen = steal_percent(session.cpu_at_start, cpu_jiffies())
         daemon_rc, vehicle_rc, telemetry = session.stop(interrupted)
     if interrupted:
         print("companion sitl: stopped", flush=True)
@@ -605,7 +626,7 @@ def run_harness(args: argparse.Namespace) -> int:
             origin=(frame.lat, frame.lon, frame.alt),
             internal_errors=session.ardupilot.internal_errors() if session.ardupilot is not None else None,
             cpu_percent=None if usage is None else 100.0 * usage[0] / max(wall, 1e-6),
-            rss_mb=None if usage is None else usage[1], base_ne=world.base,
+            rss_mb=None if usage is None else usage[1], base_ne=world.base, cpu_steal_percent=stolen,
             attitude_checks=session.listener.every("attitude_check") if session.listener is not None else [],
             pair_streams={stream: session.listener.every(stream) for stream in PAIR_STREAM_KEYS}
             if session.listener is not None else None)

@@ -320,7 +320,8 @@ def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, con
                  cpu_percent: float | None, rss_mb: float | None,
                  attitude_checks: Sequence[dict], ground_height: Callable[[float, float], float],
                  internal_errors: list[str] | None = None, base_ne: tuple[float, float] | None = None,
-                 pair_streams: Mapping[str, Sequence[dict]] | None = None) -> dict[str, Any]:
+                 pair_streams: Mapping[str, Sequence[dict]] | None = None,
+                 cpu_steal_percent: float | None = None) -> dict[str, Any]:
     """The report dict (schema 1) from a vehicle log and the daemon's last telemetry.
 
     ``attitude_checks``: every ``attitude_check`` payload the daemon published (and
@@ -330,7 +331,9 @@ def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, con
     (:func:`score_attitude`, with ``agl_error_pct`` and ``agl_count`` from :func:`score_agl`).
     ``internal_errors``: what a real autopilot (ArduPilot SITL) stopped on during the run; None
     for the built-in vehicle, which has no such thing. ``base_ne``: the world's base (north,
-    east m): the report gains ``recovery`` (:func:`score_recovery`)."""
+    east m): the report gains ``recovery`` (:func:`score_recovery`). ``cpu_steal_percent``: the
+    share of the machine's CPU time its hypervisor took during the run (None: not measured), which
+    says whether a real-time run's timing figures came from an otherwise idle machine."""
     estimate = score_estimate(log)
     estimate.pop("horizontal_rms_m", None)
     system = telemetry.get("system", {})
@@ -375,6 +378,7 @@ def build_report(*, mission: str, seconds: float, lockstep: bool, seed: int, con
             "loop_jitter_ms_p99": (system.get("loop_jitter_ms") or {}).get("p99"),
             "cpu_percent": cpu_percent,
             "rss_mb": rss_mb,
+            "cpu_steal_percent": cpu_steal_percent,
         },
     }
     agl_error_pct, agl_count = score_agl(log, ground_height)

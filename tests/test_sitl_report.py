@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from companion.scoring import effective_samples, nees_band
+from sitl.harness import cpu_jiffies, steal_percent
 from sitl.report import attitude_errors, cross_track_max, position_nees, wrong_resets
 from tests.conftest import REPO, free_port
 from tests.sitl_helpers import write_config, write_sitl_config
@@ -31,9 +32,10 @@ SCHEMA_1 = {
     "autopilot": {"origin_confirmed", "external_nav_in_use", "vision_position_estimate_hz",
                   "vision_speed_estimate_hz", "setpoint_hz", "nonfinite_dropped", "firmware", "internal_errors"},
     "control": {"law", "mission_completed", "tracking_rms_m", "tracking_max_m", "failsafes_triggered", "degraded_slowdowns"},
-    "timing": {"lidar_ms_p50", "lidar_ms_p99", "fusion_ms_p50", "loop_jitter_ms_p99", "cpu_percent", "rss_mb"},
+    "timing": {"lidar_ms_p50", "lidar_ms_p99", "fusion_ms_p50", "loop_jitter_ms_p99", "cpu_percent", "rss_mb",
+               "cpu_steal_percent"},
 }
-MACHINE_DEPENDENT = ("cpu_percent", "rss_mb")  # measured on the wall clock of this machine
+MACHINE_DEPENDENT = ("cpu_percent", "rss_mb", "cpu_steal_percent")  # measured on the wall clock of this machine
 
 
 @pytest.fixture(scope="module")
@@ -79,6 +81,19 @@ def test_report_has_exactly_the_schema_1_keys(reports: dict[str, dict]) -> None:
             assert set(report[section]) == keys, section
     assert report["schema"] == 1
     assert (report["mission"], report["seconds"], report["lockstep"], report["seed"]) == ("hover", 30.0, True, 1)
+
+
+def test_the_machine_figures_say_how_busy_the_host_was(reports: dict[str, dict]) -> None:
+    timing = reports["first"]["timing"]
+    assert timing["cpu_percent"] > 0.0 and timing["rss_mb"] > 0.0
+    assert 0.0 <= timing["cpu_steal_percent"] <= 100.0  # Linux: /proc/stat has a steal column
+
+
+def test_steal_percent_is_the_stolen_share_of_the_cpu_time_between_two_readings() -> None:
+    assert steal_percent((100, 10_000), (150, 11_000)) == 5.0
+    assert steal_percent(None, (150, 11_000)) is None and steal_percent((100, 10_000), (100, 10_000)) is None
+    steal, total = cpu_jiffies()
+    assert 0 <= steal <= total
 
 
 def test_hover_mission_completes_with_confirmed_origin_and_setpoint_keepalive(reports: dict[str, dict]) -> None:
