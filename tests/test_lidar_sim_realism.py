@@ -52,7 +52,6 @@ class MovingTruth:
 def make_sim(world: World, truth: MovingTruth | None = None, rpy_deg: tuple[float, float, float] = (0.0, 0.0, 0.0),
              **settings: object) -> SimulatedLidar:
     settings.setdefault("noise_scale", 0.0)
-    settings.setdefault("whole_mm", False)  # exact ranges: the geometry tests resolve tenths of a mm
     return SimulatedLidar("lidar", SimLidarSettings(**settings),  # type: ignore[arg-type]
                           Mount.from_config(MountConfig(rpy_deg=rpy_deg)), world, truth or MovingTruth())
 
