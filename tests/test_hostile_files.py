@@ -158,7 +158,7 @@ def test_a_fifo_as_the_signing_key_is_refused_without_blocking(project: Path, co
 def test_a_missing_replay_recording_is_reported_at_its_sensor_key(project: Path, command: str) -> None:
     text = replace_once(project.read_text(), "    backend: sim\n    mount: {position_m: [0.05",
                         "    backend: replay\n    mount: {position_m: [0.05")
-    project.write_text(replace_once(text, "settings: {model: URG-04LX, seed: 2}", "settings: {file: scans.npz}"))
+    project.write_text(replace_once(text, "settings: {model: URG-04LX, seed: 2, whole_mm: true}", "settings: {file: scans.npz}"))
     assert_config_error(companion(command, project),
                         f"{project}:{line_of(project, 'settings: {file: scans.npz}')}: sensors.lidar_v.settings.file: "
                         f"{project.parent.resolve() / 'scans.npz'}: cannot read file: No such file or directory")
