@@ -82,15 +82,17 @@ def test_the_new_options_are_off_by_default() -> None:
     assert defaults["mixed_pixel_prob"] == 0.0
     assert defaults["mount_error_deg"] == (0.0, 0.0, 0.0)
     assert defaults["motion_distortion"] is False
+    assert defaults["whole_mm"] is False
     assert walls_world([FAR_WALL]).walkers == ()
 
 
-def test_with_the_options_off_scans_are_the_static_cast_with_the_same_noise_draws() -> None:
+@pytest.mark.parametrize("whole_mm", [False, True])
+def test_with_the_options_off_scans_are_the_static_cast_with_the_same_noise_draws(whole_mm: bool) -> None:
     """The scans before the error sources existed: the static ray cast at the capture pose plus
-    the seed's noise and dropout draws, in whole millimetres, nothing else drawn, sweep_s 0 (depth
-    edges present)."""
+    the seed's noise and dropout draws, nothing else drawn, sweep_s 0 (depth edges present); with
+    ``whole_mm`` the same draws rounded to whole millimetres, as SCIP reports them."""
     world = walls_world([FAR_WALL, PILLAR])
-    sim = make_sim(world, seed=11, noise_scale=1.0, dropout_prob=0.2, whole_mm=True)
+    sim = make_sim(world, seed=11, noise_scale=1.0, dropout_prob=0.2, whole_mm=whole_mm)
     model = sim.model
     rng = np.random.default_rng(11)
     geometry = WorldGeometry.from_world(world)
@@ -102,7 +104,7 @@ def test_with_the_options_off_scans_are_the_static_cast_with_the_same_noise_draw
         true_m = np.where(hit, true_m, 0.0)
         bound = model.accuracy_bound_m(true_m)
         noisy = true_m + np.clip(rng.standard_normal(len(true_m)) * bound / 3, -bound, bound)
-        ranges = np.rint(noisy * 1000.0) / 1000.0  # whole millimetres, as SCIP reports them
+        ranges = np.rint(noisy * 1000.0) / 1000.0 if whole_mm else noisy
         valid = (hit & (ranges >= model.min_range_m) & (ranges <= model.max_range_m)
                  & (rng.random(len(true_m)) >= 0.2))
         np.testing.assert_array_equal(scan.valid, valid)
