@@ -215,7 +215,7 @@ def _whole_millimetres(value: np.ndarray) -> np.ndarray | None:
             return None
     with np.errstate(invalid="ignore", over="ignore"):  # NaN, inf and out-of-range values fail the round trip
         ints = np.rint(flat * 1000.0).astype("<i4")
-    if not np.array_equal((ints / 1000.0).view(np.int64), flat.astype("<f8", copy=False).view(np.int64)):
+    if not np.array_equal((ints / 1000.0).view(np.int64), flat.view(np.int64)):  # float64 bits, the caller's check
         return None
     return ints.astype("<u2") if 0 <= ints.min() and ints.max() <= 0xFFFF else ints
 
