@@ -177,3 +177,28 @@ def test_parallel_and_far_apart_neighbours_make_no_corner() -> None:
     arm2 = np.column_stack((np.linspace(1.5, 1.0, 50), np.full(50, 0.5)))  # meets x = 2 at (2, 0.5)
     lines = extract_lines(np.concatenate((arm1, arm2)))
     assert lines.count == 2 and find_corners(lines).count == 0
+
+
+@pytest.mark.parametrize("break_grazing_deg, phantoms_expected", [(10.0, False), (0.0, True)])
+def test_a_door_recess_seen_past_its_edge_makes_no_phantom_corner(break_grazing_deg: float,
+                                                                  phantoms_expected: bool) -> None:
+    """Just past a door recess (config/worlds/corridor.yaml, the recess at x 28-29 on the east
+    wall) the scan steps from the recess's back wall to the corridor wall 0.2 m nearer. Joined
+    into one run, a short slanted line bridges the step, and its intersections with the two walls
+    were reported as corners 6-12 cm from the map's with millimetres of uncertainty (they pulled
+    the corridor flight's estimate ahead). The adaptive breakpoint breaks the run at the step;
+    without it (break_grazing_deg 0, the fixed gap rule alone) the phantoms are back."""
+    corridor = load_world(DEFAULT_WORLD.parent / "corridor.yaml")
+    geometry, truth = WorldGeometry.from_world(corridor), corridor.corner_array()
+    params = LineParams(break_grazing_deg=break_grazing_deg)
+    rng = np.random.default_rng(3)
+    worst_sigmas, found = 0.0, 0
+    for x in np.linspace(27.5, 29.7, 12):  # up to the recess, past its edge
+        points, valid = sensor_points(geometry, x, 1.2, 0.0, NOISE_M, rng)
+        corners = find_corners(extract_lines(points, valid, params))
+        found += corners.count
+        for xy, cov in zip(corners.xy + [x, 1.2], corners.cov):
+            error = truth[np.argmin(np.hypot(*(truth - xy).T))] - xy
+            worst_sigmas = max(worst_sigmas, math.sqrt(error @ np.linalg.solve(cov, error)))
+    assert found >= 12  # the recess's real corners are still found
+    assert (worst_sigmas > 5.0) == phantoms_expected, worst_sigmas

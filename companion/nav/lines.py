@@ -8,7 +8,15 @@ Algorithm (the paper's steps 1-4, made vectorised and robust):
 
 0. Break the sweep into runs of valid beams at every gap of more than ``max_missing_beams``
    invalid beams (0, the paper's rule by default: at every invalid beam) and at every range
-   discontinuity (consecutive valid points further apart than ``max_gap_m + max_gap_per_m * r``).
+   discontinuity: consecutive valid points further apart than ``max_gap_m + max_gap_per_m * r``,
+   or than the adaptive breakpoint distance of Borges and Aldon (2004), ``r sin(dphi) /
+   sin(lambda - dphi) + 3 sigma(r)``: the furthest the next point can be on a surface seen at
+   ``break_grazing_deg`` (lambda) or more from the beam, ``dphi`` the angle between the two points
+   seen from the frame origin, ``r`` the nearer range. On a dense scanner that is a few
+   centimetres near by: a step between two parallel walls (a door recess seen past its edge)
+   breaks the run there instead of joining the walls by a short slanted line, whose corners with
+   both walls would be phantom corners a few centimetres off the real ones, each reported with
+   millimetres of uncertainty.
    Bridging a few (the planar localizer does) keeps walls whole through scattered dropouts (dust,
    dark or glancing surfaces). Runs with fewer than ``min_points`` points are dropped.
 1.-4. Split: connect the first (A) and last (B) point of a segment, find the point C furthest
@@ -57,6 +65,9 @@ class LineParams:
     split_sigmas: float = 3.0  # plus this many noise sigmas at the range of the split point
     max_gap_m: float = 0.2  # consecutive points further apart than this break a run, metres ...
     max_gap_per_m: float = 0.03  # ... plus this much per metre of range (sparse far beams)
+    # ... and further than a surface seen at this grazing angle (degrees between beam and surface)
+    # puts consecutive points: the adaptive breakpoint distance (module docstring, step 0).
+    break_grazing_deg: float = 10.0
     # A run bridges at most this many consecutive invalid beams. 0 (the paper): every invalid beam
     # breaks a run. The planar localizer, whose heading the gyro predicts, bridges 10 (2.5 deg on a
     # UTM-30LX): scattered dropouts then keep walls whole. Not by default: on the real URG-04LX
@@ -136,7 +147,15 @@ def _runs(beams: np.ndarray, pts: np.ndarray, rng: np.ndarray,
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
     step = np.diff(pts, axis=0)
     gap = np.hypot(step[:, 0], step[:, 1])
-    limit = params.max_gap_m + params.max_gap_per_m * np.minimum(rng[1:], rng[:-1])
+    near = np.minimum(rng[1:], rng[:-1])
+    limit = params.max_gap_m + params.max_gap_per_m * near
+    # Adaptive breakpoint: the angle between consecutive points as seen from the frame origin.
+    a, b = pts[:-1], pts[1:]
+    dphi = np.arctan2(np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])
+    grazing = np.radians(params.break_grazing_deg)
+    sparse = dphi >= grazing  # beams further apart than the grazing angle: the fixed rule alone
+    adaptive = near * np.sin(dphi) / np.sin(np.where(sparse, np.pi / 2, grazing - dphi)) + 3.0 * params.sigma(near)
+    limit = np.where(sparse, limit, np.minimum(limit, adaptive))
     breaks = np.flatnonzero((np.diff(beams) > 1 + params.max_missing_beams) | (gap > limit))
     starts = np.concatenate(([0], breaks + 1))
     ends = np.concatenate((breaks, [pts.shape[0] - 1]))
