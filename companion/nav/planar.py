@@ -43,9 +43,13 @@ Walls (beyond the paper): when no corner matches while tracking, the observed li
 map walls (parallel within ``wall_angle_tolerance_deg``, within ``wall_gate_m`` along the normal,
 overlapping the wall within ``wall_overlap_margin_m``) each measure the position along their
 normal (point-to-line, weight from the line's offset variance at the vehicle plus
-``map_error_m``). Walls in two directions give the position; a corridor's parallel walls give
-the cross-track position only, and the fix reports the along-track direction with
-``lost_variance_m2`` (``walls_matched`` > 0, ``matched`` 0, ``degraded``, measured).
+``map_error_m``). A matched line ending at an occluding edge (edges.py: the nearer surface at a
+range jump) within ``edge_gate_m`` of its map wall's end, where the map lists a corner (within
+``edge_corner_m``), also measures the position along that wall (the end's position, with the
+variance of the beam spacing there). Walls in two directions, or one direction and such an end,
+give the position; a corridor's parallel walls alone give the cross-track position only, and the
+fix reports the along-track direction with ``lost_variance_m2`` (``walls_matched`` > 0,
+``matched`` 0, ``degraded``, measured).
 
 States: ``tracking`` (>= ``min_matches`` corners), ``degraded`` (1 corner; walls only; or
 neither for fewer than ``lost_after_frames`` frames: then the fix is not a measurement,
@@ -90,6 +94,7 @@ import numpy as np
 
 from companion.frames import planar_moved, rotation_from_euler, wrap_pi
 from companion.nav.corners import CornerParams, Corners, find_corners
+from companion.nav.edges import EdgeParams, Edges, occluding_ends
 from companion.nav.heading import (UNMEASURED_VARIANCE_RAD2, HeadingParams, HeadingResult,
                                    heading_hypotheses, track_heading)
 from companion.nav.lines import LineParams, LineSet, extract_lines
@@ -139,6 +144,9 @@ class PlanarParams:
     wall_gate_m: float = 0.3  # an observed line within this of a map wall (and parallel) constrains, metres
     wall_angle_tolerance_deg: float = 3.0  # ... parallel within this, degrees
     wall_overlap_margin_m: float = 0.3  # ... and overlapping the wall's extent within this, metres
+    edges: EdgeParams = field(default_factory=lambda: EdgeParams(max_missing_beams=BRIDGED_DROPOUTS))
+    edge_gate_m: float = 0.5  # an occluding line end within this of its map wall's end measures along the wall, metres ...
+    edge_corner_m: float = 0.1  # ... if a map corner lies within this of that end, metres
     map_error_m: float = 0.005  # 1-sigma of a map wall's position (World.survey_error_m), metres
     floor_clearance_m: float = 0.15  # with the height known, hits this close to the floor or ceiling are dropped, metres
     jump_m: float = 0.3  # a relocalization moving the pose more than this is a reset
@@ -199,6 +207,13 @@ class RelocCandidate:
     idle: int = 0  # scans since it was last found that could not test it (carried by the motion)
 
 
+def _near_any(points: np.ndarray, others: np.ndarray, radius: float) -> np.ndarray:
+    """(P,) bool: whether each of ``points`` (P, 2) lies within ``radius`` of any of ``others`` (Q, 2)."""
+    if others.shape[0] == 0:
+        return np.zeros(points.shape[0], dtype=bool)
+    return np.hypot(*(points[:, None, :] - others[None, :, :]).transpose(2, 0, 1)).min(axis=1) <= radius
+
+
 def rotation(yaw: float) -> np.ndarray:
     """2-D rotation from the levelled body frame to the world (north, east)."""
     c, s = math.cos(yaw), math.sin(yaw)
@@ -233,6 +248,11 @@ class PlanarLocalizer:
             edge = self.walls[:, 2:4] - self.walls[:, 0:2]
             self._wall_len = np.hypot(edge[:, 0], edge[:, 1])
             self._wall_dir = edge / np.maximum(self._wall_len, 1e-9)[:, None]  # unit, start -> end
+            # (S, 2): whether the wall's start / end is a listed corner. Only there does the map
+            # vouch that the wall really ends; a map built from a log also ends walls where the
+            # walk saw no more of them.
+            self._wall_end_is_corner = np.column_stack([
+                _near_any(self.walls[:, c:c + 2], self.map, params.edge_corner_m) for c in (0, 2)])
         self.params = params
         self._pose: tuple[float, float, float] | None = None
         self.last_lines: LineSet | None = None  # what update() extracted from its last scan (never mutated)
@@ -306,7 +326,9 @@ class PlanarLocalizer:
         if best.matched < needed:
             why = f"{best.matched} corners within {self.params.gate_m:g} m of a map corner"
             if self._misses < self.params.lost_after_frames:  # tracking: the walls still constrain
-                walls = self._wall_fix(lines, np.array([x, y]), heading, why, timing, t0)
+                edges = occluding_ends(lines, points, ok, ranges, self._level_transform(roll, pitch)[1][:2],
+                                       self.params.lines, self.params.edges) if self.walls is not None else None
+                walls = self._wall_fix(lines, edges, np.array([x, y]), heading, why, timing, t0)
                 if walls is not None:
                     return walls
             return self._miss(heading, why, False, lines, corners, points[ok], timing, t0)
@@ -419,14 +441,16 @@ class PlanarLocalizer:
                     best, yaw = m, alias.yaw
         return best, yaw
 
-    def _wall_fix(self, lines: LineSet, xy: np.ndarray, heading: HeadingResult, why: str,
+    def _wall_fix(self, lines: LineSet, edges: Edges | None, xy: np.ndarray, heading: HeadingResult, why: str,
                   timing: dict[str, float], t0: float) -> PlanarFix | None:
         """Position from observed lines lying on map walls (point-to-line) when no corner matched,
-        None if no wall matched. Each matched line measures the position along its normal; in a
-        corridor that is the cross-track direction only, and the fix reports the along-track
-        direction as unmeasured (``lost_variance_m2``) instead of going lost."""
+        None if no wall matched. Each matched line measures the position along its normal, and
+        each of its occluding ends (``edges``) lying within ``edge_gate_m`` of an end of its map
+        wall measures it along the wall; walls of one direction without such an end (a corridor)
+        measure the cross-track direction only, and the fix reports the along-track direction as
+        unmeasured (``lost_variance_m2``) instead of going lost."""
         p = self.params
-        if self.walls is None:
+        if self.walls is None or edges is None:
             return None
         use = np.flatnonzero(lines.length >= p.heading.min_length_m)
         if use.size == 0:
@@ -460,20 +484,27 @@ class PlanarLocalizer:
         var = lines.offset_var[k] + lines.alpha_var[k] * lever ** 2 + p.map_error_m ** 2
         w = 1.0 / var
         info = (w[:, None, None] * n[:, :, None] * n[:, None, :]).sum(axis=0)
+        b = (w * r) @ n
+        ends = self._wall_ends(edges, k, nearest, xy, rot)
+        if ends is not None:
+            direction, along, along_var = ends
+            w_end = 1.0 / (along_var + p.map_error_m ** 2)
+            info = info + (w_end[:, None, None] * direction[:, :, None] * direction[:, None, :]).sum(axis=0)
+            b = b + (w_end * along) @ direction
         eigval, eigvec = np.linalg.eigh(info)
         if eigval[1] <= 0.0:
             return None
-        b = (w * r) @ n
+        ended = "" if ends is None else f" and {ends[1].size} of their ends"
         if eigval[0] * p.wall_gate_m ** 2 < 1.0:  # a direction measured worse than the gate: a corridor's axis
             u = eigvec[:, 1]
             delta = (u @ b) / eigval[1] * u
             cov2 = np.outer(u, u) / eigval[1] + p.lost_variance_m2 * np.outer(eigvec[:, 0], eigvec[:, 0])
-            reason = f"{why}: {k.size} walls constrain the cross-track position only"
+            reason = f"{why}: {k.size} walls{ended} constrain the cross-track position only"
             unmeasured: tuple[float, float] | None = (float(eigvec[0, 0]), float(eigvec[1, 0]))
         else:
             cov2 = np.linalg.inv(info)
             delta = cov2 @ b
-            reason = f"{why}: {k.size} walls constrain the position"
+            reason = f"{why}: {k.size} walls{ended} constrain the position"
             unmeasured = None
         self._pose = (float(xy[0] + delta[0]), float(xy[1] + delta[1]), heading.yaw)
         cov = np.zeros((3, 3))
@@ -484,6 +515,29 @@ class PlanarLocalizer:
         timing["total"] = (time.perf_counter() - t0) * 1e3
         return PlanarFix(self._pose[0], self._pose[1], heading.yaw, cov.copy(), 0, "degraded", reason, False,
                          heading.status, timing, walls_matched=int(k.size), unmeasured=unmeasured)
+
+    def _wall_ends(self, edges: Edges, k: np.ndarray, wall: np.ndarray, xy: np.ndarray,
+                   rot: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+        """The occluding ends of the lines ``k`` (matched to the map walls ``wall``) that lie
+        within ``edge_gate_m`` of an end of their wall: (wall directions (E, 2), how far to move
+        the position along them to put each observed end on the map's (E,), m; their variances
+        (E,), m^2), or None if there are none."""
+        if edges.count == 0:
+            return None
+        of_line = {int(line): j for line, j in zip(k, wall)}
+        pick = np.array([int(line) in of_line for line in edges.line])
+        if not pick.any():
+            return None
+        j = np.array([of_line[int(line)] for line in edges.line[pick]])
+        world = xy + edges.xy[pick] @ rot.T
+        direction = self._wall_dir[j]
+        u = np.einsum("ij,ij->i", world - self.walls[j, 0:2], direction)  # along the wall from its start
+        at_end = u >= 0.5 * self._wall_len[j]  # the nearer end: the wall's end (True) or start
+        along = np.where(at_end, self._wall_len[j], 0.0) - u
+        near = (np.abs(along) <= self.params.edge_gate_m) & self._wall_end_is_corner[j, at_end.astype(int)]
+        if not near.any():
+            return None
+        return direction[near], along[near], edges.along_var[pick][near]
 
     def _accept(self, m: Match, yaw: float, heading: HeadingResult, relocalized: bool,
                 timing: dict[str, float], t0: float) -> PlanarFix:
