@@ -8,17 +8,20 @@ Algorithm (the paper's steps 1-4, made vectorised and robust):
 
 0. Break the sweep into runs of valid beams at every gap of more than ``max_missing_beams``
    invalid beams (0, the paper's rule by default: at every invalid beam) and at every range
-   discontinuity: consecutive valid points further apart than ``max_gap_m + max_gap_per_m * r``,
-   or than the adaptive breakpoint distance of Borges and Aldon (2004), ``r sin(dphi) /
-   sin(lambda - dphi) + 3 sigma(r)``: the furthest the next point can be on a surface seen at
-   ``break_grazing_deg`` (lambda) or more from the beam, ``dphi`` the angle between the two points
-   seen from the frame origin, ``r`` the nearer range. On a dense scanner that is a few
-   centimetres near by: a step between two parallel walls (a door recess seen past its edge)
-   breaks the run there instead of joining the walls by a short slanted line, whose corners with
-   both walls would be phantom corners a few centimetres off the real ones, each reported with
-   millimetres of uncertainty.
-   Bridging a few (the planar localizer does) keeps walls whole through scattered dropouts (dust,
-   dark or glancing surfaces). Runs with fewer than ``min_points`` points are dropped.
+   discontinuity. Bridging a few invalid beams (the planar localizer does) keeps walls whole
+   through scattered dropouts (dust, dark or glancing surfaces). A discontinuity: consecutive
+   valid points further apart than ``max_gap_m + max_gap_per_m * r``, or than the adaptive
+   breakpoint distance of Borges and Aldon (2004), ``r sin(dphi) / sin(lambda - dphi) + 3 sigma(r)``:
+   the furthest the next point can be on a surface seen at ``break_grazing_deg`` (lambda, 5 deg)
+   or more from the beam, ``dphi`` the angle between the two points seen from the frame origin,
+   ``r`` the nearer range. On a dense scanner (0.25 deg) that is about 0.1 m at 1.5 m: a step
+   between two parallel walls (a door recess seen past its edge) breaks the run there instead of
+   joining the walls by a short slanted line, whose corners with both walls would be phantom
+   corners a few centimetres off the real ones, each reported with millimetres of uncertainty.
+   On a sparse one (1 deg) the fixed rule is the tighter everywhere beyond 0.7 m (with 10 deg
+   instead of 5, the real Intel lab log replayed with its own odometry lost its heading: 22 deg
+   RMS against 0.54).
+   Runs with fewer than ``min_points`` points are dropped.
 1.-4. Split: connect the first (A) and last (B) point of a segment, find the point C furthest
    from the chord AB; if that distance exceeds the split threshold at C's range, split into
    A-C and C-B (C belongs to both) and repeat. All segments of one level are processed in
@@ -66,8 +69,8 @@ class LineParams:
     max_gap_m: float = 0.2  # consecutive points further apart than this break a run, metres ...
     max_gap_per_m: float = 0.03  # ... plus this much per metre of range (sparse far beams)
     # ... and further than a surface seen at this grazing angle (degrees between beam and surface)
-    # puts consecutive points: the adaptive breakpoint distance (module docstring, step 0).
-    break_grazing_deg: float = 10.0
+    # puts consecutive points: the adaptive breakpoint distance (module docstring, step 0); 0: off.
+    break_grazing_deg: float = 5.0
     # A run bridges at most this many consecutive invalid beams. 0 (the paper): every invalid beam
     # breaks a run. The planar localizer, whose heading the gyro predicts, bridges 10 (2.5 deg on a
     # UTM-30LX): scattered dropouts then keep walls whole. Not by default: on the real URG-04LX
