@@ -101,16 +101,20 @@ def test_the_realistic_arena_patrol_meets_the_localization_targets(tmp_path: Pat
 def test_the_corridor_slows_down_while_no_corner_is_in_view_and_never_flies_on_a_confident_wrong_pose(
         tmp_path: Path) -> None:
     """config/sitl-corridor.yaml: a 60 m corridor whose only corners are door recesses, with a
-    blank stretch between them. The walls keep the cross-track position; the along-track variance
-    grows while no corner is in view (the estimate stays consistent, the mission slows down) and
-    the corners of the next recess bring it back; the mission reaches the north end."""
+    stretch between them where no corner is in view. The walls keep the cross-track position and
+    the ends of the walls at the recesses' edges the along-track one (without them the along-track
+    variance grows on the IMU and, this slowly through that stretch, passed the 1 m withdrawal:
+    tests/test_nav_planar.py has the unmeasured case); the mission slows down while no corner is
+    matched and reaches the north end. Whole-millimetre ranges, as SCIP reports them: without the
+    wall ends that alone decided whether this flight got through."""
     r = fly(tmp_path, "corridor", None, config="sitl-corridor.yaml")
     est, control = r["estimate"], r["control"]
     assert control["mission_completed"] and control["failsafes_triggered"] == []
-    # Slowed down: once per recess or so (22 on 2026-12-02), not with every flickering scan (299
+    # Slowed down: a few times per recess (31 on 2026-12-03), not with every flickering scan (299
     # before the mission waited 1 s of a healthy estimate to speed up again).
     assert 1 <= control["degraded_slowdowns"] <= 40
     assert est["cross_track_max_m"] <= 0.05 and est["wrong_resets"] == 0
-    assert est["position_max_m"] <= 0.5 and est["lost_seconds"] == 0.0
+    # 6 cm on 2026-12-03; 0.42-0.5 m while the along-track position went unmeasured between the recesses.
+    assert est["position_max_m"] <= 0.2 and est["lost_seconds"] == 0.0
     low, high = est["nees_band"]
     assert est["nees_mean"] <= high, est  # never over-confident
