@@ -78,6 +78,23 @@ def test_table_only_in_view_is_flagged_as_a_jump(geometry: WorldGeometry) -> Non
     assert fix.height_m == pytest.approx(0.9 - 0.75, abs=0.01)
 
 
+def test_with_the_fused_height_known_a_table_top_alone_is_no_floor(geometry: WorldGeometry) -> None:
+    """The same view with the fused height given (the IMU carried it since the last fixes): a
+    surface 0.75 m above the expected floor is refused (lost: the floor is not in view) instead of
+    becoming a confident 0.15 m height; the floor, or a floor lower than expected, is taken."""
+    rng = np.random.default_rng(5)
+    est = HeightEstimator(MOUNT_POSITION, MOUNT_RPY)
+    fix = est.update(vertical_scan(geometry, *TABLE_XY, 0.9, rng), expected=(0.9, 0.03))
+    assert fix.state == "lost" and "table top" in fix.reason and fix.floor_lines >= 1
+    assert_finite(fix)
+    # The table in view beside the floor, and a floor lower than the (drifted) expectation.
+    assert est.update(vertical_scan(geometry, *TABLE_XY, 1.5, rng), expected=(1.5, 0.03)).state == "ok"
+    low = est.update(vertical_scan(geometry, 2.5, 2.0, 1.0, rng), expected=(0.6, 0.03))
+    assert low.state != "lost" and low.height_m == pytest.approx(1.0, abs=0.01)
+    # Unsure of its own height (sigma 0.3 m), the fusion's expectation refuses nothing 0.75 m off.
+    assert est.update(vertical_scan(geometry, *TABLE_XY, 0.9, rng), expected=(0.9, 0.3)).state != "lost"
+
+
 def test_no_floor_is_lost_without_nan(geometry: WorldGeometry) -> None:
     est = HeightEstimator(MOUNT_POSITION, MOUNT_RPY)
     n = URG04LX_ANGLES.size

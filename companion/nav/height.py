@@ -18,6 +18,12 @@ tilts the plane sideways and ``|g| = cos(roll)`` for the usual mount. The body o
 
 Deviation: a jump of the height by more than ``jump_m`` between fixes is reported degraded (it
 is what a step in the floor seen as the floor looks like, e.g. when only a table is in view).
+And with the fused height given (``expected``: what the IMU carried since the last fixes), a
+floor candidate NEARER than that by more than ``jump_m`` and three sigmas is no fix at all
+(lost): with the floor hidden, a table top is the furthest floor-like line, and as a fix it
+would be a confident wrong height once the fusion re-seeds to it (its relock after a second of
+gated fixes: the vehicle climbs by the table's height). A candidate further than expected is
+always the floor (beams never reach below it).
 """
 
 from __future__ import annotations
@@ -79,9 +85,10 @@ class HeightEstimator:
         self._previous: float | None = None
 
     def update(self, scan: Scan | np.ndarray, roll: float = 0.0, pitch: float = 0.0,
-               valid: np.ndarray | None = None) -> HeightFix:
+               valid: np.ndarray | None = None, expected: tuple[float, float] | None = None) -> HeightFix:
         """Height from one scan (a Scan, or (N, 2) sensor-plane points in beam order with an
-        optional validity mask) at body ``roll`` and ``pitch`` (radians)."""
+        optional validity mask) at body ``roll`` and ``pitch`` (radians); ``expected``: the
+        fused height above the floor and its 1-sigma (m) at the scan's time, if known."""
         p = self.params
         points, ok, ranges = _sensor_points(scan, valid)
         level = rotation_from_euler(roll, pitch, 0.0)
@@ -90,8 +97,8 @@ class HeightEstimator:
         if gain < p.min_gradient:
             return _lost(f"scan plane too flat to see the floor (|g| = {gain:.2f})", 0)
         lines = extract_lines(points, ok, p.lines, ranges)
-        expected = math.atan2(g[1], g[0])
-        off = np.abs(np.angle(np.exp(1j * (lines.alpha - expected))))
+        floor_normal = math.atan2(g[1], g[0])
+        off = np.abs(np.angle(np.exp(1j * (lines.alpha - floor_normal))))
         floor = np.flatnonzero((off <= math.radians(p.floor_angle_tolerance_deg))
                                & (lines.length >= p.min_length_m))
         if floor.size == 0:
@@ -103,6 +110,11 @@ class HeightEstimator:
         var_d = float(lines.offset_var[k] + lines.alpha_var[k] * lever ** 2)
         height = gain * float(lines.d[k]) + float((level @ self.mount_position)[2])
         variance = gain * gain * var_d + p.variance_floor_m2
+        if expected is not None:
+            above = expected[0] - height
+            if above > max(p.jump_m, 3.0 * math.sqrt(expected[1] ** 2 + variance)):
+                return _lost(f"the furthest floor-like surface is {above:.2f} m above the expected floor "
+                             "(a table top?): the floor is not in view", int(floor.size))
         return self._fix(height, variance, float(lines.length[k]), int(floor.size))
 
     def _fix(self, height: float, variance: float, length: float, count: int) -> HeightFix:

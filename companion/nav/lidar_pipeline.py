@@ -264,8 +264,11 @@ class LidarPipeline:
 
     def _process_vertical(self, scan: Scan) -> float:
         roll, pitch, _ = self._attitude()
+        state = self.fusion.state(scan.t_capture)  # the IMU-carried height: a table top is not the floor
+        expected = ((-float(state.position_ned[2]), math.sqrt(float(state.position_covariance[2, 2])))
+                    if state.healthy else None)
         started = time.perf_counter()
-        fix = self.height.update(scan, roll, pitch)
+        fix = self.height.update(scan, roll, pitch, expected=expected)
         elapsed = (time.perf_counter() - started) * 1e3
         if fix.state == "lost":
             self.health.report("nav:height", State.LOST, fix.reason)
