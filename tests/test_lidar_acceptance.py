@@ -110,11 +110,11 @@ def test_the_corridor_slows_down_while_no_corner_is_in_view_and_never_flies_on_a
     r = fly(tmp_path, "corridor", None, config="sitl-corridor.yaml")
     est, control = r["estimate"], r["control"]
     assert control["mission_completed"] and control["failsafes_triggered"] == []
-    # Slowed down: a few times per recess (31 on 2026-12-03), not with every flickering scan (299
+    # Slowed down: a few times per recess (24-31 on 2026-12-03), not with every flickering scan (299
     # before the mission waited 1 s of a healthy estimate to speed up again).
     assert 1 <= control["degraded_slowdowns"] <= 40
     assert est["cross_track_max_m"] <= 0.05 and est["wrong_resets"] == 0
-    # 6 cm on 2026-12-03; 0.42-0.5 m while the along-track position went unmeasured between the recesses.
+    # 5-7 cm on 2026-12-03; 0.42-0.5 m while the along-track position went unmeasured between the recesses.
     assert est["position_max_m"] <= 0.2 and est["lost_seconds"] == 0.0
     low, high = est["nees_band"]
     assert est["nees_mean"] <= high, est  # never over-confident

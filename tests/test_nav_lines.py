@@ -179,7 +179,7 @@ def test_parallel_and_far_apart_neighbours_make_no_corner() -> None:
     assert lines.count == 2 and find_corners(lines).count == 0
 
 
-@pytest.mark.parametrize("break_grazing_deg, phantoms_expected", [(10.0, False), (0.0, True)])
+@pytest.mark.parametrize("break_grazing_deg, phantoms_expected", [(LineParams.break_grazing_deg, False), (0.0, True)])
 def test_a_door_recess_seen_past_its_edge_makes_no_phantom_corner(break_grazing_deg: float,
                                                                   phantoms_expected: bool) -> None:
     """Just past a door recess (config/worlds/corridor.yaml, the recess at x 28-29 on the east

@@ -145,7 +145,7 @@ class PlanarParams:
     wall_angle_tolerance_deg: float = 3.0  # ... parallel within this, degrees
     wall_overlap_margin_m: float = 0.3  # ... and overlapping the wall's extent within this, metres
     edges: EdgeParams = field(default_factory=lambda: EdgeParams(max_missing_beams=BRIDGED_DROPOUTS))
-    edge_gate_m: float = 0.5  # an occluding line end within this of its map wall's end measures along the wall, metres ...
+    edge_gate_m: float = 0.5  # an occluding line end this near its map wall's end measures along it, metres ...
     edge_corner_m: float = 0.1  # ... if a map corner lies within this of that end, metres
     map_error_m: float = 0.005  # 1-sigma of a map wall's position (World.survey_error_m), metres
     floor_clearance_m: float = 0.15  # with the height known, hits this close to the floor or ceiling are dropped, metres
