@@ -209,9 +209,11 @@ class RelocCandidate:
 
 def _near_any(points: np.ndarray, others: np.ndarray, radius: float) -> np.ndarray:
     """(P,) bool: whether each of ``points`` (P, 2) lies within ``radius`` of any of ``others`` (Q, 2)."""
-    if others.shape[0] == 0:
-        return np.zeros(points.shape[0], dtype=bool)
-    return np.hypot(*(points[:, None, :] - others[None, :, :]).transpose(2, 0, 1)).min(axis=1) <= radius
+    near = np.zeros(points.shape[0], dtype=bool)
+    for start in range(0, others.shape[0], 256):  # in blocks: a large map's walls x corners would not fit at once
+        block = others[start:start + 256]
+        near |= (np.hypot(points[:, None, 0] - block[None, :, 0], points[:, None, 1] - block[None, :, 1]) <= radius).any(axis=1)
+    return near
 
 
 def rotation(yaw: float) -> np.ndarray:
