@@ -55,8 +55,9 @@ def test_sitl_dashboard_shows_the_vehicle_moving_live(tmp_path: Path) -> None:
                 90, f"the vehicle marker to move {MOVED_M} m")
             print(f"vehicle marker moved from {start} to {moved} (north, east m)")
             assert browser.evaluate(LINK_STATE) == "ok"
-            assert re.search(r"\d+ matched \((tracking|degraded)\)",
-                             browser.evaluate("document.getElementById('scan-info').textContent"))
+            # a scan's lines and corners arrive after the scan itself ("? lines" until then): poll
+            browser.wait_for("/\\d+ matched \\((tracking|degraded)\\)/.test(document.getElementById('scan-info').textContent)",
+                             5, "the scan line to show matched corners")
             assert browser.evaluate("document.querySelectorAll('#position-plots polyline').length") >= 3
             assert browser.evaluate("document.querySelector('#mission-table').textContent").count("survey-points") == 1
             sources = browser.evaluate("[...document.querySelectorAll('#sources-table tbody tr')]"
