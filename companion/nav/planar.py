@@ -98,6 +98,7 @@ from companion.nav.edges import EdgeParams, Edges, occluding_ends
 from companion.nav.heading import (UNMEASURED_VARIANCE_RAD2, HeadingParams, HeadingResult,
                                    heading_hypotheses, track_heading)
 from companion.nav.lines import LineParams, LineSet, extract_lines
+from companion.nav.wall_grid import WallGrid
 from companion.messages import Scan
 
 PlanarState = Literal["tracking", "degraded", "lost"]
@@ -244,9 +245,8 @@ class PlanarLocalizer:
         self.wall_angle = math.radians(wall_angle_deg)
         self.mount = mount
         self.walls = None if walls is None else np.asarray(walls, dtype=float).reshape(-1, 4)
-        if self.walls is not None:  # each wall's bounding box, for the wall check near a pose only
-            self._wall_lo = np.minimum(self.walls[:, 0:2], self.walls[:, 2:4])
-            self._wall_hi = np.maximum(self.walls[:, 0:2], self.walls[:, 2:4])
+        if self.walls is not None:
+            self._wall_grid = WallGrid(self.walls, params.reloc_wall_tolerance_m)  # relocalization's wall check
             edge = self.walls[:, 2:4] - self.walls[:, 0:2]
             self._wall_len = np.hypot(edge[:, 0], edge[:, 1])
             self._wall_dir = edge / np.maximum(self._wall_len, 1e-9)[:, None]  # unit, start -> end
@@ -667,12 +667,14 @@ class PlanarLocalizer:
         p = self.params
         if poses.shape[0]:
             poses = poses[poses[:, 0] >= poses[0, 0] - 1]
-        scored = []
+        matched = []
         for score, yaw, tx, ty in _distinct(poses, p.reloc_distinct_m, p.reloc_candidates):
             heading = _with_yaw(base, float(yaw))
-            m = self.match(corners, np.array([tx, ty]), heading, p.reloc_tolerance_m)
-            frac = self._wall_fraction(points, m.xy, heading.yaw)
-            scored.append((m.matched, frac, m, heading))
+            matched.append((self.match(corners, np.array([tx, ty]), heading, p.reloc_tolerance_m), heading))
+        # Only the poses matching the most corners can win or tie: the wall check for those alone.
+        most = max((m.matched for m, _ in matched), default=0)
+        scored = [(m.matched, self._wall_fraction(points, m.xy, heading.yaw) if m.matched == most else 0.0, m, heading)
+                  for m, heading in matched]
         scored.sort(key=lambda s: (s[0], s[1]), reverse=True)
         if not scored or scored[0][0] < p.reloc_min_inliers:
             return None, f"no pose matches {p.reloc_min_inliers} corners"
@@ -689,17 +691,7 @@ class PlanarLocalizer:
         if self.walls is None or points.shape[0] == 0:
             return 0.0
         world = xy + points[::4] @ rotation(yaw).T
-        # Walls whose bounding box is further than the tolerance from the points' cannot hold one.
-        tol = self.params.reloc_wall_tolerance_m
-        near = np.all((self._wall_hi >= world.min(axis=0) - tol) & (self._wall_lo <= world.max(axis=0) + tol), axis=1)
-        if not near.any():
-            return 0.0
-        a, b = self.walls[near, 0:2], self.walls[near, 2:4]
-        edge = b - a
-        rel = world[:, None, :] - a[None, :, :]
-        u = np.clip(np.einsum("psk,sk->ps", rel, edge) / np.einsum("sk,sk->s", edge, edge), 0.0, 1.0)
-        dist = np.hypot(*(rel - u[:, :, None] * edge[None, :, :]).transpose(2, 0, 1)).min(axis=1)
-        return float(np.mean(dist <= self.params.reloc_wall_tolerance_m))
+        return float(np.mean(self._wall_grid.near_wall(world, self.params.reloc_wall_tolerance_m)))
 
 
 def _with_yaw(heading: HeadingResult, yaw: float) -> HeadingResult:
@@ -710,14 +702,22 @@ def _with_yaw(heading: HeadingResult, yaw: float) -> HeadingResult:
 def associate(predicted: np.ndarray, landmarks: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
     """(observed indices, map indices) of mutual nearest neighbours closer than ``gate`` (the
     localizer's association; telemetry shows the same)."""
+    none = np.zeros(0, dtype=int), np.zeros(0, dtype=int)
     if landmarks.shape[0] == 0 or predicted.shape[0] == 0:
-        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
-    diff = predicted[:, None, :] - landmarks[None, :, :]
+        return none
+    # Only landmarks in the gate-widened box of the predictions can be matched; dropping the others
+    # changes no nearest neighbour within the gate and no mutual check (a large map: most of it).
+    lo, hi = predicted.min(axis=0) - gate, predicted.max(axis=0) + gate
+    inside = np.flatnonzero((landmarks[:, 0] >= lo[0]) & (landmarks[:, 0] <= hi[0])
+                            & (landmarks[:, 1] >= lo[1]) & (landmarks[:, 1] <= hi[1]))
+    if inside.size == 0:
+        return none
+    diff = predicted[:, None, :] - landmarks[inside][None, :, :]
     dist = np.hypot(diff[..., 0], diff[..., 1])
     nearest = dist.argmin(axis=1)
     mutual = dist.argmin(axis=0)[nearest] == np.arange(predicted.shape[0])
     ok = mutual & (dist[np.arange(predicted.shape[0]), nearest] <= gate)
-    return np.flatnonzero(ok), nearest[ok]
+    return np.flatnonzero(ok), inside[nearest[ok]]
 
 
 def _chi2_scale(resid: np.ndarray, cov: np.ndarray) -> float:
@@ -739,54 +739,71 @@ def _pose_hypotheses(observed: np.ndarray, landmarks: np.ndarray, yaws: np.ndarr
 
     Each (j, b) pair proposes the translation ``b - R q_j``; the score is the number of distinct
     observed corners among the proposals within ``tolerance`` of the hypothesis' own. Proposals
-    are bucketed in a grid of ``tolerance`` cells, so only neighbouring cells are compared:
-    time and memory grow with k * m (observed times map corners), not (k * m)^2."""
+    are bucketed in a grid of ``2 tolerance`` cells, so only neighbouring cells are compared, and
+    only for proposals with ``min_score`` of them nearby: time and memory grow with k * m
+    (observed times map corners), not (k * m)^2."""
     k, m = observed.shape[0], landmarks.shape[0]
     owner = np.repeat(np.arange(k), m)  # the observed corner of each proposal, row i * m + a
     rows = []
     for yaw in yaws:
         trans = (landmarks[None, :, :] - (observed @ rotation(float(yaw)).T)[:, None, :]).reshape(-1, 2)
-        score = _owners_within(trans, owner, k, tolerance)
+        score = _owners_within(trans, owner, k, tolerance, min_score)
         good = score >= min_score
         rows.append(np.column_stack((score[good], np.full(good.sum(), yaw), trans[good])))
     out = np.concatenate(rows) if rows else np.zeros((0, 4))
     return out[np.argsort(-out[:, 0], kind="stable")]
 
 
-def _owners_within(points: np.ndarray, owner: np.ndarray, owners: int, radius: float) -> np.ndarray:
+def _owners_within(points: np.ndarray, owner: np.ndarray, owners: int, radius: float,
+                   at_least: int) -> np.ndarray:
     """For every point of ``points`` (n, 2), how many distinct ``owner`` values (0 .. owners-1) the
-    points within ``radius`` of it (itself included) have.
+    points within ``radius`` of it (itself included) have; 0 for the points that cannot reach
+    ``at_least`` (fewer points than that near them: the count is not needed there).
 
     Grid of ``2 radius`` cells: the points within ``radius`` of a point lie in the 2 x 2 block of
-    cells around the cell corner nearest to it, so four lookups per point."""
+    cells around the cell corner nearest to it, so four lookups per point; the pairs are compared
+    only for points whose block holds ``at_least`` points (most proposals of a large map have no
+    neighbour at all)."""
     n = points.shape[0]
+    counts = np.zeros(n, dtype=int)
     if n == 0:
-        return np.zeros(0, dtype=int)
+        return counts
     scaled = points / (2.0 * radius)
     cell = np.floor(scaled).astype(np.int64)
     step = np.where(scaled - cell >= 0.5, 1, -1)  # towards the nearer neighbour, per axis
     cell -= cell.min(axis=0) - 1  # >= 1, so that a neighbour's index stays >= 0
     width = int(cell[:, 1].max()) + 2
     key = cell[:, 0] * width + cell[:, 1]
+    # Work in cell order: the lookups below then search nearly sorted keys (numpy's binary search
+    # starts from its previous answer), and a point's own cell is its run.
     order = np.argsort(key, kind="stable")
-    sorted_key = key[order]
-    first = np.flatnonzero(np.concatenate(([True], sorted_key[1:] != sorted_key[:-1])))  # run starts
-    keys, count = sorted_key[first], np.diff(np.append(first, n))
-    codes = []
-    for dx, dy in ((0, 0), (1, 0), (0, 1), (1, 1)):
+    key, step, xy, own = key[order], step[order], points[order], owner[order]
+    run_start = np.concatenate(([True], key[1:] != key[:-1]))
+    first = np.flatnonzero(run_start)
+    keys, count = key[first], np.diff(np.append(first, n))
+    slots = [np.cumsum(run_start) - 1]
+    hits = [count[slots[0]]]
+    for dx, dy in ((1, 0), (0, 1), (1, 1)):
         wanted = key + (dx * step[:, 0] * width + dy * step[:, 1])
         slot = np.minimum(np.searchsorted(keys, wanted), keys.size - 1)
-        hits = np.where(keys[slot] == wanted, count[slot], 0)
-        total = int(hits.sum())
+        slots.append(slot)
+        hits.append(np.where(keys[slot] == wanted, count[slot], 0))
+    candidates = np.flatnonzero(sum(hits) >= at_least)
+    if candidates.size == 0:
+        return counts
+    seen = np.zeros((candidates.size, owners), dtype=bool)  # candidate x owner: a neighbour of that owner
+    for slot, hit in zip(slots, hits):
+        slot, hit = slot[candidates], hit[candidates]
+        total = int(hit.sum())
         if total == 0:
             continue
-        a = np.repeat(np.arange(n), hits)
-        b = order[np.repeat(first[slot], hits) + np.arange(total) - np.repeat(np.cumsum(hits) - hits, hits)]
-        d = points[a] - points[b]
+        row = np.repeat(np.arange(candidates.size), hit)
+        b = np.repeat(first[slot], hit) + np.arange(total) - np.repeat(np.cumsum(hit) - hit, hit)
+        d = xy[candidates[row]] - xy[b]
         near = d[:, 0] ** 2 + d[:, 1] ** 2 <= radius ** 2
-        codes.append(a[near] * owners + owner[b[near]])
-    distinct = np.unique(np.concatenate(codes))
-    return np.bincount(distinct // owners, minlength=n)
+        seen[row[near], own[b[near]]] = True
+    counts[order[candidates]] = seen.sum(axis=1)
+    return counts
 
 
 def _distinct(poses: np.ndarray, distinct_m: float, limit: int) -> list[np.ndarray]:
