@@ -55,35 +55,35 @@ def occluding_ends(lines: LineSet, points: np.ndarray, valid: np.ndarray, ranges
     ``valid`` (N,) and ``ranges`` (N,) are the scan the lines were extracted from (their
     ``first_beam`` / ``last_beam`` index it); ``origin`` (2,) the scanner in that frame, metres;
     ``noise`` the range-noise model of the extraction."""
-    found_line, found_xy, found_var = [], [], []
+    none = Edges(np.zeros(0, dtype=int), np.zeros((0, 2)), np.zeros(0))
     beams = np.flatnonzero(valid)
-    for k in range(lines.count):
-        n = np.array([np.cos(lines.alpha[k]), np.sin(lines.alpha[k])])
-        for end_beam, step in ((int(lines.first_beam[k]), -1), (int(lines.last_beam[k]), 1)):
-            i = int(np.searchsorted(beams, end_beam))  # the end beam's place among the valid ones
-            j = i + step
-            if not 0 <= j < beams.size or abs(int(beams[j]) - end_beam) > 1 + params.max_missing_beams:
-                continue  # the field of view or invalid beams end the line: nothing says why
-            nxt = points[beams[j]]
-            behind = float(n @ nxt - lines.d[k])
-            sigma = float(noise.sigma(np.asarray(ranges[beams[j]])))
-            if behind < max(params.behind_m, params.behind_sigmas * sigma):
-                continue  # the same surface continues, or something nearer cuts the line
-            ray = nxt - origin
-            toward = float(n @ ray)
-            if toward <= 0.0:
-                continue
-            on_line = origin + ray * (lines.d[k] - float(n @ origin)) / toward  # the next ray meets the line
-            last = points[end_beam]
-            last_on_line = last - (float(n @ last) - lines.d[k]) * n
-            spread = float(np.hypot(*(on_line - last_on_line)))
-            if spread > params.max_spread_m:
-                continue
-            tangent = np.array([-n[1], n[0]])
-            cos_view = abs(float(tangent @ (last - origin))) / max(float(np.hypot(*(last - origin))), 1e-9)
-            found_line.append(k)
-            found_xy.append(0.5 * (on_line + last_on_line))
-            found_var.append(spread ** 2 / 12.0 + (float(noise.sigma(np.asarray(ranges[end_beam]))) * cos_view) ** 2)
-    if not found_line:
-        return Edges(np.zeros(0, dtype=int), np.zeros((0, 2)), np.zeros(0))
-    return Edges(np.array(found_line), np.array(found_xy), np.array(found_var))
+    if lines.count == 0 or beams.size == 0:
+        return none
+    # Every line end, in the order (line 0 first end, line 0 last end, line 1 first end, ...);
+    # ``step`` leads away from the line.
+    line = np.repeat(np.arange(lines.count), 2)
+    end_beam = np.column_stack((lines.first_beam, lines.last_beam)).ravel().astype(int)
+    step = np.tile([-1, 1], lines.count)
+    j = np.searchsorted(beams, end_beam) + step  # the next valid beam's place among the valid ones
+    inside = (j >= 0) & (j < beams.size)
+    nxt_beam = beams[np.clip(j, 0, beams.size - 1)]
+    keep = inside & (np.abs(nxt_beam - end_beam) <= 1 + params.max_missing_beams)  # else nothing says why it ends
+    alpha, d = lines.alpha[line], lines.d[line]
+    n = np.column_stack((np.cos(alpha), np.sin(alpha)))
+    nxt = points[nxt_beam]
+    behind = np.einsum("ik,ik->i", n, nxt) - d
+    keep &= behind >= np.maximum(params.behind_m, params.behind_sigmas * noise.sigma(ranges[nxt_beam]))
+    ray = nxt - origin
+    toward = np.einsum("ik,ik->i", n, ray)
+    keep &= toward > 0.0  # else the next ray never meets the line
+    line, end_beam, n, d, ray, toward = line[keep], end_beam[keep], n[keep], d[keep], ray[keep], toward[keep]
+    on_line = origin + ray * ((d - n @ origin) / toward)[:, None]  # where the next ray meets the line
+    last = points[end_beam]
+    last_on_line = last - (np.einsum("ik,ik->i", n, last) - d)[:, None] * n
+    spread = np.hypot(*(on_line - last_on_line).T)
+    ok = spread <= params.max_spread_m
+    tangent = np.column_stack((-n[:, 1], n[:, 0]))
+    view = last - origin
+    cos_view = np.abs(np.einsum("ik,ik->i", tangent, view)) / np.maximum(np.hypot(*view.T), 1e-9)
+    var = spread ** 2 / 12.0 + (noise.sigma(ranges[end_beam]) * cos_view) ** 2
+    return Edges(line[ok], 0.5 * (on_line[ok] + last_on_line[ok]), var[ok])
