@@ -594,5 +594,7 @@ def test_the_ends_of_a_corridors_walls_measure_the_along_track_position() -> Non
         assert fix is not None and fix.measured and fix.unmeasured is None, fix.reason
         assert abs(fix.x - x) < max(3.0 * math.sqrt(fix.covariance[0, 0]), 0.01) and fix.covariance[0, 0] < 0.1 ** 2
         assert abs(fix.y - 1.2) < 0.02
-        ended += "of their ends" in fix.reason
+        if "of their ends" in fix.reason:
+            ended += 1
+            assert fix.ends_only is not None and abs(fix.ends_only[0]) > 0.999  # the corridor's axis, north
     assert ended >= 14  # (of 17) the walls' ends, not a corner, measured it

@@ -174,6 +174,11 @@ class PlanarFix:
     timing_ms: dict[str, float] = field(default_factory=dict)  # per stage, wall clock
     walls_matched: int = 0  # map walls used (point-to-line) when no corner was matched
     unmeasured: tuple[float, float] | None = None  # unit (north, east) direction no wall measures: a corridor's axis
+    # Unit (north, east) direction that only wall ends measure (a corridor's axis seen with an end
+    # in view), if any: their error (where between two beams the wall ends) stays the same from
+    # scan to scan while the vehicle moves less than a beam spacing, so averaging fixes does not
+    # shrink it; the fix's variance along it is the least the estimate can claim there.
+    ends_only: tuple[float, float] | None = None
 
     @property
     def measured(self) -> bool:
@@ -488,7 +493,11 @@ class PlanarLocalizer:
         info = (w[:, None, None] * n[:, :, None] * n[:, None, :]).sum(axis=0)
         b = (w * r) @ n
         ends = self._wall_ends(edges, k, nearest, xy, rot)
+        ends_only = None
         if ends is not None:
+            walls_val, walls_vec = np.linalg.eigh(info)  # what the walls alone measure
+            if walls_val[0] * p.wall_gate_m ** 2 < 1.0:  # a direction they leave to the ends
+                ends_only = (float(walls_vec[0, 0]), float(walls_vec[1, 0]))
             direction, along, along_var = ends
             w_end = 1.0 / (along_var + p.map_error_m ** 2)
             info = info + (w_end[:, None, None] * direction[:, :, None] * direction[:, None, :]).sum(axis=0)
@@ -516,7 +525,8 @@ class PlanarLocalizer:
         self._misses = 0
         timing["total"] = (time.perf_counter() - t0) * 1e3
         return PlanarFix(self._pose[0], self._pose[1], heading.yaw, cov.copy(), 0, "degraded", reason, False,
-                         heading.status, timing, walls_matched=int(k.size), unmeasured=unmeasured)
+                         heading.status, timing, walls_matched=int(k.size), unmeasured=unmeasured,
+                         ends_only=None if unmeasured is not None else ends_only)
 
     def _wall_ends(self, edges: Edges, k: np.ndarray, wall: np.ndarray, xy: np.ndarray,
                    rot: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

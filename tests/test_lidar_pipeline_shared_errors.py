@@ -1,0 +1,68 @@
+"""The lidar pipeline's estimate claims no more than its fixes' shared errors allow.
+
+Hovering between two door recesses of config/worlds/corridor.yaml, the position along the
+corridor is measured only by where the walls end (companion/nav/edges.py). Where between two
+beams a wall ends is the same error in every scan while the vehicle stays put, so the fusion's
+average of 40 fixes a second is no better than one of them: the estimate sent must not claim less
+variance along the corridor than one fix has.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from companion.config import MountConfig
+from companion.health import Health
+from companion.messages import ImuSample, PoseEstimate
+from companion.nav.bench_stages import make_mount, synthetic_scan
+from companion.nav.lidar_pipeline import LidarPipeline, LidarPipelineConfig
+from companion.world import load_world
+from drivers.lidar_models import URG_04LX, UTM_30LX
+from sitl.raycast import WorldGeometry
+from tests.conftest import REPO
+
+CORRIDOR = load_world(REPO / "config" / "worlds" / "corridor.yaml")
+HOVER = np.array([31.0, 1.2, -1.0])  # NED m: between the recesses at 29 m and 38 m north, 1 m up
+HORIZONTAL = MountConfig(position_m=(0.0, 0.0, -0.10))
+VERTICAL = MountConfig(position_m=(0.05, 0.0, -0.05), rpy_deg=(90.0, 0.0, 0.0))
+
+
+def _hover(seconds: float) -> tuple[LidarPipeline, PoseEstimate]:
+    """The pipeline after hovering still at HOVER for ``seconds``: IMU at 50 Hz, horizontal scans
+    at 40 Hz, vertical ones at 10 Hz (fresh range noise in each), one nav cycle per IMU sample."""
+    geometry = WorldGeometry.from_world(CORRIDOR)
+    rng = np.random.default_rng(7)
+    cfg = LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v", initial_pose=(31.0, 1.2, 0.0))
+    pipeline = LidarPipeline(cfg, CORRIDOR, HORIZONTAL, VERTICAL, Health(lambda: 0.0))
+    h_mount = make_mount(HORIZONTAL.position_m, (0.0, 0.0, 0.0))
+    v_mount = make_mount(VERTICAL.position_m, (math.pi / 2, 0.0, 0.0))
+    estimate = None
+    for k in range(int(seconds * 200)):  # 5 ms ticks
+        t = k * 0.005
+        if k % 5 == 0:  # 40 Hz
+            scan = synthetic_scan(geometry, UTM_30LX, h_mount, HOVER, (0.0, 0.0, 0.0), rng, 0.01, sequence=k)
+            pipeline.on_horizontal_scan(dataclasses.replace(scan, t_capture=t))
+        if k % 20 == 0:  # 10 Hz
+            scan = synthetic_scan(geometry, URG_04LX, v_mount, HOVER, (0.0, 0.0, 0.0), rng, 0.01, sequence=k)
+            pipeline.on_vertical_scan(dataclasses.replace(scan, t_capture=t))
+        if k % 4 == 0:  # 50 Hz
+            pipeline.imu.add(ImuSample(t, np.array([0.0, 0.0, -9.81]), np.zeros(3), euler_rad=(0.0, 0.0, 0.0)))
+            for made in pipeline.step(t):
+                estimate = made
+    assert isinstance(estimate, PoseEstimate)
+    return pipeline, estimate
+
+
+def test_hovering_where_only_wall_ends_measure_the_corridors_axis_the_estimate_claims_no_less_than_one_fix() -> None:
+    pipeline, estimate = _hover(3.0)
+    fix = pipeline.last_horizontal.fix if pipeline.last_horizontal is not None else None
+    assert fix is not None and fix.measured and "of their ends" in fix.reason, fix and fix.reason
+    assert fix.ends_only is not None and abs(fix.ends_only[0]) == 1.0  # north: the corridor's axis
+    one_fix = fix.covariance[0, 0]
+    filtered = pipeline.fusion.state(estimate.t_capture).position_covariance[0, 0]
+    assert filtered < 0.5 * one_fix  # the filter averaged the fixes as if independent ...
+    assert estimate.pose_covariance[0, 0] >= one_fix  # ... the estimate sent does not claim it
+    assert abs(estimate.position_ned[0] - HOVER[0]) < 3.0 * math.sqrt(estimate.pose_covariance[0, 0])
