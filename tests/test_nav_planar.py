@@ -14,7 +14,8 @@ from companion.nav.corners import find_corners
 from companion.nav.heading import HeadingResult, track_heading, wall_mod
 from companion.nav.lidar_pipeline import planar_params
 from companion.nav.lines import LineSet, extract_lines
-from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer, _pose_hypotheses
+from companion.nav.edges import occluding_ends
+from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer, _pose_hypotheses, _with_yaw
 from drivers.lidar_models import UTM_30LX
 from companion.messages import Scan
 from sitl.raycast import WorldGeometry
@@ -575,6 +576,32 @@ def test_the_maps_survey_error_widens_every_fix_from_it(arena: World, geometry: 
         assert fix.state == "tracking"
         variances.append(np.trace(fix.covariance[:2, :2]))
     assert variances[1] > 4 * variances[0]
+
+
+def test_a_wall_fix_carries_the_headings_uncertainty_into_its_position() -> None:
+    """Turning the scan about the scanner moves where its wall lines and their ends land on the map:
+    the wall fix's position covariance holds the heading variance times that sensitivity, and its
+    position-yaw covariance the sensitivity itself, as the corner fix's does (checked against the
+    fix recomputed at a heading turned by +/- 0.1 mrad)."""
+    corridor = load_world(DEFAULT_WORLD.parent / "corridor.yaml")
+    geometry = WorldGeometry.from_world(corridor)
+    for x, yaw in ((31.0, 0.0), (31.0, 0.3), (3.0, 0.2), (20.0, -0.1)):
+        loc = PlanarLocalizer(corridor.corner_array(), corridor.wall_angle_deg, mount=MOUNT,
+                              walls=corridor.segments_at(HEIGHT_M - MOUNT.z_m))
+        points, ok, ranges = loc.level_points(scan_at(geometry, x, 1.2, yaw, np.random.default_rng(1)))
+        lines = extract_lines(points, ok, loc.params.lines, ranges)
+        edges = occluding_ends(lines, points, ok, ranges, np.array([MOUNT.x_m, MOUNT.y_m]), loc.params.lines)
+        heading = track_heading(lines, yaw, loc.wall_angle, 0.0, loc.params.heading)
+        prior = np.array([x + 0.03, 1.21])
+        fixes = [loc._wall_fix(lines, edges, prior, _with_yaw(heading, heading.yaw + d), "", {}, 0.0)
+                 for d in (0.0, 1e-4, -1e-4)]
+        assert all(f is not None for f in fixes)
+        fix, turned, back = fixes
+        sensitivity = (np.array([turned.x - back.x, turned.y - back.y])) / 2e-4  # m/rad
+        assert np.linalg.norm(sensitivity) > 1.0  # the lines' middles lie metres from the scanner
+        np.testing.assert_allclose(fix.covariance[:2, 2], heading.variance * sensitivity, rtol=1e-6, atol=1e-15)
+        assert fix.covariance[0, 0] >= heading.variance * sensitivity[0] ** 2
+        assert np.all(np.linalg.eigvalsh(fix.covariance) > 0.0)
 
 
 def test_the_ends_of_a_corridors_walls_measure_the_along_track_position() -> None:

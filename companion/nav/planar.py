@@ -492,16 +492,20 @@ class PlanarLocalizer:
         w = 1.0 / var
         info = (w[:, None, None] * n[:, :, None] * n[:, None, :]).sum(axis=0)
         b = (w * r) @ n
+        # d(residual)/d(yaw): turning the scan about the scanner moves each line's middle sideways.
+        arm = mid[has] - xy
+        db_dyaw = (w * (n[:, 0] * arm[:, 1] - n[:, 1] * arm[:, 0])) @ n
         ends = self._wall_ends(edges, k, nearest, xy, rot)
         ends_only = None
         if ends is not None:
             walls_val, walls_vec = np.linalg.eigh(info)  # what the walls alone measure
             if walls_val[0] * p.wall_gate_m ** 2 < 1.0:  # a direction they leave to the ends
                 ends_only = (float(walls_vec[0, 0]), float(walls_vec[1, 0]))
-            direction, along, along_var = ends
+            direction, along, along_var, dalong_dyaw = ends
             w_end = 1.0 / (along_var + p.map_error_m ** 2)
             info = info + (w_end[:, None, None] * direction[:, :, None] * direction[:, None, :]).sum(axis=0)
             b = b + (w_end * along) @ direction
+            db_dyaw = db_dyaw + (w_end * dalong_dyaw) @ direction
         eigval, eigvec = np.linalg.eigh(info)
         if eigval[1] <= 0.0:
             return None
@@ -509,17 +513,21 @@ class PlanarLocalizer:
         if eigval[0] * p.wall_gate_m ** 2 < 1.0:  # a direction measured worse than the gate: a corridor's axis
             u = eigvec[:, 1]
             delta = (u @ b) / eigval[1] * u
+            dp_dyaw = (u @ db_dyaw) / eigval[1] * u
             cov2 = np.outer(u, u) / eigval[1] + p.lost_variance_m2 * np.outer(eigvec[:, 0], eigvec[:, 0])
             reason = f"{why}: {k.size} walls{ended} constrain the cross-track position only"
             unmeasured: tuple[float, float] | None = (float(eigvec[0, 0]), float(eigvec[1, 0]))
         else:
             cov2 = np.linalg.inv(info)
             delta = cov2 @ b
+            dp_dyaw = cov2 @ db_dyaw
             reason = f"{why}: {k.size} walls{ended} constrain the position"
             unmeasured = None
         self._pose = (float(xy[0] + delta[0]), float(xy[1] + delta[1]), heading.yaw)
-        cov = np.zeros((3, 3))
-        cov[:2, :2] = cov2
+        # The heading's uncertainty moves the position through dp_dyaw, as for corners (match()).
+        cov = np.empty((3, 3))
+        cov[:2, :2] = cov2 + heading.variance * np.outer(dp_dyaw, dp_dyaw)
+        cov[:2, 2] = cov[2, :2] = heading.variance * dp_dyaw
         cov[2, 2] = heading.variance
         self._cov = cov
         self._misses = 0
@@ -529,11 +537,12 @@ class PlanarLocalizer:
                          ends_only=None if unmeasured is not None else ends_only)
 
     def _wall_ends(self, edges: Edges, k: np.ndarray, wall: np.ndarray, xy: np.ndarray,
-                   rot: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+                   rot: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
         """The occluding ends of the lines ``k`` (matched to the map walls ``wall``) that lie
         within ``edge_gate_m`` of an end of their wall: (wall directions (E, 2), how far to move
         the position along them to put each observed end on the map's (E,), m; their variances
-        (E,), m^2), or None if there are none."""
+        (E,), m^2; the derivatives of those distances with the yaw (E,), m/rad), or None if
+        there are none."""
         if edges.count == 0:
             return None
         of_line = {int(line): j for line, j in zip(k, wall)}
@@ -541,7 +550,8 @@ class PlanarLocalizer:
         if not pick.any():
             return None
         j = np.array([of_line[int(line)] for line in edges.line[pick]])
-        world = xy + edges.xy[pick] @ rot.T
+        arm = edges.xy[pick] @ rot.T  # scanner to end, world frame
+        world = xy + arm
         direction = self._wall_dir[j]
         u = np.einsum("ij,ij->i", world - self.walls[j, 0:2], direction)  # along the wall from its start
         at_end = u >= 0.5 * self._wall_len[j]  # the nearer end: the wall's end (True) or start
@@ -549,7 +559,8 @@ class PlanarLocalizer:
         near = (np.abs(along) <= self.params.edge_gate_m) & self._wall_end_is_corner[j, at_end.astype(int)]
         if not near.any():
             return None
-        return direction[near], along[near], edges.along_var[pick][near]
+        dalong_dyaw = direction[:, 0] * arm[:, 1] - direction[:, 1] * arm[:, 0]  # -direction . d(arm)/d(yaw)
+        return direction[near], along[near], edges.along_var[pick][near], dalong_dyaw[near]
 
     def _accept(self, m: Match, yaw: float, heading: HeadingResult, relocalized: bool,
                 timing: dict[str, float], t0: float) -> PlanarFix:
