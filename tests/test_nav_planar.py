@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tracemalloc
 
@@ -140,6 +141,20 @@ def test_competing_wall_families_follow_the_prediction_not_the_heavier_clutter()
     # Predicted near the clutter's family (a 15 deg turn the gyro measured): that family it is.
     result = track_heading(clutter_heavy, 0.0, A45, predicted_delta=math.radians(-15.0), params=gyro)
     assert result.measured and math.degrees(result.yaw) == pytest.approx(-15.1, abs=0.1)
+
+
+def test_a_wall_family_far_off_the_gyros_prediction_is_refused() -> None:
+    """With a 90 deg map, walls all seen 33 deg off the prediction agree among themselves (a wrong
+    family, or the prediction's own error): more than 4 prediction sigmas (20 deg for the pipeline's
+    gyro) is refused, never taken as the heading; without a gyro prior there is no bound."""
+    gyro = planar_params(LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v")).heading
+    a90 = math.radians(90)
+    off = synthetic_lines([33.0, 123.0, -57.0])
+    refused = track_heading(off, 0.0, a90, params=gyro)
+    assert refused.status == "ambiguous" and refused.yaw == 0.0 and "off the gyro's prediction" in refused.reason
+    assert track_heading(off, 0.0, a90).measured  # no prior: the walls say it
+    near = track_heading(synthetic_lines([19.0, 109.0, -71.0]), 0.0, a90, params=gyro)
+    assert near.measured and math.degrees(near.correction) == pytest.approx(-19.0)
 
 
 # -- position tracking ---------------------------------------------------------------------------
@@ -388,6 +403,38 @@ def test_the_held_pose_picks_between_look_alike_rooms() -> None:
     assert "local candidate" in fixes[first - 1].reason
     fix = fixes[-1]
     assert math.hypot(fix.x - truth[0], fix.y - truth[1]) < 0.03 and yaw_error(fix.yaw, truth[2]) < math.radians(0.5)
+
+
+def _lost_for(loc: PlanarLocalizer, scan: Scan, scans: int) -> None:
+    """Dead-reckon ``loc`` through ``scans`` scans that see nothing (every beam invalid)."""
+    blank = dataclasses.replace(scan, valid=np.zeros_like(scan.valid))
+    for _ in range(scans):
+        fix = loc.update(blank)
+        assert fix is None or not fix.measured
+
+
+def test_after_a_long_loss_corners_matching_as_well_elsewhere_within_the_drift_do_not_resume_tracking() -> None:
+    """Lost for 100 scans, the held position may be metres off (3 sigma of the coasting drift:
+    3.5 m here). The corners seen match the twin room 3 m away as well as the one the held pose
+    is in: resuming there would be a guess, so the scan is no fix. With the twin 10 m away,
+    beyond that drift, the same scan resumes tracking."""
+    room = square_room(4.0, 90)
+    corners = np.array([(0, 0), (4, 0), (4, 4), (0, 4)], dtype=float)
+    geometry = WorldGeometry.from_world(room)
+    truth = (1.7, 2.2, math.radians(40))
+    rng = np.random.default_rng(21)
+    for apart, held_x, resumes in ((3.0, truth[0] + 3.0, False), (10.0, truth[0] + 0.2, True)):
+        loc = PlanarLocalizer(np.vstack((corners, corners + (apart, 0.0))), 90, mount=MOUNT,
+                              initial_pose=(held_x, truth[1], truth[2]))
+        scan = scan_at(geometry, *truth, rng)
+        _lost_for(loc, scan, 100)
+        fix = loc.update(scan)
+        if resumes:
+            assert fix is not None and fix.measured and fix.matched >= 2, loc.last_reason
+            assert math.hypot(fix.x - truth[0], fix.y - truth[1]) < 0.05
+        else:
+            assert fix is None or not fix.measured
+            assert "as many 3.0 m away" in (loc.last_reason if fix is None else fix.reason)
 
 
 def test_symmetric_room_has_no_clear_winner() -> None:

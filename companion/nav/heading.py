@@ -61,6 +61,9 @@ class HeadingParams:
     # gyro the prediction is only the previous heading). The lidar pipeline, predicting with the
     # autopilot's gyro, uses 5.
     prediction_sigma_deg: float = math.inf
+    # A correction beyond this many prediction sigmas is refused (the walls seen are not the
+    # family the gyro says: clutter at an angle, a wrong family's consensus); unbounded without one.
+    max_correction_sigmas: float = 4.0
     variance_floor_rad2: float = math.radians(0.05) ** 2  # floor: map walls may be 0.1 deg off
 
 
@@ -121,6 +124,11 @@ def track_heading(lines: LineSet, previous_yaw: float, wall_angle_rad: float,
     correction = float(wall_mod(corr[best] + mean_resid, wall_angle_rad))
     variance = max(_variance(w, resid - mean_resid), params.variance_floor_rad2)
     yaw = wrap_pi(predicted + correction)
+    if abs(correction) > params.max_correction_sigmas * math.radians(params.prediction_sigma_deg):
+        return HeadingResult(wrap_pi(predicted), 0.0, UNMEASURED_VARIANCE_RAD2, "ambiguous",
+                             f"the walls' heading is {math.degrees(correction):+.1f} deg off the gyro's prediction "
+                             f"(more than {params.max_correction_sigmas:g} x {params.prediction_sigma_deg:g} deg)",
+                             int(inl.sum()), consensus, limit)
     if abs(correction) > params.warn_fraction * limit:
         return HeadingResult(yaw, correction, variance, "near_limit",
                              f"correction {math.degrees(correction):.1f} deg approaches the inter-frame "

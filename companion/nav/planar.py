@@ -339,7 +339,32 @@ class PlanarLocalizer:
                 if walls is not None:
                     return walls
             return self._miss(heading, why, False, lines, corners, points[ok], timing, t0)
+        if self._misses >= self.params.lost_after_frames:
+            rival = self._rival_resume(corners, best, yaw_used)
+            if rival is not None:
+                why = (f"{best.matched} corners match near the dead-reckoned pose, and as many "
+                       f"{math.dist(rival, best.xy):.1f} m away within its uncertainty")
+                return self._miss(heading, why, False, lines, corners, points[ok], timing, t0)
         return self._accept(best, yaw_used, heading, False, timing, t0)
+
+    def _drift_radius(self) -> float:
+        """How far (m) the held position may be from the truth after ``_misses`` scans without a
+        measurement: 3 sigma of the coasting drift (``coast_growth_m2`` per scan) plus the gate."""
+        return 3.0 * math.sqrt(self._misses * self.params.coast_growth_m2) + self.params.gate_m
+
+    def _rival_resume(self, corners: Corners, best: Match, yaw: float) -> np.ndarray | None:
+        """After a loss (the held position dead-reckoned for ``_misses`` scans), another position
+        (north, east m) within that drift's 3 sigma (``coast_growth_m2`` per scan) of the held one
+        where the corners also match as many map corners as ``best`` does, if any: resuming there
+        or at ``best`` would be a guess (look-alike corners)."""
+        assert self._pose is not None
+        p = self.params
+        poses = _pose_hypotheses(corners.xy, self.map, np.array([yaw]), p.gate_m, best.matched)
+        held = np.array(self._pose[:2])
+        near = np.hypot(*(poses[:, 2:4] - held).T) <= self._drift_radius()
+        apart = np.hypot(*(poses[:, 2:4] - best.xy).T) > p.reloc_distinct_m
+        rivals = poses[near & apart]
+        return None if rivals.shape[0] == 0 else rivals[0, 2:4]
 
     def level_points(self, scan: Scan | np.ndarray, roll: float = 0.0, pitch: float = 0.0,
                      valid: np.ndarray | None = None,
@@ -661,8 +686,9 @@ class PlanarLocalizer:
     def _search(self, lines: LineSet, corners: Corners,
                 points: np.ndarray) -> tuple[tuple[Match, HeadingResult, bool] | None, str]:
         """The relocalized pose (match, heading, whether it was found near the held pose) or why none.
-        With a pose held, the hypotheses within ``reloc_local_m`` of it and at the heading nearest
-        its yaw are tried first; the global search only when they give no clear winner."""
+        With a pose held, the hypotheses within ``reloc_local_m`` of it (or the drift since it was
+        measured, if more) and at the heading nearest its yaw are tried first; the global search
+        only when they give no clear winner."""
         p = self.params
         yaws, base = heading_hypotheses(lines, self.wall_angle, p.heading, self.wall_offset)
         if yaws.size == 0:
@@ -674,7 +700,7 @@ class PlanarLocalizer:
         poses = _pose_hypotheses(corners.xy, self.map, yaws, p.reloc_tolerance_m, p.reloc_min_inliers)
         if self._pose is not None:
             hx, hy, hyaw = self._pose
-            near = ((np.hypot(poses[:, 2] - hx, poses[:, 3] - hy) <= p.reloc_local_m)
+            near = ((np.hypot(poses[:, 2] - hx, poses[:, 3] - hy) <= max(p.reloc_local_m, self._drift_radius()))
                     & (np.abs(wrap_pi(poses[:, 1] - hyaw)) <= 0.5 * self.wall_angle))
             found, _ = self._clear_winner(poses[near], corners, points, base)
             if found is not None:
