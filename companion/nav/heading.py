@@ -26,7 +26,9 @@ Deviations from the paper, all for robustness:
 * with a trusted prediction (``prediction_sigma_deg`` finite: a gyro) the candidates are ranked
   by their support times a Gaussian prior on their correction: when two wall families compete (clutter at 15 degrees outweighing
   the building's walls) the one the predicted heading expects is chosen, and if it lacks the
-  consensus the heading is reported ``ambiguous`` rather than flipped to the other family;
+  consensus the heading is reported ``ambiguous`` rather than flipped to the other family; a
+  winning correction beyond ``max_correction_sigmas`` prediction sigmas is ``ambiguous`` too
+  (the walls agree among themselves but not with the gyro: a wrong family, clutter at an angle);
 * ``predicted_delta`` (e.g. the gyro's integrated yaw change since the last scan) moves the
   prediction, so the inter-frame limit of A/2 applies to the unpredicted rotation only;
 * the limit itself is in every result (``limit_rad`` = A/2). A rotation beyond it aliases by a

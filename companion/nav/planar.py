@@ -56,7 +56,9 @@ neither for fewer than ``lost_after_frames`` frames: then the fix is not a measu
 ``measured`` is False and the position is the previous one with a growing covariance; or the
 heading near its inter-frame limit), ``lost`` (nothing matched for ``lost_after_frames``
 frames, or the wall directions are ambiguous; tracking then resumes only with ``min_matches``
-corners or by relocalization). A fix that is not ``measured`` must not be sent to the autopilot.
+corners, and only if no other position within the drift since the last fix (3 sigma of
+``coast_growth_m2`` per scan, plus the gate) matches as many, or by relocalization). A fix that
+is not ``measured`` must not be sent to the autopilot.
 
 Relocalization (beyond the paper), tried when lost or when no pose is known: the wall
 directions fix the heading modulo the wall angle, so the candidate headings are a small
@@ -68,7 +70,7 @@ association and update; if the walls are known, the fraction of scan points lyin
 breaks ties (it sees, for instance, which room's doors the beams go through). Only a clear
 winner is accepted (more corners than every other distinct pose, or as many but a wall fraction
 ``reloc_wall_margin`` higher). With a pose held (lost after coasting), the hypotheses within
-``reloc_local_m`` of it and at the heading nearest its yaw are tried first and the whole map only
+``reloc_local_m`` of it (or that drift, if more) and at the heading nearest its yaw are tried first and the whole map only
 when they have no clear winner: a map has look-alike places, and the held pose says which one
 the vehicle is more likely in. A winner within ``jump_m`` / ``jump_rad`` of the held pose resumes
 tracking at once. A jump (or a first pose) is only a candidate (:attr:`PlanarLocalizer.candidate`)
