@@ -5,7 +5,9 @@ attitude at the estimate's capture time (an estimate is published late: it waits
 fixes, and in a 30 deg/s roll-in the newest ATTITUDE would differ from it by the turn since; an
 estimate without an autopilot attitude near its time is not compared). When they differ by more than ``threshold_deg`` (largest of the roll, pitch, yaw
 differences, wrapped, over the angles the estimate measures: NaN is an angle it cannot see, e.g.
-the yaw of a level floor's tilt) for ``hold_s`` without a break, the check reports
+the yaw of a level floor's tilt) for ``hold_s`` without a break (an estimate that agrees, or
+none for more than half of ``hold_s``: two diverging estimates with nothing between them do not
+show a divergence that lasted), the check reports
 ``crosscheck:<source>`` degraded (health announces it by STATUSTEXT and telemetry), and OK again
 once they agree.
 """
@@ -32,6 +34,7 @@ class AttitudeCrossCheck:
         self.threshold_rad = math.radians(threshold_deg)
         self.hold_s = hold_s
         self._since: dict[str, float | None] = {}  # per source: capture time the divergence began
+        self._last: dict[str, float] = {}  # per source: capture time of the last estimate compared
 
     def submit(self, estimate: AttitudeEstimate) -> None:
         reference = self.autopilot_euler(estimate.t_capture)
@@ -43,6 +46,10 @@ class AttitudeCrossCheck:
         diff = max(abs(wrap_pi(a - b)) for a, b in measured)
         component = f"crosscheck:{estimate.source}"
         since = self._since.get(estimate.source)
+        last = self._last.get(estimate.source)
+        self._last[estimate.source] = estimate.t_capture
+        if self.hold_s > 0.0 and last is not None and estimate.t_capture - last > 0.5 * self.hold_s:
+            since = None  # a gap: whatever diverged before it is not known to have lasted
         alarm = False
         if diff <= self.threshold_rad:
             self._since[estimate.source] = None

@@ -81,6 +81,22 @@ def test_the_attitude_check_raises_only_after_a_lasting_divergence_and_clears() 
     assert published[-1]["difference_deg"] == pytest.approx(2.0)
 
 
+def test_two_diverging_attitudes_with_nothing_between_them_raise_no_alarm() -> None:
+    """Estimates can be seconds apart (a fixed wing's turns give none): two that diverge 2 s apart
+    do not show a divergence lasting the 2 s hold; a run of them closer than half the hold does."""
+    health = Health(lambda: 0.0)
+    published: list[dict] = []
+    check = AttitudeCrossCheck(lambda t: (0.0, 0.0, 0.0), health, lambda stream, p: published.append(p),
+                               threshold_deg=5.0, hold_s=2.0)
+    for t in (10.0, 12.1, 14.3):
+        check.submit(AttitudeEstimate(t, (math.radians(9.0), 0.0, 0.0), np.eye(3) * 1e-4, source="flow"))
+    assert not any(p["alarm"] for p in published)
+    assert health.snapshot()["components"].get("crosscheck:flow", {"state": "ok"})["state"] == "ok"
+    for k in range(1, 4):  # 15.0 .. 16.8 s: 0.9 s apart, diverging throughout from 14.3 s
+        check.submit(AttitudeEstimate(14.3 + 0.9 * k, (math.radians(9.0), 0.0, 0.0), np.eye(3) * 1e-4, source="flow"))
+    assert [p["alarm"] for p in published[3:]] == [False, False, True]
+
+
 def test_the_attitude_check_compares_only_the_angles_an_estimate_measures() -> None:
     health = Health(lambda: 0.0)
     check = AttitudeCrossCheck(lambda t: (0.0, 0.0, 2.0), health, lambda stream, p: None, threshold_deg=5.0, hold_s=0.0)
