@@ -40,10 +40,12 @@ def _config_with_logging(args: argparse.Namespace) -> Config | None:
 def _cmd_run(args: argparse.Namespace) -> int:
     from companion.clock import LockstepEventLoop, realtime_event_loop
     from companion.daemon import GIL_SWITCH_INTERVAL_S, Daemon
+    from companion.scheduling import apply_realtime_priority
 
     cfg = _config_with_logging(args)
     if cfg is None:
         return EXIT_CONFIG_ERROR
+    apply_realtime_priority(cfg.scheduling.realtime_priority)  # before any thread: they all inherit it
     sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)  # the daemon's process: see GIL_SWITCH_INTERVAL_S
     daemon = Daemon(cfg, args.mavlink)
     loop = LockstepEventLoop() if args.lockstep else realtime_event_loop()

@@ -195,6 +195,15 @@ class RecordConfig:
 
 
 @dataclass
+class SchedulingConfig:
+    realtime_priority: int = field(default=0, metadata=meta(
+        "SCHED_FIFO priority the daemon asks for at start, for every thread (1-99; 0: normal scheduling). The nav "
+        "loop then wakes on time on a loaded board. Granted with CAP_SYS_NICE or an RLIMIT_RTPRIO at least this "
+        "high (systemd/companion.service: LimitRTPRIO=10); refused (or on a single CPU): a warning, normal "
+        "scheduling.", (0, 99)))
+
+
+@dataclass
 class LoggingConfig:
     level: Literal["debug", "info", "warning", "error"] = field(default="info", metadata=meta("Log level (the CLI's --log-level overrides)."))
 
@@ -423,6 +432,8 @@ class Config:
     pipelines: PipelinesConfig = field(default_factory=PipelinesConfig, metadata=meta("Navigation pipelines."))
     telemetry: TelemetryConfig = field(default_factory=TelemetryConfig, metadata=meta("zenoh telemetry."))
     logging: LoggingConfig = field(default_factory=LoggingConfig, metadata=meta("Logging."))
+    scheduling: SchedulingConfig = field(default_factory=SchedulingConfig, metadata=meta(
+        "CPU scheduling of the daemon's process."))
     record: RecordConfig = field(default_factory=RecordConfig, metadata=meta("Flight recorder (MCAP)."))
     control: ControlConfig = field(default_factory=ControlConfig, metadata=meta("Trajectory-following controller."))
     mission: MissionConfig = field(default_factory=MissionConfig, metadata=meta("Mission to fly."))

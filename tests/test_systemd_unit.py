@@ -162,7 +162,8 @@ def test_verify_catches_mistakes(section: str, line: str, mentioned: str) -> Non
         ("Service", "ProtectKernelModules", "yes"),
         ("Service", "ProtectKernelLogs", "yes"),
         ("Service", "ProtectControlGroups", "yes"),
-        ("Service", "RestrictRealtime", "yes"),
+        ("Service", "RestrictRealtime", "no"),
+        ("Service", "LimitRTPRIO", "10"),
         ("Service", "RestrictAddressFamilies", "AF_UNIX AF_INET AF_INET6 AF_NETLINK"),
         ("Install", "WantedBy", "multi-user.target"),
     ],
@@ -337,3 +338,11 @@ def test_the_fault_suite_runs_the_daemon_at_the_units_priority() -> None:
     from sitl.rig import SERVICE_NICE
 
     assert values(SECTIONS, "Service", "Nice") == [str(SERVICE_NICE)]
+
+
+def test_the_installed_config_asks_for_no_higher_realtime_priority_than_the_unit_grants() -> None:
+    from companion.config import load_config
+
+    cfg = load_config(REPO / "config" / "example-ardupilot-hokuyo.yaml")
+    granted = int(values(SECTIONS, "Service", "LimitRTPRIO")[0])
+    assert 0 < cfg.scheduling.realtime_priority <= granted
