@@ -26,34 +26,31 @@ import os
 log = logging.getLogger("companion.scheduling")
 
 
-def apply_realtime_priority(priority: int) -> str:
+def apply_realtime_priority(priority: int) -> None:
     """Put this process's calling thread (and so every thread it creates later) under
     ``SCHED_FIFO`` at ``priority`` (1-99; 0: leave the scheduling as it is).
 
     Never raises: a refusal (no ``CAP_SYS_NICE`` and an ``RLIMIT_RTPRIO`` below ``priority``, a
     kernel with realtime group scheduling, a single CPU) is logged as a warning and the daemon
-    runs at its ordinary priority. Returns what the daemon runs with, as logged.
+    runs at its ordinary priority.
     """
     if priority <= 0:
-        return "normal scheduling (scheduling.realtime_priority 0)"
+        return
     if not hasattr(os, "sched_setscheduler"):
-        return _refused(priority, "this platform has no sched_setscheduler")
-    if (os.cpu_count() or 1) < 2:
-        return _refused(priority, "a single CPU: a busy realtime loop would leave nothing for the rest")
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
-    except OSError as exc:
-        limit = _rtprio_limit()
-        return _refused(priority, f"{exc.strerror or exc} (RLIMIT_RTPRIO {limit}; the unit's LimitRTPRIO= grants it)")
-    outcome = f"SCHED_FIFO priority {priority}"
-    log.info("scheduling: %s", outcome)
-    return outcome
+        _refused(priority, "this platform has no sched_setscheduler")
+    elif (os.cpu_count() or 1) < 2:
+        _refused(priority, "a single CPU: a busy realtime loop would leave nothing for the rest")
+    else:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
+        except OSError as exc:
+            _refused(priority, f"{exc.strerror or exc} (RLIMIT_RTPRIO {_rtprio_limit()}; the unit's LimitRTPRIO= grants it)")
+        else:
+            log.info("SCHED_FIFO priority %d for every thread of the daemon", priority)
 
 
-def _refused(priority: int, why: str) -> str:
-    outcome = f"normal scheduling: SCHED_FIFO priority {priority} refused: {why}"
-    log.warning("scheduling: %s", outcome)
-    return outcome
+def _refused(priority: int, why: str) -> None:
+    log.warning("SCHED_FIFO priority %d refused, normal scheduling: %s", priority, why)
 
 
 def _rtprio_limit() -> str:

@@ -19,7 +19,7 @@ PROBE = (
     "if sys.argv[2] == 'unprivileged':  # what a service without LimitRTPRIO= is: no capability, limit 0\n"
     "    resource.setrlimit(resource.RLIMIT_RTPRIO, (0, 0))\n"
     "    os.setgid(65534); os.setuid(65534)  # root's capabilities go with its uid\n"
-    "outcome = apply_realtime_priority(int(sys.argv[1]))\n"
+    "apply_realtime_priority(int(sys.argv[1]))\n"
     "print(os.sched_getscheduler(0) & ~os.SCHED_RESET_ON_FORK, os.sched_getparam(0).sched_priority)\n"
 )
 
