@@ -4,8 +4,8 @@ The 50 Hz nav cycle waits for its tick in select(2); on a loaded board the kerne
 process when the tick falls due, and the cycle wakes late by however long that process keeps
 the core. Under ``SCHED_FIFO`` the daemon preempts every ordinary process the moment its timer
 expires. Measured on the 2-core SITL machine (README "Nav-loop timing"): the real-driver hover's
-tick lateness p99 1.2-2.4 ms at normal priority, 0.5-1.5 ms at FIFO priority 10, lower in each of
-four alternating pairs.
+tick lateness p99 1.22-2.41 ms at normal priority, 0.47-1.55 ms at FIFO priority 10, lower in each
+of four alternating pairs.
 
 :func:`apply_realtime_priority` is called once, first thing in ``companion run``, from the main
 thread before any other thread exists, so every thread the daemon starts later (telemetry,
@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import os
+import resource
 
 log = logging.getLogger("companion.scheduling")
 
@@ -54,9 +55,6 @@ def _refused(priority: int, why: str) -> None:
 
 
 def _rtprio_limit() -> str:
-    try:
-        import resource
-        soft, _ = resource.getrlimit(resource.RLIMIT_RTPRIO)
-    except (ImportError, AttributeError, OSError):
-        return "unknown"
+    """This process's soft RLIMIT_RTPRIO (Linux, where sched_setscheduler exists)."""
+    soft, _ = resource.getrlimit(resource.RLIMIT_RTPRIO)
     return "unlimited" if soft == resource.RLIM_INFINITY else str(soft)
