@@ -53,8 +53,10 @@ class SimFlowSettings:
     angle_noise_deg: float = field(default=2.5, metadata=meta(
         "Each flow vector's direction is turned by a uniform random angle within +/- this, degrees "
         "(seed: 2.5); its length is kept.", (0, 180)))
-    latency_s: float = field(default=0.0, metadata=meta(
-        "From a field's later instant to its delivery (the flow computation), seconds.", (0, 1)))
+    latency_s: float = field(default=0.03, metadata=meta(
+        "From a field's later instant to its delivery (the flow computation), seconds. At least the truth's "
+        "period (SIM_STATE at 50 Hz: 0.02): a field rendered before the truth of its later instant has arrived "
+        "takes the newest pose received instead, up to a period old.", (0, 1)))
     ground_down_m: float = field(default=0.0, metadata=meta(
         "NED down coordinate of the flat ground, metres (0: the world's floor).", (-10000, 10000)))
     seed: int = field(default=0, metadata=meta("Seed of the angle noise.", (0, 999999)))

@@ -9,10 +9,10 @@ import numpy as np
 
 from companion import clock
 from companion.config import MavlinkConfig, OriginConfig, VehicleConfig
-from companion.frames import geodetic_from_ned
+from companion.frames import euler_from_quat, geodetic_from_ned, quat_from_euler
 from companion.health import Health
 from companion.mavlink.link import MavlinkLink, mavlink
-from sitl.truth import TruthSource
+from sitl.truth import TruthSample, TruthSource, slerp
 
 ORIGIN = OriginConfig(lat=47.3977, lon=8.5456, alt=488.0)
 SPEED_EAST_MPS = 5.0
@@ -48,3 +48,20 @@ def test_simstate_velocity_is_the_vehicles_speed_when_its_messages_arrive_in_bur
     settled = velocities[RATE_HZ:]  # after the first second
     assert np.all(np.abs(settled[:, 1] - SPEED_EAST_MPS) < 0.1 * SPEED_EAST_MPS)
     assert np.all(np.abs(settled[:, 0]) < 0.2)
+
+
+def test_the_attitude_between_two_samples_is_interpolated_not_snapped() -> None:
+    """A fixed wing rolling at 25 deg/s turns 0.5 deg between 50 Hz samples; a flow field rendered
+    from the nearest sample's attitude carried up to half of that as a rotation never made."""
+    async def main() -> list[tuple[float, float, float]]:
+        link = MavlinkLink(MavlinkConfig(), VehicleConfig(), "udpout:127.0.0.1:9", Health(clock.now))
+        truth = TruthSource(link, ORIGIN)
+        for t, roll_deg in ((1.0, 10.0), (1.02, 10.5)):
+            truth._add(TruthSample(t, np.zeros(3), np.zeros(3), quat_from_euler(np.radians(roll_deg), 0.1, 2.0)))
+        return [euler_from_quat(truth.at(1.0 + 0.02 * w).quat) for w in (0.0, 0.3, 0.7, 1.0)]
+
+    for w, (roll, pitch, yaw) in zip((0.0, 0.3, 0.7, 1.0), asyncio.run(main())):
+        assert abs(np.degrees(roll) - (10.0 + 0.5 * w)) < 1e-6
+        assert abs(pitch - 0.1) < 1e-9 and abs(yaw - 2.0) < 1e-9
+    halfway = slerp(quat_from_euler(0.0, 0.0, 3.1), quat_from_euler(0.0, 0.0, -3.1), 0.5)  # through 180 deg
+    assert abs(abs(float(np.dot(halfway, quat_from_euler(0.0, 0.0, np.pi)))) - 1.0) < 1e-9
