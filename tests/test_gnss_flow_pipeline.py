@@ -27,7 +27,7 @@ from companion.frames import GRAVITY_MPS2, euler_from_rotation, quat_from_euler,
 from companion.health import Health, State
 from companion.messages import GNSS_3D, AttitudeEstimate, FlowField, Frame, GnssFix, ImuSample, RangeEstimate
 from companion.nav.gnss_flow.config import GnssFlowConfig
-from companion.nav.gnss_flow.pipeline import GnssFlowPipeline
+from companion.nav.gnss_flow.pipeline import GnssFlowPipeline, mean_over
 from companion.pipeline import PipelineContext
 from drivers.mount import OPTICAL_TO_SENSOR, Mount
 from sitl.flow_sim import SimFlowSettings, SimulatedFlowSensor
@@ -146,12 +146,14 @@ def flow_field(k: int, **attitude: float) -> FlowField:
 
 
 def run(pipeline: GnssFlowPipeline, frames: int = 13, imu: bool = False, stamp_late_s: float = 0.0,
-        flows: int = 0, imu_from_s: float = -5.0, **attitude: float) -> list[AttitudeEstimate | RangeEstimate]:
+        flows: int = 0, imu_from_s: float = -5.0, gyro_bias: np.ndarray | None = None,
+        **attitude: float) -> list[AttitudeEstimate | RangeEstimate]:
     """Fixes from 5 s before the first frame to after the last (stamped ``stamp_late_s`` after
     their epoch: a backend that did not remove the receiver's latency), the frames, the ``flows``
     flow fields (1 to ``flows``), the IMU at 100 Hz from ``imu_from_s`` if ``imu`` (from -5 s the
-    gyro roll blend has settled before the frames), fed in order of arrival (a fix 0.1 s
-    after its epoch, a frame or field 5 ms after its capture) with a nav cycle per message."""
+    gyro roll blend has settled before the frames; its gyro off by ``gyro_bias``, body FRD rad/s),
+    fed in order of arrival (a fix 0.1 s after its epoch, a frame or field 5 ms after its capture)
+    with a nav cycle per message."""
     rng = np.random.default_rng(0)
     end = max(frames * FRAME_DT, flows * FLOW_DT) + 0.5 + pipeline.cfg.smoothing_lag_s  # s
     events = [(t + 0.1, "fix", t) for t in np.arange(-5.0, end, FIX_DT)]
@@ -170,7 +172,10 @@ def run(pipeline: GnssFlowPipeline, frames: int = 13, imu: bool = False, stamp_l
         elif kind == "flow":
             pipeline.on_flow(flow_field(int(t), **attitude))
         else:
-            pipeline.on_imu(imu_sample(t, **attitude))
+            sample = imu_sample(t, **attitude)
+            if gyro_bias is not None:
+                sample = dataclasses.replace(sample, gyro_body=sample.gyro_body + gyro_bias)
+            pipeline.on_imu(sample)
         out += pipeline.step(arrival)
     return out
 
@@ -407,8 +412,44 @@ def test_synthetic_flow_fields_of_a_coordinated_turn_give_the_attitude_and_the_h
     assert set(telemetry) == {"gnss_flow"} and pipeline.telemetry_streams == ("gnss_flow",)
     shown = telemetry["gnss_flow"]
     assert shown["rates_source"] == ("imu" if imu else "gnss") and "flow_px" not in shown
+    assert (shown["gyro_bias_rad_s"] is None) == (not imu)
     assert len(shown["flow_n"]) <= 200 and shown["flow_count"] > 500
     assert abs(shown["pitch_offset_rad"] - ALPHA) < math.radians(FLOW_TOLERANCE_DEG["imu" if imu else "gnss"][1])
+
+
+def test_a_gyro_bias_is_learnt_from_the_flow_and_taken_off_the_rates() -> None:
+    """1-2 mrad/s of gyro bias moves the FOE (its rotational flow bends the far ground's flow
+    lines; measured: the last five pitches 0.52 deg low without the correction). The pairs' rate
+    corrections from the flow average into the bias (over 0.5 s here, to fit 2 s of pairs),
+    which is taken off the gyro's rates: learnt within 0.4 mrad/s per axis (measured 1.05, -0.98,
+    1.73 of 1, -1, 2), the attitudes back within the unbiased gyro's tolerance."""
+    bias = np.array([1e-3, -1e-3, 2e-3])
+    pipeline, _ = make(camera=False, flow=True, imu_sensor="imu", gyro_bias_tau_s=0.5)
+    estimates = run(pipeline, frames=0, flows=20, imu=True, gyro_bias=bias)
+    assert np.all(np.abs(pipeline.gyro_bias - bias) < 4e-4), pipeline.gyro_bias
+    check_attitudes(estimates[-10:], FLOW_TOLERANCE_DEG["imu"])
+    assert pipeline.telemetry(False)["gnss_flow"]["gyro_bias_rad_s"] is pipeline.gyro_bias
+    pipeline, _ = make(camera=False, flow=True, imu_sensor="imu", gyro_correction_max_ratio=0.0)
+    uncorrected = check_attitudes(run(pipeline, frames=0, flows=20, imu=True, gyro_bias=bias), 2.0)
+    assert not pipeline.gyro_bias.any()
+    pitch_error = [a.euler_rad[1] - euler_from_rotation(body_to_ned(a.t_capture))[1] for a in uncorrected[-5:]]
+    assert abs(math.degrees(np.mean(pitch_error))) > 0.3
+
+
+def test_the_gyros_mean_rate_over_a_pair_is_its_interpolated_integral() -> None:
+    """A roll rate swinging at 3 Hz (gusts), sampled at 50 Hz off the pair's ends: the mean over
+    the pair is the rotation between its frames over their interval, to the interpolation's error;
+    the plain mean of the samples inside is off by about three times that (measured 0.0028 and
+    0.0080 rad/s of 0.239)."""
+    t = np.arange(-0.5, 0.5, 0.02) + 0.007
+    def rate(x):
+        return 0.3 * np.sin(2 * np.pi * 3.0 * x)
+    t0, t1 = 0.013, 0.113
+    exact = (np.cos(2 * np.pi * 3.0 * t0) - np.cos(2 * np.pi * 3.0 * t1)) * 0.3 / (2 * np.pi * 3.0) / (t1 - t0)
+    mean = mean_over(t, np.column_stack((rate(t), np.zeros_like(t))), t0, t1)
+    plain = rate(t[(t >= t0) & (t <= t1)]).mean()
+    assert mean[1] == 0.0 and abs(mean[0] - exact) < 0.004
+    assert abs(plain - exact) > 2 * abs(mean[0] - exact)
 
 
 def test_with_a_camera_and_a_flow_sensor_each_path_gives_its_own_estimates() -> None:

@@ -49,9 +49,16 @@ class GnssFlowConfig:
     foe_min_flow_n: float = field(default=2e-4, metadata=meta(
         "The flow path's `foe_min_flow_px`: shorter translational flow vectors of a flow sensor are not used for "
         "the focus of expansion, normalised image units (about radians near the axis).", (0, 1)))
-    foe_threshold_deg: float = field(default=5.0, metadata=meta(
-        "A translational flow vector within this angle of its line from the focus of expansion is a RANSAC "
-        "inlier, degrees.", (0.1, 45)))
+    foe_threshold_sigmas: float = field(default=3.5, metadata=meta(
+        "A translational flow vector within this many of its direction's noise sigmas of its line from the focus "
+        "of expansion is a RANSAC inlier (at most 45 deg; the noise: `flow_angle_sigma_deg`, `lk_sigma_px`).",
+        (0.5, 20)))
+    flow_angle_sigma_deg: float = field(default=1.44, metadata=meta(
+        "1-sigma direction noise of a flow sensor's vectors, degrees: on the measured flow, rotation included, so "
+        "in a turn it is larger on the translational flow that is left (the seed's uniform +/-2.5 deg: 1.44).",
+        (0.01, 45)))
+    lk_sigma_px: float = field(default=0.1, metadata=meta(
+        "1-sigma error of a Lucas-Kanade flow vector (each axis), pixels.", (0.001, 10)))
     foe_iterations: int = field(default=50, metadata=meta(
         "RANSAC draws of two flow lines for the focus of expansion (each votes over every flow vector; the least "
         "squares fit on the winner's inliers follows): 50 find an inlier pair at once with half the flow outliers.",
@@ -67,9 +74,31 @@ class GnssFlowConfig:
         "of expansion is very sensitive to a roll-rate error (1 deg/s turns the far ground's flow lines by tens of "
         "degrees), and the pseudo-roll's noise differenced over a frame interval gives several deg/s; longer is "
         "smoother and lags a roll-in by half of it.", (0.05, 5)))
-    spin_sweeps: int = field(default=2, metadata=meta(
-        "With GNSS-derived rates: times the turn rate about the direction of travel is re-estimated from the "
-        "flow's spiral around the focus of expansion (the pseudo roll rate's error), 0 = never.", (0, 10)))
+    rotation_sweeps: int = field(default=2, metadata=meta(
+        "Times the rate error the derotation missed is re-estimated from the flow and the focus of expansion "
+        "refitted (true_attitude.rotation_correction): with GNSS-derived rates the turn rate about the direction "
+        "of travel (the pseudo roll rate's error), with the gyro its error on every axis (its bias: 1 mrad/s of "
+        "yaw-rate bias moves the focus of expansion about a degree at 100 m and 17 m/s), 0 = never.", (0, 10)))
+    gyro_delay_s: float = field(default=0.011, metadata=meta(
+        "How late the autopilot's IMU samples show the gyro's rate (its low-pass filter's delay), s: a sample is "
+        "used this long before its stamp. ArduPilot's two-pole INS_GYRO_FILTER at 20 Hz: about 0.011; a first-order "
+        "low pass at f Hz: 1 / (2 pi f).", (0, 0.5)))
+    gyro_rate_sigma_dps: float = field(default=0.2, metadata=meta(
+        "1-sigma of the gyro's rate error over a pair (bias and noise), the prior of the rate correction from the "
+        "flow: what the flow cannot tell stays the gyro's, deg/s.", (0.001, 10)))
+    max_turn_ratio: float = field(default=3.0, metadata=meta(
+        "A pair whose turn (the body rates times its interval) is more than this many times its median "
+        "translational flow (normalised units) gives no attitude: a rate error of the gyro (its scale, its "
+        "filter's lag) moves the focus of expansion by itself times the depth over the speed, and the flow cannot "
+        "tell it apart (at 100 m and 17 m/s, 6 deg/s). The gyro blends bridge such pairs.", (0, 1000)))
+    gyro_correction_max_ratio: float = field(default=1.5, metadata=meta(
+        "The gyro's rates are corrected from the flow, and its bias learnt, only while its turn over the pair is at "
+        "most this many times the median translational flow (both normalised units): a turn's rotational flow "
+        "swamps the translational flow that tells a rate error from the FOE (at 100 m and 17 m/s, 3 deg/s).",
+        (0, 100)))
+    gyro_bias_tau_s: float = field(default=20.0, metadata=meta(
+        "Time constant over which the pairs' rate corrections are averaged into the gyro's bias, which is then "
+        "taken off its rates in every pair, s.", (0.1, 3600)))
     jerk_psd: float = field(default=0.2, metadata=meta(
         "White-jerk spectral density of the Doppler acceleration filter, m^2/s^5: lower is smoother but follows "
         "a bank change less (pseudo_attitude.DopplerAccelerationFilter); 0.2 gives the least roll error with "

@@ -135,23 +135,32 @@ class FocusOfExpansion:
     inlier_fraction: float  # inliers / flows used (those at least min_flow long)
     inliers: np.ndarray  # (N,) bool over the input flows
     rms_angle_deg: float  # RMS angle between the inliers' flows and their lines from the FOE, degrees
+    # (N,) 1-sigma of each flow's sine to its line from the FOE (its noise model scaled by the fit's
+    # residuals), inf for flows not used
+    sine_sigma: np.ndarray
 
 
-def focus_of_expansion(points_n: np.ndarray, flows_n: np.ndarray, *, ransac: bool = True,
-                       threshold_deg: float = 5.0, iterations: int = 200, min_flow: float = 2e-4,
+def focus_of_expansion(points_n: np.ndarray, flows_n: np.ndarray, *, noise_n: np.ndarray | None = None,
+                       ransac: bool = True, threshold_deg: float = 5.0, threshold_sigmas: float = 3.5,
+                       max_threshold_deg: float = 45.0, iterations: int = 200, min_flow: float = 2e-4,
                        min_inliers: int = 20, min_inlier_fraction: float = 0.5, max_off_axis_deg: float = 80.0,
                        rng: np.random.Generator | None = None) -> FocusOfExpansion | None:
     """The FOE of translational flow (N, 2) at ``points_n`` (N, 2), normalised coordinates.
 
     Each flow vector at least ``min_flow`` long (normalised units; shorter ones have no reliable
-    direction) defines a line through its point. With ``ransac``, pairs of lines are intersected
-    ``iterations`` times and the candidate with the most flows within ``threshold_deg`` of the
-    line from it (pointing away from it, or all towards it) wins; without, every line is an
-    inlier. Then least squares on the inliers in the angle form: minimise sum((n_i . (e - p_i))
-    / |e - p_i|)^2 (n_i the unit normal of flow i, so each term is the sine of the angle between
-    the flow and its line from e), solved as perpendicular distances reweighted by 1/|e - p_i|^2;
-    with RANSAC the inliers are then re-selected around the fit and refitted once. The seed's
-    "weighted line intersection voting" is not specified further; this replaces it.
+    direction) defines a line through its point. ``noise_n`` (N,): each flow's 1-sigma noise,
+    normalised units (isotropic: a tracker's pixel noise, or an angle noise times the measured
+    flow's length before derotation), so its direction's noise is ``noise_n / |flow|``: a flow
+    agrees with a candidate FOE within ``threshold_sigmas`` of that (at most ``max_threshold_deg``)
+    and weighs by its inverse square; None: every flow alike, agreeing within ``threshold_deg``.
+    With ``ransac``, pairs of lines are intersected ``iterations`` times and the candidate with the
+    most agreeing flows (pointing away from it, or all towards it) wins; without, every line is an
+    inlier. Then weighted least squares on the inliers in the angle form: minimise
+    sum(w_i ((n_i . (e - p_i)) / |e - p_i|)^2) (n_i the unit normal of flow i, so each term is the
+    sine of the angle between the flow and its line from e), solved as perpendicular distances
+    reweighted by 1/|e - p_i|^2; with RANSAC the inliers are then re-selected around the fit and
+    refitted once. The seed's "weighted line intersection voting" is not specified further; this
+    replaces it.
 
     The direction of travel is (e, 1) normalised, negated when the flow converges on e (moving
     backwards). None when fewer than ``min_inliers`` flows (or ``min_inlier_fraction`` of those
@@ -168,7 +177,14 @@ def focus_of_expansion(points_n: np.ndarray, flows_n: np.ndarray, *, ransac: boo
     unit = np.zeros_like(flows)
     unit[used] = flows[used] / length[used, None]
     normals = np.column_stack((-unit[:, 1], unit[:, 0]))
-    cos_thr = math.cos(math.radians(threshold_deg))
+    if noise_n is None:
+        sigma = np.ones(len(points))
+        cos_thr = np.full(len(points), math.cos(math.radians(threshold_deg)))
+    else:
+        sigma = np.where(used, np.asarray(noise_n, dtype=float) / np.where(used, length, 1.0), np.inf)
+        cos_thr = np.cos(np.minimum(np.arcsin(np.minimum(threshold_sigmas * sigma, 1.0)),
+                                    math.radians(max_threshold_deg)))
+    weights = np.where(used, 1.0 / np.maximum(sigma, 1e-12) ** 2, 0.0)
     if ransac:
         candidate = _ransac_candidate(points, unit, normals, used, cos_thr, iterations,
                                       rng if rng is not None else np.random.default_rng(0))
@@ -177,15 +193,15 @@ def focus_of_expansion(points_n: np.ndarray, flows_n: np.ndarray, *, ransac: boo
         inliers = _agreeing(points, unit, candidate, cos_thr) & used
     else:
         inliers = used.copy()
-    fit = _least_squares(points[inliers], normals[inliers])
+    fit = _least_squares(points[inliers], normals[inliers], weights[inliers])
     if fit is None:
         return None
     if ransac:
         inliers = _agreeing(points, unit, fit[0], cos_thr) & used
-        fit = _least_squares(points[inliers], normals[inliers])
+        fit = _least_squares(points[inliers], normals[inliers], weights[inliers])
         if fit is None:
             return None
-    foe, cov, rms = fit
+    foe, cov, rms, scale = fit
     if (inliers.sum() < max(min_inliers, min_inlier_fraction * used.sum())
             or math.hypot(foe[0], foe[1]) > math.tan(math.radians(max_off_axis_deg))):
         return None
@@ -193,12 +209,12 @@ def focus_of_expansion(points_n: np.ndarray, flows_n: np.ndarray, *, ransac: boo
     sign = 1.0 if np.sum(away > 0) >= np.sum(away < 0) else -1.0
     direction = sign * np.append(foe, 1.0) / math.hypot(foe[0], foe[1], 1.0)
     return FocusOfExpansion(foe, direction, cov, float(inliers.sum() / used.sum()), inliers,
-                            math.degrees(math.asin(min(1.0, rms))))
+                            math.degrees(math.asin(min(1.0, rms))), np.where(used, sigma * scale, np.inf))
 
 
-def _agreeing(points: np.ndarray, unit: np.ndarray, foe: np.ndarray, cos_thr: float) -> np.ndarray:
-    """(N,) bool: flows within the threshold of their line from ``foe``, all pointing away from it
-    or all towards it (whichever more do)."""
+def _agreeing(points: np.ndarray, unit: np.ndarray, foe: np.ndarray, cos_thr: np.ndarray) -> np.ndarray:
+    """(N,) bool: flows within their threshold (``cos_thr`` (N,), cosines) of their line from
+    ``foe``, all pointing away from it or all towards it (whichever more do)."""
     ray = points - foe
     cos = np.einsum("ij,ij->i", ray, unit) / np.maximum(np.linalg.norm(ray, axis=1), 1e-12)
     away, towards = cos > cos_thr, cos < -cos_thr
@@ -206,7 +222,7 @@ def _agreeing(points: np.ndarray, unit: np.ndarray, foe: np.ndarray, cos_thr: fl
 
 
 def _ransac_candidate(points: np.ndarray, unit: np.ndarray, normals: np.ndarray, used: np.ndarray,
-                      cos_thr: float, iterations: int, rng: np.random.Generator) -> np.ndarray | None:
+                      cos_thr: np.ndarray, iterations: int, rng: np.random.Generator) -> np.ndarray | None:
     """The intersection of two random flow lines that most flows agree with, or None."""
     idx = np.flatnonzero(used)
     pairs = idx[rng.integers(0, len(idx), size=(iterations, 2))]
@@ -221,29 +237,32 @@ def _ransac_candidate(points: np.ndarray, unit: np.ndarray, normals: np.ndarray,
     cands = np.column_stack(((c1 * n2[:, 1] - c2 * n1[:, 1]) / det, (n1[:, 0] * c2 - n2[:, 0] * c1) / det))
     ray = points[used][None, :, :] - cands[:, None, :]  # (K, M, 2)
     cos = np.einsum("kmj,mj->km", ray, unit[used]) / np.maximum(np.linalg.norm(ray, axis=2), 1e-12)
-    votes = np.maximum((cos > cos_thr).sum(axis=1), (cos < -cos_thr).sum(axis=1))
+    thr = cos_thr[used]
+    votes = np.maximum((cos > thr).sum(axis=1), (cos < -thr).sum(axis=1))
     return cands[int(np.argmax(votes))]
 
 
-def _least_squares(points: np.ndarray, normals: np.ndarray,
-                   sweeps: int = 4) -> tuple[np.ndarray, np.ndarray, float] | None:
-    """(FOE, its covariance, RMS sine residual) minimising the angle form (see
+def _least_squares(points: np.ndarray, normals: np.ndarray, prior_weights: np.ndarray,
+                   sweeps: int = 4) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+    """(FOE, its covariance, RMS sine residual, RMS of the sines in units of their modelled sigma)
+    minimising the angle form weighted by ``prior_weights`` (1 / each sine's modelled variance, see
     :func:`focus_of_expansion`) by reweighted perpendicular distances; None if singular."""
     if len(points) < 3:
         return None
     c = np.einsum("ij,ij->i", normals, points)
-    weights = np.ones(len(points))
+    weights = prior_weights
     foe = np.zeros(2)
     for _ in range(sweeps):
         A = (normals * weights[:, None]).T @ normals
         if np.linalg.cond(A) > 1e8:
             return None
         foe = np.linalg.solve(A, (normals * weights[:, None]).T @ c)
-        weights = 1.0 / np.maximum(np.sum((points - foe) ** 2, axis=1), 1e-6)
+        weights = prior_weights / np.maximum(np.sum((points - foe) ** 2, axis=1), 1e-6)
     A = (normals * weights[:, None]).T @ normals
-    sines = (normals @ foe - c) * np.sqrt(weights)
-    var = float(np.sum(sines ** 2) / max(len(points) - 2, 1))
-    return foe, var * np.linalg.inv(A), math.sqrt(float(np.mean(sines ** 2)))
+    residual = (normals @ foe - c) * np.sqrt(weights)
+    var = float(np.sum(residual ** 2) / max(len(points) - 2, 1))
+    sines = residual / np.sqrt(prior_weights)
+    return foe, var * np.linalg.inv(A), math.sqrt(float(np.mean(sines ** 2))), math.sqrt(var)
 
 
 def velocity_offsets(direction_cam: np.ndarray, cam_to_body: np.ndarray) -> tuple[float, float]:

@@ -110,6 +110,10 @@ class FlowPath:
         """The path's own telemetry keys: the ``shown`` flow vectors and the FOE in its units."""
         raise NotImplementedError
 
+    def flow_noise_n(self, flows_n: np.ndarray) -> np.ndarray:
+        """(N,) 1-sigma noise of each measured flow vector of ``flows_n`` (N, 2), normalised units."""
+        raise NotImplementedError
+
 
 class CameraPath(FlowPath):
     """Camera frames -> grid Lucas-Kanade flow between consecutive frames, undistorted."""
@@ -143,6 +147,10 @@ class CameraPath(FlowPath):
         points_px, flows_px = flow.points_px[flow.valid], flow.flows_px[flow.valid]
         return *normalised_flow(points_px, flows_px, self.calibration), points_px, flows_px
 
+    def flow_noise_n(self, flows_n: np.ndarray) -> np.ndarray:
+        """The tracker's pixel noise (``lk_sigma_px``) over the focal length, whatever the flow."""
+        return np.full(len(flows_n), self.cfg.lk_sigma_px / self.calibration.K[0, 0])
+
     def telemetry_flow(self, result: PairResult, shown: slice) -> dict[str, Any]:
         foe_px = None
         if result.foe is not None:
@@ -156,6 +164,7 @@ class FlowSensorPath(FlowPath):
 
     def __init__(self, source: str, cfg: GnssFlowConfig, mount: Mount, health: Health) -> None:
         super().__init__(source, mount.rotation @ OPTICAL_TO_SENSOR, cfg.foe_min_flow_n, health)
+        self.angle_sigma_deg = cfg.flow_angle_sigma_deg
         self._earlier: Instant | None = None  # the newest instant stamped: the next field's earlier one
         self.last_queued_s = -math.inf  # the later instant of the newest field queued, s
 
@@ -173,6 +182,10 @@ class FlowSensorPath(FlowPath):
     def measure(self, earlier: None, later: FlowField) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         points, flows = later.points_n[later.valid], later.flows_n[later.valid]
         return points, flows, points, flows
+
+    def flow_noise_n(self, flows_n: np.ndarray) -> np.ndarray:
+        """The direction noise (``flow_angle_sigma_deg``) times each vector's measured length."""
+        return math.radians(self.angle_sigma_deg) * np.linalg.norm(flows_n, axis=1)
 
     def telemetry_flow(self, result: PairResult, shown: slice) -> dict[str, Any]:
         return {"flow_points_n": result.points[shown], "flow_n": result.flows[shown]}

@@ -1,7 +1,7 @@
 """The true attitude from the pseudo-attitude and the flow's focus of expansion (the seed's
 "pseudo pitch plus the pitch offset normal to the roll, pseudo yaw plus the yaw offset tangential
-to it", done exactly), its covariance, and the spin about the direction of travel that a
-derotation by the GNSS-derived rates missed.
+to it", done exactly), its covariance, and the rate error a derotation missed (the spin about
+the direction of travel of the GNSS-derived rates, a gyro's bias and noise), from the flow.
 
 Frames: world LOCAL_NED, body FRD, the camera's optical frame (companion/calibration.py) placed in
 the body by ``cam_to_body``; normalised image coordinates; Euler angles ZYX rad.
@@ -64,15 +64,24 @@ def true_euler_covariance(pseudo: PseudoAttitude, foe: FocusOfExpansion, forward
     return 0.5 * (cov + cov.T)
 
 
-def spin_about_travel(points_n: np.ndarray, flows_n: np.ndarray, translational: np.ndarray,
-                      foe: FocusOfExpansion, rates: np.ndarray, dt: float, cam_to_body: np.ndarray) -> float:
-    """The turn rate (rad/s) about the direction of travel that the derotation by ``rates`` (body
-    FRD rad/s over ``dt`` s) missed, from the flow itself: such a spin adds flow across every line
-    from the FOE (the flow lines spiral), the more so the farther the ground, where a shift of the
-    FOE turns the near lines most. Linearised least squares on the sines of the inliers' angles
-    to their lines from the FOE, for the spin and the FOE's shift together (the shift is left to
-    the next :func:`.flow.focus_of_expansion`). ``points_n``, ``flows_n`` and ``translational``
-    (its derotation by ``rates``) (N, 2) normalised; the camera ``cam_to_body``."""
+def rotation_correction(points_n: np.ndarray, flows_n: np.ndarray, translational: np.ndarray,
+                        foe: FocusOfExpansion, rates: np.ndarray, dt: float, cam_to_body: np.ndarray,
+                        axes: np.ndarray, prior_sigma_rad_s: float | None = None) -> np.ndarray:
+    """The body rates (body FRD rad/s, (3,)) that the derotation by ``rates`` (body FRD rad/s over
+    ``dt`` s) missed along ``axes`` ((k, 3) unit vectors, body FRD), from the flow itself.
+
+    A rate error adds flow that does not depend on depth, so it turns the far ground's short flow
+    lines much more than the near ground's long ones, where a shift of the FOE turns the near lines
+    most: the two are told apart by the spread of depths. About the direction of travel the flow
+    lines spiral; about the other axes they bend away from the FOE (a yaw-rate error of 1 mrad/s
+    moves a 100 m high, 17 m/s FOE by about a degree). Linearised weighted least squares on the
+    sines of the FOE's inliers' angles to their lines from it (each of its 1-sigma
+    ``foe.sine_sigma``), for the rate errors and the FOE's shift together (the shift is left to the
+    next :func:`.flow.focus_of_expansion`). ``prior_sigma_rad_s``: each axis's error is a priori
+    zero with this 1-sigma (a gyro's bias and noise over the pair), so what the flow cannot tell
+    stays the gyro's; None: no prior (GNSS-derived rates about the direction of travel).
+    ``points_n``, ``flows_n`` and ``translational`` (its derotation by ``rates``) (N, 2)
+    normalised; the camera ``cam_to_body``."""
     inl = foe.inliers
     points, flows = points_n[inl], translational[inl]
 
@@ -82,12 +91,19 @@ def spin_about_travel(points_n: np.ndarray, flows_n: np.ndarray, translational: 
         return cross / (np.linalg.norm(radial, axis=1) * np.linalg.norm(flows, axis=1))
 
     step = 1e-3  # rad/s and normalised units: the sines are linear in both to well below this
-    axis = cam_to_body @ foe.direction_cam  # body FRD
-    spun = derotate(points, flows_n[inl], rates + step * axis, dt, cam_to_body)
+    axes = np.atleast_2d(np.asarray(axes, dtype=float))
     base = sines(foe.point_n, flows)
-    columns = [sines(foe.point_n, spun) - base] + [sines(foe.point_n + d, flows) - base for d in np.eye(2) * step]
-    solution, *_ = np.linalg.lstsq(np.column_stack(columns) / step, -base, rcond=None)
-    return float(solution[0])
+    columns = [sines(foe.point_n, derotate(points, flows_n[inl], rates + step * axis, dt, cam_to_body)) - base
+               for axis in axes]
+    columns += [sines(foe.point_n + d, flows) - base for d in np.eye(2) * step]
+    weight = 1.0 / np.maximum(foe.sine_sigma[inl], 1e-9)
+    jacobian, target = np.column_stack(columns) * (weight / step)[:, None], -base * weight
+    if prior_sigma_rad_s is not None:
+        prior = np.zeros((len(axes), len(columns)))
+        prior[:, :len(axes)] = np.eye(len(axes)) / prior_sigma_rad_s
+        jacobian, target = np.vstack((jacobian, prior)), np.concatenate((target, np.zeros(len(axes))))
+    solution, *_ = np.linalg.lstsq(jacobian, target, rcond=None)
+    return solution[:len(axes)] @ axes
 
 
 def midway(earlier: PseudoAttitude, later: PseudoAttitude) -> PseudoAttitude:
