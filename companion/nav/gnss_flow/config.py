@@ -82,7 +82,7 @@ class GnssFlowConfig:
     gyro_delay_s: float = field(default=0.011, metadata=meta(
         "How late the autopilot's IMU samples show the gyro's rate (its low-pass filter's delay), s: a sample is "
         "used this long before its stamp. ArduPilot's two-pole INS_GYRO_FILTER at 20 Hz: about 0.011; a first-order "
-        "low pass at f Hz: 1 / (2 pi f).", (0, 0.5)))
+        "low pass at f Hz: 1 / (2 pi f).", (0, 0.1)))
     gyro_rate_sigma_dps: float = field(default=0.2, metadata=meta(
         "1-sigma of the gyro's rate error over a pair (bias and noise), the prior of the rate correction from the "
         "flow: what the flow cannot tell stays the gyro's, deg/s.", (0.001, 10)))

@@ -106,7 +106,7 @@ from drivers.mount import Mount
 
 STREAM = "gnss_flow"
 PITCH_OFFSET_TAU_S = 5.0  # the pitch offset in the gyro roll blend's Euler conversion is averaged over this, s
-IMU_BRACKET_S = 0.1  # IMU samples this far beyond a pair's interval bracket it for the gyro's mean rate, s
+IMU_BRACKET_S = 0.25  # samples this far beyond a span bracket it for the gyro's mean (delay and IMU_HOLD_S included), s
 IMU_HISTORY_S = 2.0  # IMU samples kept beyond the smoothing lag, s: a frame interval and the wait for its fix
 FRAME_SLACK = 0.1  # a frame up to this fraction of 1 / pair_rate_hz early is used (capture-time jitter)
 LOST_AFTER_S = 2.0  # no frame pair processed for this long (no frames, or no GNSS): health lost, s
@@ -320,17 +320,14 @@ class GnssFlowPipeline:
         """(body rates p, q, r rad/s over [t0, t1] s, their source, the mean IMU specific force
         body FRD m/s^2 over it or None without IMU samples in it), or None without either source
         (the first fixes after a gap). With IMU samples in the interval: the gyro's mean rate over
-        it (:func:`mean_over`, each sample taken ``gyro_delay_s`` before its stamp). Without: the pseudo
+        it (:meth:`_gyro_mean`). Without: the pseudo
         Euler rates from the smoothed pseudo-attitude ``rate_baseline_s`` before ``mid`` (or at the
         oldest fix kept) to ``mid`` (differences over a frame interval are the Doppler noise's,
         amplified) turned into the pseudo frame's rates at ``mid``'s angles,
         then into the body's by the velocity ``offsets`` (pitch offset, drift rad) of the path's newest pair."""
         inside = [s for s in self._imu if t0 <= s.t <= t1]
         if inside:
-            delay = self.cfg.gyro_delay_s
-            near = [s for s in self._imu if t0 - IMU_BRACKET_S <= s.t - delay <= t1 + IMU_BRACKET_S]
-            rates = mean_over(np.array([s.t - delay for s in near]), np.array([s.gyro_body for s in near]), t0, t1)
-            return rates, "imu", np.mean([s.accel_body for s in inside], axis=0)
+            return self._gyro_mean(t0, t1), "imu", np.mean([s.accel_body for s in inside], axis=0)
         first = self.filter.first_kept_time_s
         if first is None or first >= mid.time_s:
             return None
@@ -383,8 +380,6 @@ class GnssFlowPipeline:
             return dataclasses.replace(base, status=reason), []
         rates, rates_source, specific_force = body_rates
         cam_to_body = path.cam_to_body
-        if rates_source == "imu":
-            rates = rates - self.gyro_bias
         translational = derotate(points_n, flows_n, rates, dt, cam_to_body)
         # the turn over the pair against the translational flow (normalised units): a rate error moves the FOE by
         # itself times the depth over the speed, and the flow can tell it only where the translation dominates
@@ -478,7 +473,8 @@ class GnssFlowPipeline:
                                                   math.radians(self.cfg.max_lateral_deg))
         roll = pseudo.roll - lateral if coordinated else None
         pitch = pseudo.pitch + (self._pitch_offset or 0.0)
-        rates = self._euler_rates(inside, pseudo.roll if roll is None else roll, pitch)
+        rates = euler_rates_from_body_rates(pseudo.roll if roll is None else roll, pitch,
+                                            self._gyro_mean(last, pseudo.time_s))
         return blend.update(pseudo.time_s, roll, rates[0] * (pseudo.time_s - last))
 
     def _imu_since(self, last: float | None, t: float) -> list[ImuSample]:
@@ -490,11 +486,14 @@ class GnssFlowPipeline:
         inside = [s for s in self._imu if last < s.t <= t]
         return inside or [s for s in self._imu if t - IMU_HOLD_S < s.t <= t][-1:]
 
-    @staticmethod
-    def _euler_rates(samples: list[ImuSample], roll: float, pitch: float) -> np.ndarray:
-        """The gyro's mean ZYX Euler rates (roll', pitch', yaw') rad/s over ``samples`` at ``roll``,
-        ``pitch`` (rad)."""
-        return np.mean([euler_rates_from_body_rates(roll, pitch, s.gyro_body) for s in samples], axis=0)
+    def _gyro_mean(self, t0: float, t1: float) -> np.ndarray:
+        """The gyro's mean body rate (FRD rad/s) over [t0, t1] s (:func:`mean_over` of its samples, each
+        taken ``gyro_delay_s`` before its stamp: the autopilot's filter delays them) less the bias learnt
+        from the flow. The caller has checked that samples reach the span."""
+        delay = self.cfg.gyro_delay_s
+        near = [s for s in self._imu if t0 - IMU_BRACKET_S <= s.t - delay <= t1 + IMU_BRACKET_S]
+        return mean_over(np.array([s.t - delay for s in near]), np.array([s.gyro_body for s in near]),
+                         t0, t1) - self.gyro_bias
 
     def _gyro_aided_pitch_yaw(self, path: FlowPath, result: PairResult,
                               estimates: list[Estimate]) -> tuple[PairResult, list[Estimate]]:
@@ -523,7 +522,8 @@ class GnssFlowPipeline:
         else:
             roll, pitch = (measured[0], measured[1]) if measured is not None else (
                 result.pseudo_euler_rad[0], result.pseudo_euler_rad[1] + (self._pitch_offset or 0.0))
-            rates = self._euler_rates(inside, roll, pitch) * (result.t_capture - last)
+            rates = euler_rates_from_body_rates(roll, pitch, self._gyro_mean(last, result.t_capture)) * (
+                result.t_capture - last)
             increments = (rates[1], rates[2])
         pitch, yaw = (blend.update(result.t_capture, None if measured is None else measured[axis + 1], increments[axis])
                       for axis, blend in enumerate(blends))
