@@ -42,6 +42,7 @@ import numpy as np
 from companion.calibration import CameraCalibration
 
 LK_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 10, 0.03)  # at most 10 iterations, or a step < 0.03 px
+MIN_DIRECTION_SIGMA = 1e-3  # floor of a flow vector's modelled direction noise, rad (where its measured flow is ~0)
 LK_MIN_EIGEN = 1e-3  # OpenCV's minEigThreshold (see grid_flow)
 
 
@@ -152,7 +153,7 @@ def focus_of_expansion(points_n: np.ndarray, flows_n: np.ndarray, *, noise_n: np
     normalised units (isotropic: a tracker's pixel noise, or an angle noise times the measured
     flow's length before derotation), so its direction's noise is ``noise_n / |flow|``: a flow
     agrees with a candidate FOE within ``threshold_sigmas`` of that (at most ``max_threshold_deg``)
-    and weighs by its inverse square; None: every flow alike, agreeing within ``threshold_deg``.
+    and weighs by its inverse square (that noise at least MIN_DIRECTION_SIGMA: no vector is exact); None: every flow alike, agreeing within ``threshold_deg``.
     With ``ransac``, pairs of lines are intersected ``iterations`` times and the candidate with the
     most agreeing flows (pointing away from it, or all towards it) wins; without, every line is an
     inlier. Then weighted least squares on the inliers in the angle form: minimise
@@ -181,7 +182,8 @@ def focus_of_expansion(points_n: np.ndarray, flows_n: np.ndarray, *, noise_n: np
         sigma = np.ones(len(points))
         cos_thr = np.full(len(points), math.cos(math.radians(threshold_deg)))
     else:
-        sigma = np.where(used, np.asarray(noise_n, dtype=float) / np.where(used, length, 1.0), np.inf)
+        sigma = np.where(used, np.maximum(np.asarray(noise_n, dtype=float) / np.where(used, length, 1.0),
+                                          MIN_DIRECTION_SIGMA), np.inf)
         cos_thr = np.cos(np.minimum(np.arcsin(np.minimum(threshold_sigmas * sigma, 1.0)),
                                     math.radians(max_threshold_deg)))
     weights = np.where(used, 1.0 / np.maximum(sigma, 1e-12) ** 2, 0.0)
