@@ -450,6 +450,8 @@ def test_the_gyros_mean_rate_over_a_pair_is_its_interpolated_integral() -> None:
     plain = rate(t[(t >= t0) & (t <= t1)]).mean()
     assert mean[1] == 0.0 and abs(mean[0] - exact) < 0.004
     assert abs(plain - exact) > 2 * abs(mean[0] - exact)
+    assert np.allclose(mean_over(t, np.column_stack((rate(t), np.zeros_like(t))), t0, t0),
+                       [np.interp(t0, t, rate(t)), 0.0])  # an empty span: the value there, not 0 / 0
 
 
 def test_with_a_camera_and_a_flow_sensor_each_path_gives_its_own_estimates() -> None:
