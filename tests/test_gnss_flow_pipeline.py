@@ -436,6 +436,19 @@ def test_a_gyro_bias_is_learnt_from_the_flow_and_taken_off_the_rates() -> None:
     assert abs(math.degrees(np.mean(pitch_error))) > 0.3
 
 
+def test_a_pair_turning_fast_beside_its_translational_flow_gives_no_attitude() -> None:
+    """The scenario's 8 deg/s turn at 40 m and 25 m/s turns about 0.7 times its median
+    translational flow over a pair: within the default ``max_turn_ratio`` (3), refused at 0.5
+    (where a gyro rate error would move the FOE by more than the flow can tell)."""
+    pipeline, health = make(camera=False, flow=True, imu_sensor="imu", max_turn_ratio=0.5)
+    estimates = run(pipeline, frames=0, flows=10, imu=True)
+    assert not [e for e in estimates if isinstance(e, AttitudeEstimate)]
+    assert pipeline.stats.refused.get("turning too fast for the flow") == 10
+    assert health.get("nav:gnss_flow").state == State.DEGRADED
+    pipeline, _ = make(camera=False, flow=True, imu_sensor="imu")
+    assert len([e for e in run(pipeline, frames=0, flows=10, imu=True) if isinstance(e, AttitudeEstimate)]) == 10
+
+
 def test_the_gyros_mean_rate_over_a_pair_is_its_interpolated_integral() -> None:
     """A roll rate swinging at 3 Hz (gusts), sampled at 50 Hz off the pair's ends: the mean over
     the pair is the rotation between its frames over their interval, to the interpolation's error;
