@@ -153,15 +153,15 @@ def focus_of_expansion(points_n: np.ndarray, flows_n: np.ndarray, *, noise_n: np
     normalised units (isotropic: a tracker's pixel noise, or an angle noise times the measured
     flow's length before derotation), so its direction's noise is ``noise_n / |flow|``: a flow
     agrees with a candidate FOE within ``threshold_sigmas`` of that (at most ``max_threshold_deg``)
-    and weighs by its inverse square (that noise at least MIN_DIRECTION_SIGMA: no vector is exact); None: every flow alike, agreeing within ``threshold_deg``.
-    With ``ransac``, pairs of lines are intersected ``iterations`` times and the candidate with the
-    most agreeing flows (pointing away from it, or all towards it) wins; without, every line is an
-    inlier. Then weighted least squares on the inliers in the angle form: minimise
-    sum(w_i ((n_i . (e - p_i)) / |e - p_i|)^2) (n_i the unit normal of flow i, so each term is the
-    sine of the angle between the flow and its line from e), solved as perpendicular distances
-    reweighted by 1/|e - p_i|^2; with RANSAC the inliers are then re-selected around the fit and
-    refitted once. The seed's "weighted line intersection voting" is not specified further; this
-    replaces it.
+    and weighs by its inverse square (that noise at least MIN_DIRECTION_SIGMA: no vector is exact);
+    None: every flow alike, agreeing within ``threshold_deg``. With ``ransac``, pairs of lines are
+    intersected ``iterations`` times and the candidate with the most agreeing flows (pointing away
+    from it, or all towards it) wins; without, every line is an inlier. Then weighted least squares
+    on the inliers in the angle form: minimise sum(w_i ((n_i . (e - p_i)) / |e - p_i|)^2) (n_i the
+    unit normal of flow i, so each term is the sine of the angle between the flow and its line from
+    e), solved as perpendicular distances reweighted by 1/|e - p_i|^2; with RANSAC the inliers are
+    then re-selected around the fit and refitted once. The seed's "weighted line intersection
+    voting" is not specified further; this replaces it.
 
     The direction of travel is (e, 1) normalised, negated when the flow converges on e (moving
     backwards). None when fewer than ``min_inliers`` flows (or ``min_inlier_fraction`` of those
