@@ -398,7 +398,7 @@ class GnssFlowPipeline:
             # only while its turn over the pair is small beside the translational flow
             corrected, _, refit = self._rate_correction(path, points_n, flows_n, translational, rates, dt, foe,
                                                         math.radians(cfg.gyro_rate_sigma_dps))
-            if refit is not None:
+            if refit is not None and np.all(np.isfinite(corrected)):  # a bias is kept for the flight: never NaN
                 self.gyro_bias = self.gyro_bias - min(1.0, dt / cfg.gyro_bias_tau_s) * (corrected - rates)
         if foe is None:
             reason = f"no focus of expansion: {len(points_n)} flow vectors"
