@@ -131,9 +131,9 @@ def extract_lines(points: np.ndarray, valid: np.ndarray | None = None, params: L
     starts, ends = _split(pts, rng, starts, ends, params)
     if starts.size == 0:
         return _empty()
-    prefix = _prefix_sums(pts)
+    prefix = _prefix_sums(pts, rng)
     starts, ends, fit = _merge(prefix, rng, starts, ends, params)
-    return _line_set(fit, pts, rng, beams, starts, ends, params)
+    return _line_set(fit, pts, beams, starts, ends, params)
 
 
 def _empty() -> LineSet:
@@ -148,18 +148,21 @@ def _runs(beams: np.ndarray, pts: np.ndarray, rng: np.ndarray,
     """(starts, ends) inclusive indices into ``pts`` of the unbroken runs with enough points."""
     if pts.shape[0] < params.min_points:
         return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
-    step = np.diff(pts, axis=0)
+    step = pts[1:] - pts[:-1]
     gap = np.hypot(step[:, 0], step[:, 1])
     near = np.minimum(rng[1:], rng[:-1])
     limit = params.max_gap_m + params.max_gap_per_m * near
-    # Adaptive breakpoint: the angle between consecutive points as seen from the frame origin.
-    a, b = pts[:-1], pts[1:]
+    # Adaptive breakpoint: its distance is at least 3 sigma(near), so only a step longer than that
+    # (or than the fixed limit) can break the run; the trigonometry runs on those few pairs alone.
+    k = np.flatnonzero(gap > np.minimum(limit, 3.0 * params.sigma(near)))
+    a, b, r = pts[k], pts[k + 1], near[k]
+    # The angle between the two points as seen from the frame origin.
     dphi = np.arctan2(np.abs(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1])
     grazing = np.radians(params.break_grazing_deg)
     sparse = dphi >= grazing  # beams further apart than the grazing angle: the fixed rule alone
-    adaptive = near * np.sin(dphi) / np.sin(np.where(sparse, np.pi / 2, grazing - dphi)) + 3.0 * params.sigma(near)
-    limit = np.where(sparse, limit, np.minimum(limit, adaptive))
-    breaks = np.flatnonzero((np.diff(beams) > 1 + params.max_missing_beams) | (gap > limit))
+    adaptive = r * np.sin(dphi) / np.sin(np.where(sparse, np.pi / 2, grazing - dphi)) + 3.0 * params.sigma(r)
+    limit[k] = np.where(sparse, limit[k], np.minimum(limit[k], adaptive))
+    breaks = np.flatnonzero((beams[1:] - beams[:-1] > 1 + params.max_missing_beams) | (gap > limit))
     starts = np.concatenate(([0], breaks + 1))
     ends = np.concatenate((breaks, [pts.shape[0] - 1]))
     keep = ends - starts + 1 >= params.min_points
@@ -189,8 +192,7 @@ def _split(pts: np.ndarray, rng: np.ndarray, starts: np.ndarray, ends: np.ndarra
         dist = np.abs(np.repeat(ux, n) * y[idx] - np.repeat(uy, n) * x[idx] - np.repeat(ux * ay - uy * ax, n))
         dmax = np.maximum.reduceat(dist, offsets)
         at_max = np.flatnonzero(dist == np.repeat(dmax, n))
-        first = at_max[np.concatenate(([True], np.diff(np.searchsorted(offsets, at_max, side="right")) != 0))]
-        c = idx[first]
+        c = idx[at_max[np.searchsorted(at_max, offsets)]]  # every segment's first point at its maximum
         ok = dmax <= params.split_distance_m + params.split_sigmas * params.sigma(rng[c])
         done_s.append(s[ok])
         done_e.append(e[ok])
@@ -203,11 +205,18 @@ def _split(pts: np.ndarray, rng: np.ndarray, starts: np.ndarray, ends: np.ndarra
     return s[order], e[order]
 
 
-def _prefix_sums(pts: np.ndarray) -> np.ndarray:
-    """(N + 1, 5) cumulative sums of x, y, xx, xy, yy with a leading zero row."""
+def _prefix_sums(pts: np.ndarray, rng: np.ndarray) -> np.ndarray:
+    """(N + 1, 6) cumulative sums of x, y, xx, xy, yy and the range with a leading zero row."""
     x, y = pts[:, 0], pts[:, 1]
-    out = np.zeros((pts.shape[0] + 1, 5))
-    np.cumsum(np.column_stack((x, y, x * x, x * y, y * y)), axis=0, out=out[1:])
+    out = np.empty((pts.shape[0] + 1, 6))
+    out[0] = 0.0
+    terms = out[1:]
+    terms[:, :2] = pts
+    np.multiply(x, x, out=terms[:, 2])
+    np.multiply(x, y, out=terms[:, 3])
+    np.multiply(y, y, out=terms[:, 4])
+    terms[:, 5] = rng
+    np.cumsum(terms, axis=0, out=terms)
     return out
 
 
@@ -218,6 +227,7 @@ class _Fit:
     alpha: np.ndarray
     d: np.ndarray
     mean: np.ndarray  # (K, 2)
+    range_m: np.ndarray  # mean range of the points, m
     n: np.ndarray
     rms: np.ndarray
     spread: np.ndarray  # second moment along the line, m^2 (largest eigenvalue)
@@ -225,23 +235,23 @@ class _Fit:
 
 def _fit(prefix: np.ndarray, s: np.ndarray, e: np.ndarray) -> _Fit:
     """Orthogonal-regression fit of the points s..e (inclusive) of every segment."""
-    sums = prefix[e + 1] - prefix[s]
     n = (e - s + 1).astype(float)
-    mx, my = sums[:, 0] / n, sums[:, 1] / n
-    sxx = sums[:, 2] / n - mx * mx
-    sxy = sums[:, 3] / n - mx * my
-    syy = sums[:, 4] / n - my * my
+    means = (prefix[e + 1] - prefix[s]) / n[:, None]  # x, y, xx, xy, yy, range
+    mx, my = means[:, 0], means[:, 1]
+    sxx = means[:, 2] - mx * mx
+    sxy = means[:, 3] - mx * my
+    syy = means[:, 4] - my * my
     half_trace = 0.5 * (sxx + syy)
     root = np.hypot(0.5 * (sxx - syy), sxy)
     alpha = 0.5 * np.arctan2(2.0 * sxy, sxx - syy) + 0.5 * np.pi  # principal axis + 90 deg
     d = np.cos(alpha) * mx + np.sin(alpha) * my
     alpha = np.where(d < 0, alpha - np.pi, alpha)  # (0, pi], flipped to (-pi, 0] when d < 0
-    return _Fit(alpha, np.abs(d), np.column_stack((mx, my)), n,
+    return _Fit(alpha, np.abs(d), means[:, :2], means[:, 5], n,
                 np.sqrt(np.maximum(half_trace - root, 0.0)), half_trace + root)
 
 
 def _take(fit: _Fit, sel: slice | np.ndarray) -> _Fit:
-    return _Fit(fit.alpha[sel], fit.d[sel], fit.mean[sel], fit.n[sel], fit.rms[sel], fit.spread[sel])
+    return _Fit(fit.alpha[sel], fit.d[sel], fit.mean[sel], fit.range_m[sel], fit.n[sel], fit.rms[sel], fit.spread[sel])
 
 
 def _merge(prefix: np.ndarray, rng: np.ndarray, s: np.ndarray, e: np.ndarray,
@@ -254,7 +264,7 @@ def _merge(prefix: np.ndarray, rng: np.ndarray, s: np.ndarray, e: np.ndarray,
     fit, pair = _take(both, slice(0, k)), _take(both, slice(k, None))
     if k < 2:
         return us, ue, fit
-    turn = np.abs(np.angle(np.exp(1j * (fit.alpha[1:] - fit.alpha[:-1]))))
+    turn = np.abs((fit.alpha[1:] - fit.alpha[:-1] + np.pi) % (2.0 * np.pi) - np.pi)
     sigma = params.sigma(0.5 * (rng[s[:-1]] + rng[e[1:]]))
     mergeable = ((e[:-1] == s[1:]) & (turn <= np.radians(params.merge_angle_deg))
                  & (pair.rms <= params.merge_rms_sigmas * sigma))
@@ -283,33 +293,24 @@ def _unshare(s: np.ndarray, e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return (s + np.concatenate(([False], shared)), e - np.concatenate((shared, [False])))
 
 
-def _line_set(fit: _Fit, pts: np.ndarray, rng: np.ndarray, beams: np.ndarray,
-              s: np.ndarray, e: np.ndarray, params: LineParams) -> LineSet:
-    """Project the end points of the fitted segments, filter, and package."""
-    normal = np.column_stack((np.cos(fit.alpha), np.sin(fit.alpha)))
-    start = _project(pts[s], normal, fit.d)
-    end = _project(pts[e], normal, fit.d)
-    length = np.hypot(*(end - start).T)
+def _line_set(fit: _Fit, pts: np.ndarray, beams: np.ndarray, s: np.ndarray, e: np.ndarray,
+              params: LineParams) -> LineSet:
+    """Project the end points of the fitted segments onto their lines, filter, and package."""
+    normal = np.empty((s.size, 2))
+    normal[:, 0] = np.cos(fit.alpha)
+    normal[:, 1] = np.sin(fit.alpha)
+    ends = pts[np.array((s, e))]  # (2, K, 2): first points, last points
+    off = (ends * normal).sum(axis=2) - fit.d
+    ends -= off[:, :, None] * normal
+    start, end = ends
+    length = np.hypot(end[:, 0] - start[:, 0], end[:, 1] - start[:, 1])
     keep = length >= params.min_length_m  # every segment has min_points (see _split)
     # Residual variance with the 2 fitted dof removed, plus a model floor; the variances of
     # the normal angle and offset follow from the point spread along the line.
     var = fit.rms ** 2 * fit.n / np.maximum(fit.n - 2.0, 1.0) + params.model_floor_m ** 2
-    ranges = _mean_range(rng, s, e)
     return LineSet(
         alpha=fit.alpha[keep], d=fit.d[keep], start=start[keep], end=end[keep],
         centroid=fit.mean[keep], n_points=fit.n[keep].astype(int), length=length[keep],
         rms=fit.rms[keep], alpha_var=(var / (fit.n * np.maximum(fit.spread, 1e-12)))[keep],
-        offset_var=(var / fit.n)[keep], range_m=ranges[keep],
+        offset_var=(var / fit.n)[keep], range_m=fit.range_m[keep],
         first_beam=beams[s][keep], last_beam=beams[e][keep])
-
-
-def _mean_range(rng: np.ndarray, s: np.ndarray, e: np.ndarray) -> np.ndarray:
-    """Mean of ``rng`` over every inclusive index range s..e."""
-    prefix = np.concatenate(([0.0], np.cumsum(rng)))
-    return (prefix[e + 1] - prefix[s]) / (e - s + 1)
-
-
-def _project(p: np.ndarray, normal: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Orthogonal projection of the points ``p`` (K, 2) onto the lines (normal, d)."""
-    off = np.einsum("ij,ij->i", p, normal) - d
-    return p - off[:, None] * normal
