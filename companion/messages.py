@@ -225,11 +225,15 @@ class PoseEstimate:
             raise ValueError("velocity_ned must be (3,) and velocity_covariance (3, 3)")
 
     def is_finite(self) -> bool:
-        """True if every number the autopilot would receive is finite."""
-        parts = [self.position_ned, np.asarray(self.euler_rad), self.pose_covariance, [self.t_capture]]
+        """True if every number the autopilot would receive is finite.
+
+        Tested on their sum: a NaN or an infinity makes it non-finite, and values an autopilot can
+        take (MAVLink floats, below 3.4e38) cannot add up to an overflow."""
+        total = (float(np.sum(self.position_ned)) + float(np.sum(self.pose_covariance))
+                 + sum(self.euler_rad) + self.t_capture)
         if self.velocity_ned is not None:
-            parts += [self.velocity_ned, self.velocity_covariance]
-        return all(np.all(np.isfinite(p)) for p in parts)
+            total += float(np.sum(self.velocity_ned)) + float(np.sum(self.velocity_covariance))
+        return bool(np.isfinite(total))
 
 
 @dataclass(frozen=True)

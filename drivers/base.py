@@ -97,7 +97,8 @@ class PushedMessages(Generic[M]):
         while not self._queue:
             self._arrived.clear()
             try:
-                await asyncio.wait_for(self._arrived.wait(), timeout_s)
+                async with asyncio.timeout(timeout_s):  # no task per wait, unlike wait_for
+                    await self._arrived.wait()
             except TimeoutError:
                 raise DeviceLost(f"no {what} for {timeout_s:g} s") from None
         return self._queue.popleft()

@@ -391,7 +391,8 @@ class HokuyoScip(Backend[Scan]):
         assert self._link is not None
         reader = self._link.reader
         try:
-            return await asyncio.wait_for(reader.readuntil(TERMINATOR), timeout_s)
+            async with asyncio.timeout(timeout_s):  # no task per reply, unlike wait_for
+                return await reader.readuntil(TERMINATOR)
         except TimeoutError as exc:
             raise DeviceLost(f"no reply from the scanner within {timeout_s:.2f} s (waiting for {awaited})") from exc
         except asyncio.IncompleteReadError as exc:

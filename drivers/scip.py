@@ -188,19 +188,21 @@ def decode_data_lines(lines: Sequence[bytes], width: int) -> np.ndarray:
     ``lines`` are the data lines of one reply without LF, each ending in its sum byte.
     Raises :class:`ChecksumError` naming the first bad line.
     """
-    if any(len(line) < 2 for line in lines):
-        raise TruncatedReply("empty data line")
     if not lines:
         return decode_array(b"", width)
+    lengths = np.fromiter(map(len, lines), dtype=np.intp, count=len(lines))
+    if lengths.min() < 2:
+        raise TruncatedReply("empty data line")
     joined = np.frombuffer(b"".join(lines), dtype=np.uint8)
-    lengths = np.array([len(line) for line in lines])
     ends = np.cumsum(lengths)  # one past each line's sum byte
     totals = np.add.reduceat(joined.astype(np.int64), ends - lengths)  # payload + sum byte
     got = joined[ends - 1]
     bad = np.flatnonzero(((totals - got) & 0x3F) + 0x30 != got)
     if bad.size:
         raise ChecksumError(f"bad sum byte in data line {int(bad[0]) + 1} of {len(lines)}")
-    return decode_array(b"".join([line[:-1] for line in lines]), width)
+    payload = np.ones(joined.size, dtype=bool)
+    payload[ends - 1] = False  # the sum bytes
+    return decode_array(joined[payload], width)
 
 
 # --- requests ---------------------------------------------------------------------------

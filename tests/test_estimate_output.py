@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import os
 
 import numpy as np
@@ -103,6 +104,32 @@ def test_link_drops_any_message_with_a_nan_field() -> None:
     msgs = run_with_link(body)
     assert result == {"sent": False, "dropped": 1}
     assert not [m for m in msgs if m.get_type() == "VISION_SPEED_ESTIMATE"]
+
+
+def test_nonfinite_fields_names_each_bad_field_and_passes_large_finite_values() -> None:
+    from companion.mavlink.link import mavlink, nonfinite_fields
+
+    cov = [0.0] * 21
+    cov[4], cov[7] = float("inf"), float("-inf")  # opposite infinities: their sum is NaN, not inf
+    vpe = mavlink.MAVLink_vision_position_estimate_message(1, float("nan"), 0.0, 0.0, 0.0, 0.0, 0.0, cov, 0)
+    assert nonfinite_fields(vpe) == ["x", "covariance"]
+    big = mavlink.MAVLink_vision_position_estimate_message(1, 3e38, 3e38, -3e38, 0.0, 0.0, 0.0, [3e38] * 21, 0)
+    assert nonfinite_fields(big) == []
+
+
+@pytest.mark.parametrize("field", ["position", "euler", "covariance", "t_capture", "velocity", "velocity_cov"])
+def test_a_pose_estimate_with_any_non_finite_number_is_not_finite(field: str) -> None:
+    good = estimate(1.0)
+    assert good.is_finite()
+    bad = {
+        "position": dict(position_ned=np.array([1.0, np.inf, 0.0])),
+        "euler": dict(euler_rad=(0.0, float("nan"), 0.0)),
+        "covariance": dict(pose_covariance=np.diag([0.01, 0.01, np.inf, 0.001, 0.001, 0.002])),
+        "t_capture": dict(t_capture=float("nan")),
+        "velocity": dict(velocity_ned=np.array([0.0, -np.inf, 0.0])),
+        "velocity_cov": dict(velocity_covariance=np.full((3, 3), np.nan)),
+    }[field]
+    assert not dataclasses.replace(good, **bad).is_finite()
 
 
 def test_reset_counter_increments_only_on_a_reset_and_covariance_is_upper_triangle() -> None:

@@ -129,7 +129,20 @@ def load_signing_key(path: Path) -> bytes:
 
 
 def nonfinite_fields(msg: mavlink.MAVLink_message) -> list[str]:
-    """Names of the message's float fields holding NaN or infinity."""
+    """Names of the message's float fields holding NaN or infinity.
+
+    Every message sent passes here: the sum of its numbers is tested first (a NaN or an infinity
+    makes it non-finite; values a MAVLink field can carry, below 3.4e38, cannot overflow it), and
+    the fields are named one by one only when it is not finite."""
+    total = 0.0
+    for name in msg.get_fieldnames():
+        value = getattr(msg, name)
+        if isinstance(value, float):
+            total += value
+        elif isinstance(value, (list, tuple)):  # numeric arrays (char arrays are str or bytes)
+            total += sum(value)
+    if math.isfinite(total):
+        return []
     bad = []
     for name in msg.get_fieldnames():
         value = getattr(msg, name)

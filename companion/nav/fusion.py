@@ -403,7 +403,9 @@ class FusionFilter:
             state = State.LOST if age > lost else State.DEGRADED if age > degraded else State.OK
             if state > worst:
                 worst, reason = state, f"no {_KIND_NAMES[kind]} fix for {age:.2f} s"
-        sigma = math.sqrt(max(float(np.linalg.eigvalsh(position_cov[0:2, 0:2])[-1]), 0.0))
+        (a, _), (b, d) = position_cov[0:2, 0:2].tolist()  # the lower triangle, as eigvalsh reads
+        largest = 0.5 * (a + d) + math.hypot(0.5 * (a - d), b)  # the 2x2's larger eigenvalue
+        sigma = math.sqrt(max(largest, 0.0))
         state = (State.LOST if sigma > c.lost_position_std_m
                  else State.DEGRADED if sigma > c.degraded_position_std_m else State.OK)
         if state > worst:
