@@ -62,8 +62,8 @@ def find_corners(lines: LineSet, params: CornerParams = CornerParams()) -> Corne
         return Corners(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0), np.zeros((0, 2), dtype=int))
     a = np.arange(lines.count - 1)
     b = a + 1
-    ca, sa = np.cos(lines.alpha[a]), np.sin(lines.alpha[a])
-    cb, sb = np.cos(lines.alpha[b]), np.sin(lines.alpha[b])
+    c, s = np.cos(lines.alpha), np.sin(lines.alpha)  # every line's normal
+    ca, sa, cb, sb = c[:-1], s[:-1], c[1:], s[1:]
     det = ca * sb - sa * cb  # sin(alpha_b - alpha_a): |det| = sin of the angle between the lines
     steep = np.abs(det) > np.sin(np.radians(params.min_angle_deg))
     det = np.where(steep, det, 1.0)
@@ -75,11 +75,11 @@ def find_corners(lines: LineSet, params: CornerParams = CornerParams()) -> Corne
     keep = steep & near
     a, b, xy, det = a[keep], b[keep], xy[keep], det[keep]
     rng = np.hypot(xy[:, 0], xy[:, 1])
-    var_a = _offset_variance(lines, a, xy)
-    var_b = _offset_variance(lines, b, xy)
+    var_a = _offset_variance(lines, a, xy, c, s)
+    var_b = _offset_variance(lines, b, xy, c, s)
     # Columns of the inverse of [[cos a, sin a], [cos b, sin b]]: the effect of each offset.
-    ga = np.column_stack((np.sin(lines.alpha[b]), -np.cos(lines.alpha[b]))) / det[:, None]
-    gb = np.column_stack((-np.sin(lines.alpha[a]), np.cos(lines.alpha[a]))) / det[:, None]
+    ga = np.column_stack((s[b], -c[b])) / det[:, None]
+    gb = np.column_stack((-s[a], c[a])) / det[:, None]
     floor = (params.floor_m + params.floor_per_m * rng) ** 2
     cov = (var_a[:, None, None] * ga[:, :, None] * ga[:, None, :]
            + var_b[:, None, None] * gb[:, :, None] * gb[:, None, :]
@@ -87,8 +87,10 @@ def find_corners(lines: LineSet, params: CornerParams = CornerParams()) -> Corne
     return Corners(xy, cov, rng, np.column_stack((a, b)))
 
 
-def _offset_variance(lines: LineSet, k: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Variance (m^2) of the normal offset of lines ``k`` at the points ``xy``."""
-    tangent = np.column_stack((-np.sin(lines.alpha[k]), np.cos(lines.alpha[k])))
-    lever = np.einsum("ij,ij->i", xy - lines.centroid[k], tangent)
+def _offset_variance(lines: LineSet, k: np.ndarray, xy: np.ndarray, cos_alpha: np.ndarray,
+                     sin_alpha: np.ndarray) -> np.ndarray:
+    """Variance (m^2) of the normal offset of lines ``k`` at the points ``xy``; ``cos_alpha``,
+    ``sin_alpha``: every line's normal."""
+    lever = ((xy[:, 1] - lines.centroid[k, 1]) * cos_alpha[k]  # along the tangent (-sin, cos)
+             - (xy[:, 0] - lines.centroid[k, 0]) * sin_alpha[k])
     return lines.offset_var[k] + lines.alpha_var[k] * lever ** 2
