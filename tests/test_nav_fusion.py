@@ -362,6 +362,7 @@ def test_nan_inputs_are_rejected_counted_and_never_reach_the_output() -> None:
     bad_position = [
         ([nan, 0.0], np.eye(2) * 1e-4), ([0.0, 0.0], np.full((2, 2), nan)), ([0.0, 0.0], -np.eye(2)),
         ([0.0, 0.0], np.eye(3)), ([0.0], np.eye(1)),
+        ([0.0, 0.0], np.array([[1.0, 2.0], [2.0, 1.0]])),  # positive diagonal, not positive definite
     ]
     for xy, cov in bad_position:
         assert not f.correct_position(0.99, xy, cov)
@@ -370,10 +371,11 @@ def test_nan_inputs_are_rejected_counted_and_never_reach_the_output() -> None:
     assert not f.correct_height(0.99, 1.0, 0.0)
     assert not f.correct_yaw(0.99, inf, 1e-4)
     assert not f.correct_yaw(0.99, 0.0, nan)
+    assert not f.correct_yaw(0.99, 0.0, -1e-4)
     assert not f.reset(np.array([nan, 0.0, 0.0]), 0.0, 1.0)
     assert not f.correct_position(1.0 + 0.6, [0.0, 0.0], np.eye(2) * 1e-4)  # captured in the future
     assert not f.reset(np.array([0.0, 0.0, -1.0]), 0.0, 1.0 + 0.6)
-    assert f.stats.fixes_invalid == 13 and f.stats.resets == 0 and f.state(1.0).reset_counter == 0
+    assert f.stats.fixes_invalid == 15 and f.stats.resets == 0 and f.state(1.0).reset_counter == 0
     for t in np.arange(1.02, 1.5, IMU_DT):
         _imu(f, float(t))
         state = f.state(float(t) + 0.005)

@@ -731,9 +731,14 @@ def without_direction(covariance: np.ndarray, direction: tuple[float, float]) ->
 
 
 def _valid(t: float, z: np.ndarray, r: np.ndarray) -> bool:
-    """Finite time, value and covariance, and the covariance positive definite."""
+    """Finite time, value and covariance, and the covariance (symmetrised) positive definite."""
     if not (math.isfinite(float(t)) and np.isfinite(z).all() and np.isfinite(r).all()):
         return False
+    if r.shape == (1, 1):  # the common fixes (heading, height, planar position) without LAPACK
+        return float(r[0, 0]) > 0.0
+    if r.shape == (2, 2):  # leading minors positive (Sylvester)
+        (a, b), (c, d) = r.tolist()
+        return a > 0.0 and a * d - 0.25 * (b + c) ** 2 > 0.0
     try:
         np.linalg.cholesky(0.5 * (r + r.T))
     except np.linalg.LinAlgError:
