@@ -734,9 +734,11 @@ def _valid(t: float, z: np.ndarray, r: np.ndarray) -> bool:
     """Finite time, value and covariance, and the covariance (symmetrised) positive definite."""
     if not (math.isfinite(float(t)) and np.isfinite(z).all() and np.isfinite(r).all()):
         return False
-    if r.shape == (1, 1):  # the common fixes (heading, height, planar position) without LAPACK
+    # The common fixes without LAPACK: heading and height (1x1), planar position (2x2: its leading
+    # minors positive, Sylvester's criterion).
+    if r.shape == (1, 1):
         return float(r[0, 0]) > 0.0
-    if r.shape == (2, 2):  # leading minors positive (Sylvester)
+    if r.shape == (2, 2):
         (a, b), (c, d) = r.tolist()
         return a > 0.0 and a * d - 0.25 * (b + c) ** 2 > 0.0
     try:
