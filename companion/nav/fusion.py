@@ -403,7 +403,7 @@ class FusionFilter:
             state = State.LOST if age > lost else State.DEGRADED if age > degraded else State.OK
             if state > worst:
                 worst, reason = state, f"no {_KIND_NAMES[kind]} fix for {age:.2f} s"
-        (a, _), (b, d) = position_cov[0:2, 0:2].tolist()  # the lower triangle, as eigvalsh reads
+        (a, _), (b, d) = position_cov[0:2, 0:2].tolist()  # its lower triangle
         largest = 0.5 * (a + d) + math.hypot(0.5 * (a - d), b)  # the 2x2's larger eigenvalue
         sigma = math.sqrt(max(largest, 0.0))
         state = (State.LOST if sigma > c.lost_position_std_m
