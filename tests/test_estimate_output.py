@@ -115,6 +115,8 @@ def test_nonfinite_fields_names_each_bad_field_and_passes_large_finite_values() 
     assert nonfinite_fields(vpe) == ["x", "covariance"]
     big = mavlink.MAVLink_vision_position_estimate_message(1, 3e38, 3e38, -3e38, 0.0, 0.0, 0.0, [3e38] * 21, 0)
     assert nonfinite_fields(big) == []
+    odd = mavlink.MAVLink_vision_position_estimate_message(1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, ["a"] * 21, 0)
+    assert nonfinite_fields(odd) == []  # no float in the array: nothing non-finite, and no crash
 
 
 @pytest.mark.parametrize("field", ["position", "euler", "covariance", "t_capture", "velocity", "velocity_cov"])

@@ -140,7 +140,10 @@ def nonfinite_fields(msg: mavlink.MAVLink_message) -> list[str]:
         if isinstance(value, float):
             total += value
         elif isinstance(value, (list, tuple)):  # numeric arrays (char arrays are str or bytes)
-            total += sum(value)
+            try:
+                total += sum(value)
+            except TypeError:  # not all numbers (a hand-built message): checked one by one below
+                total = math.nan
     if math.isfinite(total):
         return []
     bad = []
