@@ -672,3 +672,30 @@ def test_the_ends_of_a_corridors_walls_measure_the_along_track_position() -> Non
             ended += 1
             assert fix.ends_only is not None and abs(fix.ends_only[0]) > 0.999  # the corridor's axis, north
     assert ended >= 14  # (of 17) the walls' ends, not a corner, measured it
+
+
+def _room_without_corners(shift_east_wall_m: float = 0.0) -> tuple[WorldGeometry, np.ndarray]:
+    """A 4 m x 5 m room seen by the scanner (its east wall moved by ``shift_east_wall_m``) and its
+    map walls as planned (no corners listed: only walls can place the vehicle)."""
+    planned = [(0.0, 0.0, 4.0, 0.0), (4.0, 0.0, 4.0, 5.0), (4.0, 5.0, 0.0, 5.0), (0.0, 5.0, 0.0, 0.0)]
+    built = [(x0, y0 + shift_east_wall_m * (y0 == 5.0), x1, y1 + shift_east_wall_m * (y1 == 5.0))
+             for x0, y0, x1, y1 in planned]
+    return WorldGeometry.from_world(walls_world(built, wall_angle_deg=90)), np.array(planned)
+
+
+def test_walls_that_disagree_widen_the_wall_fix() -> None:
+    """The room's east wall stands 10 cm east of its map line: the two east-west measurements
+    disagree, the fix lands between them, and its variance grows with that disagreement (the
+    residual chi-square per degree of freedom, as for corners) so that it still covers the error.
+    Where the walls agree the fix keeps its millimetres."""
+    truth = (1.6, 2.3, math.radians(20))
+    errors = {}
+    for shift in (0.0, 0.1):
+        geometry, walls = _room_without_corners(shift)
+        loc = PlanarLocalizer(np.zeros((0, 2)), 90, mount=MOUNT, walls=walls, initial_pose=truth)
+        fix = loc.update(scan_at(geometry, *truth, np.random.default_rng(34)))
+        assert fix.measured and fix.walls_matched == 4 and fix.unmeasured is None
+        errors[shift] = (fix.y - truth[1], math.sqrt(fix.covariance[1, 1]))
+    (clean_error, clean_sigma), (error, sigma) = errors[0.0], errors[0.1]
+    assert abs(clean_error) < 0.005 and clean_sigma < 0.01
+    assert 0.03 < abs(error) < 0.07 and abs(error) < 2.0 * sigma

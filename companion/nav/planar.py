@@ -49,7 +49,10 @@ range jump) within ``edge_gate_m`` of its map wall's end, where the map lists a 
 variance of the beam spacing there). Walls in two directions, or one direction and such an end,
 give the position; a corridor's parallel walls alone give the cross-track position only, and the
 fix reports the along-track direction with ``lost_variance_m2`` (``walls_matched`` > 0,
-``matched`` 0, ``degraded``, measured).
+``matched`` 0, ``degraded``, measured). As for corners, the covariance is scaled up by the
+residual chi-square per degree of freedom when the walls (and ends) disagree more than their
+variances say: a wall a few centimetres off its map line, or furniture along a wall taken for it
+(the walls' own residuals: along a corridor the ends are the only along-track measurement).
 
 States: ``tracking`` (>= ``min_matches`` corners), ``degraded`` (1 corner; walls only; or
 neither for fewer than ``lost_after_frames`` frames: then the fix is not a measurement,
@@ -524,10 +527,12 @@ class PlanarLocalizer:
         db_dyaw = (w * (n[:, 0] * arm[:, 1] - n[:, 1] * arm[:, 0])) @ n
         ends = self._wall_ends(edges, k, nearest, xy, rot)
         ends_only = None
+        walls_rank = 2  # directions the walls alone measure
         if ends is not None:
-            walls_val, walls_vec = np.linalg.eigh(info)  # what the walls alone measure
+            walls_val, walls_vec = np.linalg.eigh(info)
             if walls_val[0] * p.wall_gate_m ** 2 < 1.0:  # a direction they leave to the ends
                 ends_only = (float(walls_vec[0, 0]), float(walls_vec[1, 0]))
+                walls_rank = 1
             direction, along, along_var, dalong_dyaw = ends
             w_end = 1.0 / (along_var + p.map_error_m ** 2)
             info = info + (w_end[:, None, None] * direction[:, :, None] * direction[:, None, :]).sum(axis=0)
@@ -541,13 +546,15 @@ class PlanarLocalizer:
             u = eigvec[:, 1]
             delta = (u @ b) / eigval[1] * u
             dp_dyaw = (u @ db_dyaw) / eigval[1] * u
-            cov2 = np.outer(u, u) / eigval[1] + p.lost_variance_m2 * np.outer(eigvec[:, 0], eigvec[:, 0])
+            cov2 = (np.outer(u, u) / eigval[1] * _wall_chi2_scale(n, r, w, delta, walls_rank=1)
+                    + p.lost_variance_m2 * np.outer(eigvec[:, 0], eigvec[:, 0]))
             reason = f"{why}: {k.size} walls{ended} constrain the cross-track position only"
             unmeasured: tuple[float, float] | None = (float(eigvec[0, 0]), float(eigvec[1, 0]))
         else:
             cov2 = np.linalg.inv(info)
             delta = cov2 @ b
             dp_dyaw = cov2 @ db_dyaw
+            cov2 = cov2 * _wall_chi2_scale(n, r, w, delta, walls_rank)
             reason = f"{why}: {k.size} walls{ended} constrain the position"
             unmeasured = None
         self._pose = (float(xy[0] + delta[0]), float(xy[1] + delta[1]), heading.yaw)
@@ -778,6 +785,20 @@ def _chi2_scale(resid: np.ndarray, cov: np.ndarray) -> float:
     a, b, d = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
     chi2 = float(np.sum((d * x * x - 2.0 * b * x * y + a * y * y) / (a * d - b * b)))  # r^T C^-1 r, 2x2 closed form
     return max(1.0, chi2 / (2 * (n - 1)))
+
+
+def _wall_chi2_scale(normal: np.ndarray, resid: np.ndarray, weight: np.ndarray, delta: np.ndarray,
+                     walls_rank: int) -> float:
+    """max(1, chi-square per degree of freedom) of the point-to-line measurements after the
+    position moved by ``delta`` (m): each wall line's ``resid`` (m) along its unit ``normal`` with
+    ``weight`` (1 / variance, m^-2); ``walls_rank`` directions were estimated from them. The wall
+    ends are left out: along a corridor they are the only measurement, and two ends a few beams
+    apart would otherwise widen the well-measured cross-track direction with the along-track one."""
+    dof = resid.shape[0] - walls_rank
+    if dof < 1:
+        return 1.0
+    left = resid - normal @ delta
+    return max(1.0, float(weight @ (left * left)) / dof)
 
 
 def _pose_hypotheses(observed: np.ndarray, landmarks: np.ndarray, yaws: np.ndarray, tolerance: float,
