@@ -683,6 +683,60 @@ def _room_without_corners(shift_east_wall_m: float = 0.0) -> tuple[WorldGeometry
     return WorldGeometry.from_world(walls_world(built, wall_angle_deg=90)), np.array(planned)
 
 
+def test_after_a_loss_the_walls_near_the_held_pose_resume_tracking() -> None:
+    """Lost for 20 scans (nothing seen), the held position is 1 m off the truth: beyond the wall
+    gate, and no corner is mapped. The walls of both directions in view put the vehicle at one
+    position near the held one; that jump is confirmed over scans like a relocalization, then
+    tracking resumes there, a reset."""
+    geometry, walls = _room_without_corners()
+    truth = (1.6, 2.3, math.radians(20))
+    loc = PlanarLocalizer(np.zeros((0, 2)), 90, mount=MOUNT, walls=walls,
+                          initial_pose=(truth[0] + 0.8, truth[1] - 0.6, truth[2]))
+    rng = np.random.default_rng(31)
+    _lost_for(loc, scan_at(geometry, *truth, rng), 20)
+    fixes = [loc.update(scan_at(geometry, *truth, rng)) for _ in range(loc.params.reloc_confirm_frames + 1)]
+    waiting, resumed, tracking = fixes[:-2], fixes[-2], fixes[-1]
+    assert all(not f.measured and "walls: found by" in f.reason for f in waiting), [f.reason for f in waiting]
+    assert resumed.measured and resumed.relocalized and "resumed on the walls" in resumed.reason
+    assert tracking.measured and not tracking.relocalized and tracking.walls_matched == 4
+    for fix in (resumed, tracking):
+        assert math.hypot(fix.x - truth[0], fix.y - truth[1]) < 0.02 and fix.unmeasured is None
+        assert_finite(fix)
+
+
+def test_walls_that_fit_as_well_elsewhere_within_the_drift_do_not_resume_tracking() -> None:
+    """The same loss, but the map also holds the room's walls 1 m further east (a look-alike within
+    the drift): both positions put every point on a wall, so the walls resume nothing. With the
+    look-alike 6 m away, beyond the drift, they do."""
+    geometry, walls = _room_without_corners()
+    truth = (1.6, 2.3, math.radians(20))
+    for apart, resumes in ((1.0, False), (6.0, True)):
+        look_alike = walls + np.array([0.0, apart, 0.0, apart])
+        loc = PlanarLocalizer(np.zeros((0, 2)), 90, mount=MOUNT, walls=np.vstack((walls, look_alike)),
+                              initial_pose=(truth[0] + 0.3, truth[1] + 0.5, truth[2]))
+        rng = np.random.default_rng(32)
+        _lost_for(loc, scan_at(geometry, *truth, rng), 20)
+        fixes = [loc.update(scan_at(geometry, *truth, rng)) for _ in range(2 * loc.params.reloc_confirm_frames)]
+        if resumes:
+            assert fixes[-1].measured and math.hypot(fixes[-1].x - truth[0], fixes[-1].y - truth[1]) < 0.02
+        else:
+            assert all(not f.measured and "no clear winner" in f.reason for f in fixes), [f.reason for f in fixes]
+
+
+def test_a_lost_corridor_is_not_resumed_by_its_parallel_walls() -> None:
+    """Walls of one direction fix the cross-track position only: after a loss they propose no
+    position (the along-track one would be a guess)."""
+    corridor = walls_world([(-40.0, -1.0, 40.0, -1.0), (-40.0, 1.0, 40.0, 1.0)], wall_angle_deg=90)
+    geometry = WorldGeometry.from_world(corridor)
+    loc = PlanarLocalizer(np.zeros((0, 2)), 90, mount=MOUNT, walls=corridor.segments_at(HEIGHT_M - MOUNT.z_m),
+                          initial_pose=(0.5, 0.4, 0.0))
+    rng = np.random.default_rng(33)
+    _lost_for(loc, scan_at(geometry, 0.0, 0.0, 0.0, rng), 20)
+    for _ in range(5):
+        fix = loc.update(scan_at(geometry, 0.0, 0.0, 0.0, rng))
+        assert not fix.measured and "no lines of two wall directions" in fix.reason
+
+
 def test_walls_that_disagree_widen_the_wall_fix() -> None:
     """The room's east wall stands 10 cm east of its map line: the two east-west measurements
     disagree, the fix lands between them, and its variance grows with that disagreement (the

@@ -320,7 +320,7 @@ class LidarPipeline:
         """Telemetry: counters, the fix rate and the relocalization candidate waiting for confirmation."""
         c = self.localizer.candidate
         candidate = None if c is None else {
-            "position_ned_m": (c.x, c.y), "yaw_rad": c.yaw, "matched": c.matched, "local": c.local,
+            "position_ned_m": (c.x, c.y), "yaw_rad": c.yaw, "matched": c.matched, "walls": c.walls, "local": c.local,
             "frames": c.frames, "frames_needed": self.localizer.params.reloc_confirm_frames}
         return {**{k: v for k, v in vars(self.stats).items()}, "fix_rate_hz": self.stats.fix_rate_hz(),
                 "fusion": {"gated": dict(self.fusion.stats.fixes_gated), "stale": self.fusion.stats.fixes_stale},

@@ -60,8 +60,8 @@ neither for fewer than ``lost_after_frames`` frames: then the fix is not a measu
 heading near its inter-frame limit), ``lost`` (nothing matched for ``lost_after_frames``
 frames, or the wall directions are ambiguous; tracking then resumes only with ``min_matches``
 corners, and only if no other position within the drift since the last fix (3 sigma of
-``coast_growth_m2`` per scan, plus the gate) matches as many, or by relocalization). A fix that
-is not ``measured`` must not be sent to the autopilot.
+``coast_growth_m2`` per scan, plus the gate) matches as many, or by relocalization, by corners or
+by walls). A fix that is not ``measured`` must not be sent to the autopilot.
 
 Relocalization (beyond the paper), tried when lost or when no pose is known: the wall
 directions fix the heading modulo the wall angle, so the candidate headings are a small
@@ -75,11 +75,18 @@ winner is accepted (more corners than every other distinct pose, or as many but 
 ``reloc_wall_margin`` higher). With a pose held (lost after coasting), the hypotheses within
 ``reloc_local_m`` of it (or that drift, if more) and at the heading nearest its yaw are tried first and the whole map only
 when they have no clear winner: a map has look-alike places, and the held pose says which one
-the vehicle is more likely in. A winner within ``jump_m`` / ``jump_rad`` of the held pose resumes
-tracking at once. A jump (or a first pose) is only a candidate (:attr:`PlanarLocalizer.candidate`)
-until ``reloc_confirm_frames`` scans found it, each within ``reloc_confirm_gate_m`` of the
-previous one moved by the motion given with the scans (``moved_m``: odometry or the fused IMU;
-at 40 scans/s without it the gate allows 12 m/s) and turned by the gyro's yaw change within
+the vehicle is more likely in. With a pose held, the heading measured and no corner winner, the
+walls are searched near the held pose (within ``reloc_local_m`` or the drift): every position
+at which an observed line of each of two wall directions lies on a map wall
+(wall_hypotheses.py), scored by the fraction of scan points then on walls; a clear winner (every
+position more than ``reloc_distinct_m`` away at least ``reloc_wall_margin`` behind) whose walls
+fix the position in both directions is a candidate like a corner one (a real building's rooms
+hold too few corners for a 1-deg scanner to see three, and most of its scans see walls of two
+directions). A winner within ``jump_m`` / ``jump_rad`` of the held pose resumes tracking at
+once. A jump (or a first pose) is only a candidate (:attr:`PlanarLocalizer.candidate`) until
+``reloc_confirm_frames`` scans found it, each within ``reloc_confirm_gate_m`` of the previous one
+moved by the motion given with the scans (``moved_m``: odometry or the fused IMU; at 40 scans/s
+without it the gate allows 12 m/s) and turned by the gyro's yaw change within
 ``reloc_confirm_gate_rad``. A scan that can test nothing (too few corners, no clear winner)
 carries the candidate along with that motion, up to ``reloc_confirm_frames`` such scans in a row;
 a scan finding another pose starts over. Meanwhile the fix stays lost (None without a pose),
@@ -92,7 +99,7 @@ from __future__ import annotations
 import math
 import statistics
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -103,6 +110,7 @@ from companion.nav.edges import EdgeParams, Edges, occluding_ends
 from companion.nav.heading import (UNMEASURED_VARIANCE_RAD2, HeadingParams, HeadingResult,
                                    heading_hypotheses, track_heading)
 from companion.nav.lines import LineParams, LineSet, extract_lines
+from companion.nav.wall_hypotheses import wall_families, wall_hypotheses
 from companion.nav.wall_grid import WallGrid
 from companion.messages import Scan
 
@@ -216,6 +224,13 @@ class RelocCandidate:
     matched: int
     local: bool  # found near the held pose (True) or by the global search
     idle: int = 0  # scans since it was last found that could not test it (carried by the motion)
+    walls: int = 0  # map walls it put lines on, when found by the walls instead of corners
+
+    def describe(self, needed: int) -> str:
+        """What the candidate is and how far its confirmation got (``needed`` scans)."""
+        found = f"{self.walls} walls" if self.walls else f"{self.matched} corners"
+        return (f"{'local' if self.local else 'global'} candidate ({self.x:.2f}, {self.y:.2f}) m, "
+                f"{math.degrees(self.yaw):.0f} deg, {found}: found by {self.frames} of the {needed} scans needed")
 
 
 def _near_any(points: np.ndarray, others: np.ndarray, radius: float) -> np.ndarray:
@@ -265,6 +280,7 @@ class PlanarLocalizer:
             # walk saw no more of them.
             self._wall_end_is_corner = np.column_stack([
                 _near_any(self.walls[:, c:c + 2], self.map, params.edge_corner_m) for c in (0, 2)])
+            self._wall_family = wall_families(self._wall_dir, self.wall_angle, self.wall_offset)
         self.params = params
         self._pose: tuple[float, float, float] | None = None
         self.last_lines: LineSet | None = None  # what update() extracted from its last scan (never mutated)
@@ -323,7 +339,7 @@ class PlanarLocalizer:
         if prior is not None:
             self._pose = (prior[0], prior[1], wrap_pi(prior[2]))
         if self._pose is None:
-            return self._relocalize(lines, corners, points[ok], "no pose known", "", timing, t0)
+            return self._relocalize(lines, corners, points[ok], "no pose known", None, None, timing, t0)
         x, y, yaw = self._pose
         heading = track_heading(lines, yaw, self.wall_angle, yaw_delta, self.params.heading, self.wall_offset)
         t3 = time.perf_counter()
@@ -337,13 +353,13 @@ class PlanarLocalizer:
         needed = self.params.min_matches if self._misses >= self.params.lost_after_frames else 1
         if best.matched < needed:
             why = f"{best.matched} corners within {self.params.gate_m:g} m of a map corner"
+            edges = occluding_ends(lines, points, ok, ranges, self._level_transform(roll, pitch)[1][:2],
+                                   self.params.lines, self.params.edges) if self.walls is not None else None
             if self._misses < self.params.lost_after_frames:  # tracking: the walls still constrain
-                edges = occluding_ends(lines, points, ok, ranges, self._level_transform(roll, pitch)[1][:2],
-                                       self.params.lines, self.params.edges) if self.walls is not None else None
                 walls = self._wall_fix(lines, edges, np.array([x, y]), heading, why, timing, t0)
                 if walls is not None:
                     return walls
-            return self._miss(heading, why, False, lines, corners, points[ok], timing, t0)
+            return self._miss(heading, why, False, lines, corners, points[ok], timing, t0, edges)
         if self._misses >= self.params.lost_after_frames:
             rival = self._rival_resume(corners, best, yaw_used)
             if rival is not None:
@@ -480,8 +496,23 @@ class PlanarLocalizer:
 
     def _wall_fix(self, lines: LineSet, edges: Edges | None, xy: np.ndarray, heading: HeadingResult, why: str,
                   timing: dict[str, float], t0: float) -> PlanarFix | None:
-        """Position from observed lines lying on map walls (point-to-line) when no corner matched,
-        None if no wall matched. Each matched line measures the position along its normal, and
+        """:meth:`_wall_solution` from the held position ``xy``, which becomes the pose held."""
+        fix = self._wall_solution(lines, edges, xy, heading, why, timing, t0)
+        if fix is not None:
+            self._hold(fix)
+        return fix
+
+    def _hold(self, fix: PlanarFix) -> None:
+        """Hold ``fix`` (a measurement) as the pose."""
+        self._pose = (fix.x, fix.y, fix.yaw)
+        self._cov = fix.covariance.copy()
+        self._misses = 0
+
+    def _wall_solution(self, lines: LineSet, edges: Edges | None, xy: np.ndarray, heading: HeadingResult, why: str,
+                       timing: dict[str, float], t0: float) -> PlanarFix | None:
+        """Position from observed lines lying on map walls (point-to-line) near the position ``xy``
+        (m) when no corner matched, None if no wall matched; the pose held is not changed. Each
+        matched line measures the position along its normal, and
         each of its occluding ends (``edges``) lying within ``edge_gate_m`` of an end of its map
         wall measures it along the wall; walls of one direction without such an end (a corridor)
         measure the cross-track direction only, and the fix reports the along-track direction as
@@ -557,17 +588,14 @@ class PlanarLocalizer:
             cov2 = cov2 * _wall_chi2_scale(n, r, w, delta, walls_rank)
             reason = f"{why}: {k.size} walls{ended} constrain the position"
             unmeasured = None
-        self._pose = (float(xy[0] + delta[0]), float(xy[1] + delta[1]), heading.yaw)
         # The heading's uncertainty moves the position through dp_dyaw, as for corners (match()).
         cov = np.empty((3, 3))
         cov[:2, :2] = cov2 + heading.variance * np.outer(dp_dyaw, dp_dyaw)
         cov[:2, 2] = cov[2, :2] = heading.variance * dp_dyaw
         cov[2, 2] = heading.variance
-        self._cov = cov
-        self._misses = 0
         timing["total"] = (time.perf_counter() - t0) * 1e3
-        return PlanarFix(self._pose[0], self._pose[1], heading.yaw, cov.copy(), 0, "degraded", reason, False,
-                         heading.status, timing, walls_matched=int(k.size), unmeasured=unmeasured,
+        return PlanarFix(float(xy[0] + delta[0]), float(xy[1] + delta[1]), heading.yaw, cov, 0, "degraded", reason,
+                         False, heading.status, timing, walls_matched=int(k.size), unmeasured=unmeasured,
                          ends_only=None if unmeasured is not None else ends_only)
 
     def _wall_ends(self, edges: Edges, k: np.ndarray, wall: np.ndarray, xy: np.ndarray,
@@ -617,14 +645,15 @@ class PlanarLocalizer:
                          relocalized, heading.status, timing)
 
     def _miss(self, heading: HeadingResult, reason: str, lost_now: bool, lines: LineSet, corners: Corners,
-              points: np.ndarray, timing: dict[str, float], t0: float) -> PlanarFix | None:
-        """A scan without a position measurement: coast, or report lost and try to relocalize."""
+              points: np.ndarray, timing: dict[str, float], t0: float, edges: Edges | None = None) -> PlanarFix | None:
+        """A scan without a position measurement: coast, or report lost and try to relocalize
+        (``points``: the valid levelled points; ``edges``: the lines' occluding ends, if known)."""
         assert self._pose is not None
         self._misses += 1
         x, y, _ = self._pose
         self._pose = (x, y, heading.yaw)
         if lost_now or self._misses >= self.params.lost_after_frames:
-            return self._relocalize(lines, corners, points, reason, heading.status, timing, t0)
+            return self._relocalize(lines, corners, points, reason, heading, edges, timing, t0)
         cov = self._cov.copy()
         cov[:2, :2] += self._misses * self.params.coast_growth_m2 * np.eye(2)
         if heading.measured:
@@ -635,35 +664,81 @@ class PlanarLocalizer:
                          False, heading.status, timing)
 
     def _relocalize(self, lines: LineSet, corners: Corners, points: np.ndarray, why: str,
-                    heading_status: str, timing: dict[str, float], t0: float) -> PlanarFix | None:
-        """Search (see the module docstring). A pose within ``jump_m`` / ``jump_rad`` of the held one
+                    heading: HeadingResult | None, edges: Edges | None, timing: dict[str, float],
+                    t0: float) -> PlanarFix | None:
+        """Search (see the module docstring): by corners, then, with a pose held and the heading
+        measured, by the walls near it. A pose within ``jump_m`` / ``jump_rad`` of the held one
         resumes tracking; a jump becomes the pose only after ``reloc_confirm_frames`` scans found it
         (module docstring); until then a lost fix (or None without a pose) names the candidate."""
         t = time.perf_counter()
         found, detail = self._search(lines, corners, points)
+        on_walls: PlanarFix | None = None
+        if found is None and heading is not None and heading.measured and edges is not None:
+            on_walls, walls_detail = self._wall_search(lines, edges, points, heading, why, timing, t0)
+            detail = f"{detail}; by walls: {walls_detail}" if on_walls is None else detail
         timing["relocalize"] = (time.perf_counter() - t) * 1e3
-        if found is None:
+        if found is None and on_walls is None:
             self.candidate = self._carried(self.candidate)
         else:
-            match, heading, local = found
+            if found is not None:
+                match, at, local = found
+                xy, yaw, matched, walls = match.xy, at.yaw, match.matched, 0
+            else:
+                assert on_walls is not None
+                xy, yaw, matched, local = np.array([on_walls.x, on_walls.y]), on_walls.yaw, 0, True
+                walls = on_walls.walls_matched
             jump = self._pose is None or (
-                math.dist(self._pose[:2], match.xy) > self.params.jump_m
-                or abs(wrap_pi(self._pose[2] - heading.yaw)) > self.params.jump_rad)
-            if not jump or self._confirmed(match, heading.yaw, local):
-                return self._accept(match, heading.yaw, heading, jump, timing, t0)
-            c = self.candidate
-            assert c is not None
-            detail = (f"{'local' if local else 'global'} candidate ({c.x:.2f}, {c.y:.2f}) m, "
-                      f"{math.degrees(c.yaw):.0f} deg, {c.matched} corners: found by {c.frames} of the "
-                      f"{self.params.reloc_confirm_frames} scans needed")
+                math.dist(self._pose[:2], xy) > self.params.jump_m
+                or abs(wrap_pi(self._pose[2] - yaw)) > self.params.jump_rad)
+            if not jump or self._confirmed(xy, yaw, matched, walls, local):
+                if found is not None:
+                    return self._accept(match, yaw, at, jump, timing, t0)
+                assert on_walls is not None
+                self.candidate = None
+                self._hold(on_walls)
+                return replace(on_walls, relocalized=jump,
+                               reason=f"resumed on the walls near the dead-reckoned pose: {on_walls.reason}")
+            assert self.candidate is not None
+            detail = self.candidate.describe(self.params.reloc_confirm_frames)
         timing["total"] = (time.perf_counter() - t0) * 1e3
         if self._pose is None:
             self.last_reason = f"{why}; relocalization: {detail}"
             return None
         x, y, yaw = self._pose
         cov = np.diag([self.params.lost_variance_m2, self.params.lost_variance_m2, UNMEASURED_VARIANCE_RAD2])
-        return PlanarFix(x, y, yaw, cov, 0, "lost", f"{why}; relocalization: {detail}", False, heading_status,
-                         timing)
+        return PlanarFix(x, y, yaw, cov, 0, "lost", f"{why}; relocalization: {detail}", False,
+                         "" if heading is None else heading.status, timing)
+
+    def _wall_search(self, lines: LineSet, edges: Edges, points: np.ndarray, heading: HeadingResult, why: str,
+                     timing: dict[str, float], t0: float) -> tuple[PlanarFix | None, str]:
+        """Lost with a pose held: the position near it (within ``reloc_local_m``, or the drift since
+        the last fix if more) where the observed lines of two wall directions lie on map walls
+        (wall_hypotheses.py), scored by the fraction of the scan ``points`` (levelled body frame)
+        then on walls; only a clear winner (every position more than ``reloc_distinct_m`` from it at
+        least ``reloc_wall_margin`` behind) whose walls fix the position in both directions. Returns that
+        fix (the pose held is not changed) or None and why not."""
+        p = self.params
+        assert self._pose is not None and self.walls is not None
+        held = np.array(self._pose[:2])
+        use = np.flatnonzero(lines.length >= p.heading.min_length_m)
+        poses = wall_hypotheses(lines, use, held, heading.yaw, self.walls, self._wall_dir, self._wall_family,
+                                max(p.reloc_local_m, self._drift_radius()), p.wall_angle_tolerance_deg,
+                                p.reloc_wall_tolerance_m)
+        if poses.shape[0] == 0:
+            return None, "no lines of two wall directions on map walls near the held pose"
+        fraction = self._wall_fractions(points, poses, heading.yaw)
+        best = int(np.argmax(fraction))
+        if fraction[best] < p.reloc_min_wall_fraction:
+            return None, f"the best pose puts only {fraction[best]:.0%} of the points on walls"
+        rivals = ((np.hypot(*(poses - poses[best]).T) > p.reloc_distinct_m)
+                  & (fraction > fraction[best] - p.reloc_wall_margin))
+        if rivals.any():
+            return None, (f"{int(rivals.sum()) + 1} poses put {fraction[best]:.0%} of the points on walls, "
+                          "no clear winner")
+        fix = self._wall_solution(lines, edges, poses[best], heading, why, timing, t0)
+        if fix is None or fix.unmeasured is not None:
+            return None, "the walls at the best pose do not fix the position in both directions"
+        return fix, ""
 
     def _carried(self, c: RelocCandidate | None) -> RelocCandidate | None:
         """The candidate after a scan that neither found nor contradicted it (too few corners, no
@@ -677,19 +752,20 @@ class PlanarLocalizer:
         """Where the candidate pose (x, y m, yaw rad) is after the motion given with this scan."""
         return planar_moved((c.x, c.y, c.yaw), *self._moved, self._yaw_delta)
 
-    def _confirmed(self, match: Match, yaw: float, local: bool) -> bool:
-        """Count this scan for the candidate jump it found (a new candidate unless it agrees with the
-        previous one moved by the motion since: ``moved_m`` and the gyro's yaw change); True once
-        enough scans found it, none finding another pose in between."""
+    def _confirmed(self, xy: np.ndarray, yaw: float, matched: int, walls: int, local: bool) -> bool:
+        """Count this scan for the candidate jump it found at ``xy`` (m), ``yaw`` (rad), by ``matched``
+        corners or else ``walls`` walls (a new candidate unless it agrees with the previous one moved
+        by the motion since: ``moved_m`` and the gyro's yaw change); True once enough scans found it,
+        none finding another pose in between."""
         p, c = self.params, self.candidate
-        x, y = float(match.xy[0]), float(match.xy[1])
+        x, y = float(xy[0]), float(xy[1])
         frames = 1
         if c is not None:
             cx, cy, cyaw = self._moved_candidate(c)
             if (math.hypot(x - cx, y - cy) <= p.reloc_confirm_gate_m
                     and abs(wrap_pi(yaw - cyaw)) <= p.reloc_confirm_gate_rad):
                 frames = c.frames + 1
-        self.candidate = RelocCandidate(x, y, yaw, frames, match.matched, local)
+        self.candidate = RelocCandidate(x, y, yaw, frames, matched, local, walls=walls)
         return self.candidate.frames >= p.reloc_confirm_frames
 
     def _search(self, lines: LineSet, corners: Corners,
@@ -744,10 +820,16 @@ class PlanarLocalizer:
 
     def _wall_fraction(self, points: np.ndarray, xy: np.ndarray, yaw: float) -> float:
         """Fraction of (every 4th) levelled-body point within the tolerance of a map wall."""
+        return float(self._wall_fractions(points, xy[None, :], yaw)[0])
+
+    def _wall_fractions(self, points: np.ndarray, xys: np.ndarray, yaw: float) -> np.ndarray:
+        """(H,): :meth:`_wall_fraction` at each position of ``xys`` (H, 2), m."""
         if self.walls is None or points.shape[0] == 0:
-            return 0.0
-        world = xy + points[::4] @ rotation(yaw).T
-        return float(np.mean(self._wall_grid.near_wall(world, self.params.reloc_wall_tolerance_m)))
+            return np.zeros(xys.shape[0])
+        body = points[::4] @ rotation(yaw).T
+        world = (xys[:, None, :] + body[None, :, :]).reshape(-1, 2)
+        on = self._wall_grid.near_wall(world, self.params.reloc_wall_tolerance_m)
+        return on.reshape(xys.shape[0], body.shape[0]).mean(axis=1)
 
 
 def _with_yaw(heading: HeadingResult, yaw: float) -> HeadingResult:

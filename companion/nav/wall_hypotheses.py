@@ -1,0 +1,98 @@
+"""Positions near a held one that put the observed wall lines onto map walls (resuming after a loss).
+
+After the planar localizer has dead-reckoned for a while (lost: nothing matched), its held
+position may be a metre or more off, beyond the gates of the corner and wall association. If the
+scan shows no three corners, relocalization by corners cannot help; its walls still can. With the
+heading known (the wall directions measure it modulo the wall angle; the gyro picks the alias),
+each observed line lying on a map wall of its direction fixes the position along that wall's
+normal: a displacement ``s`` of the held position along it. Walls of two directions fix it
+completely: every pair of such displacements (one per direction) is a hypothesis. The caller
+scores the hypotheses (how many scan points then lie on walls) and keeps a clear winner only.
+
+Frames: lines in the levelled body frame (companion/nav/lines.py); the held position, walls,
+normals and displacements in the map frame (LOCAL_NED north, east, metres); yaw in radians from
+north towards east.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from companion.nav.lines import LineSet
+
+
+def wall_hypotheses(lines: LineSet, use: np.ndarray, held: np.ndarray, yaw: float, walls: np.ndarray,
+                    wall_dir: np.ndarray, family: np.ndarray, radius_m: float, parallel_deg: float,
+                    cluster_m: float, per_family: int = 12) -> np.ndarray:
+    """(H, 2) positions (m) within ``radius_m`` of ``held`` at which an observed line of each of
+    two wall directions lies on a map wall.
+
+    ``use``: indices of the lines to place (long enough to trust their direction); ``yaw``: the
+    heading (rad); ``walls`` (S, 4) [x0, y0, x1, y1] m with unit directions ``wall_dir`` (S, 2)
+    and ``family`` (S,) int, the index of each wall's direction modulo 180 deg (walls of one
+    family are parallel); ``parallel_deg``: a line lies on a wall only if they are parallel
+    within this; displacements along one family closer than ``cluster_m`` are one (their
+    mean), and each family keeps the ``per_family`` smallest."""
+    none = np.zeros((0, 2))
+    if use.size == 0 or walls.shape[0] == 0:
+        return none
+    angle = lines.alpha[use] + yaw
+    normal = np.column_stack((np.cos(angle), np.sin(angle)))  # world normals of the observed lines
+    c, s = math.cos(yaw), math.sin(yaw)
+    rot = np.array([[c, -s], [s, c]])
+    start, end = held + lines.start[use] @ rot.T, held + lines.end[use] @ rot.T
+    mid = 0.5 * (start + end)
+    wall_normal = np.column_stack((-wall_dir[:, 1], wall_dir[:, 0]))
+    parallel = np.abs(normal @ wall_dir.T) <= math.sin(math.radians(parallel_deg))  # (L, S)
+    # The displacement along each wall's normal that puts the line's middle on the wall's line.
+    shift = (np.einsum("sk,sk->s", wall_normal, walls[:, 0:2])[None, :] - mid @ wall_normal.T)
+    # The line must overlap the wall once moved by at most the radius along it as well.
+    u0 = np.einsum("lsk,sk->ls", start[:, None, :] - walls[None, :, 0:2], wall_dir)
+    u1 = np.einsum("lsk,sk->ls", end[:, None, :] - walls[None, :, 0:2], wall_dir)
+    length = np.hypot(*(walls[:, 2:4] - walls[:, 0:2]).T)
+    overlap = (np.maximum(u0, u1) >= -radius_m) & (np.minimum(u0, u1) <= length + radius_m)
+    line_i, wall_j = np.nonzero(parallel & overlap & (np.abs(shift) <= radius_m))
+    if line_i.size == 0:
+        return none
+    # Per family, displacements along the family's reference normal (its first wall's).
+    fams = np.unique(family[wall_j])
+    reference = {f: wall_normal[wall_j[family[wall_j] == f][0]] for f in fams}
+    shifts: dict[int, np.ndarray] = {}
+    for f in fams:
+        pick = family[wall_j] == f
+        sign = np.sign(wall_normal[wall_j[pick]] @ reference[f])
+        shifts[int(f)] = _clustered(sign * shift[line_i[pick], wall_j[pick]], cluster_m, per_family)
+    out = []
+    keys = sorted(shifts)
+    for a_index, a in enumerate(keys):
+        for b in keys[a_index + 1:]:
+            basis = np.array([reference[a], reference[b]])  # rows: the two normals
+            if abs(np.linalg.det(basis)) < math.sin(math.radians(20.0)):
+                continue  # (nearly) parallel families fix one direction only
+            sa, sb = np.meshgrid(shifts[a], shifts[b], indexing="ij")
+            rhs = np.column_stack((sa.ravel(), sb.ravel()))
+            out.append(np.linalg.solve(basis, rhs.T).T)
+    if not out:
+        return none
+    delta = np.concatenate(out)
+    delta = delta[np.hypot(delta[:, 0], delta[:, 1]) <= radius_m]
+    return held + delta
+
+
+def wall_families(wall_dir: np.ndarray, wall_angle_rad: float, offset_rad: float) -> np.ndarray:
+    """(S,) int: each wall's direction as a multiple of ``wall_angle_rad`` from ``offset_rad``,
+    modulo 180 deg (parallel walls share it)."""
+    angle = np.arctan2(wall_dir[:, 1], wall_dir[:, 0])
+    steps = int(round(math.pi / wall_angle_rad))
+    return np.mod(np.round((angle - offset_rad) / wall_angle_rad).astype(int), steps)
+
+
+def _clustered(values: np.ndarray, within: float, keep: int) -> np.ndarray:
+    """The means of runs of sorted ``values`` whose steps are under ``within``; the ``keep``
+    smallest in magnitude."""
+    v = np.sort(values)
+    breaks = np.flatnonzero(np.diff(v) > within) + 1
+    means = np.array([run.mean() for run in np.split(v, breaks)])
+    return means[np.argsort(np.abs(means), kind="stable")[:keep]]
