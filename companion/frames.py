@@ -83,6 +83,13 @@ def wrap_pi(angle: float) -> float:
     return (angle + math.pi) % (2 * math.pi) - math.pi
 
 
+def planar_rotation(yaw: float) -> np.ndarray:
+    """2-D rotation (2, 2) from a levelled body frame (x forward, y right) at ``yaw`` (rad, from
+    north towards east) to the world's (north, east)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s], [s, c]])
+
+
 def planar_increment(a: tuple[float, float, float], b: tuple[float, float, float]) -> tuple[float, float, float]:
     """The motion from planar pose ``a`` to ``b`` (x north, y east m, yaw rad) in ``a``'s body
     frame: (forward m, right m, turn rad)."""

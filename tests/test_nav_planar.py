@@ -16,7 +16,8 @@ from companion.nav.heading import HeadingResult, track_heading, wall_mod
 from companion.nav.lidar_pipeline import planar_params
 from companion.nav.lines import LineSet, extract_lines
 from companion.nav.edges import occluding_ends
-from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer, _pose_hypotheses, _with_yaw
+from companion.nav.corner_hypotheses import pose_hypotheses
+from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer, _with_yaw
 from drivers.lidar_models import UTM_30LX
 from companion.messages import Scan
 from sitl.raycast import WorldGeometry
@@ -572,7 +573,7 @@ def test_pose_hypotheses_score_as_the_all_pairs_comparison_does() -> None:
         observed = (picked - rng.uniform(-5, 5, 2)) @ np.array([[c, -s_], [s_, c]]) + rng.normal(0, 0.05, picked.shape)
         yaws = np.array([yaw, yaw + math.pi / 2, 0.0])
         for tolerance, min_score in ((0.15, 1), (0.3, 2)):
-            np.testing.assert_array_equal(_pose_hypotheses(observed, landmarks, yaws, tolerance, min_score),
+            np.testing.assert_array_equal(pose_hypotheses(observed, landmarks, yaws, tolerance, min_score),
                                           _brute_force_hypotheses(observed, landmarks, yaws, tolerance, min_score))
 
 

@@ -20,9 +20,10 @@ from typing import Any
 
 import numpy as np
 
+from companion.frames import planar_rotation
 from companion.nav.corners import Corners
 from companion.nav.lines import LineSet
-from companion.nav.planar import PlanarFix, PlanarLocalizer, associate, rotation
+from companion.nav.planar import PlanarFix, PlanarLocalizer, associate
 from companion.messages import Scan
 
 STREAMS = ("scan", "lines", "corners", "map")
@@ -62,7 +63,7 @@ def matched_corners(observed_m: np.ndarray, pose: tuple[float, float, float], kn
     """The observed corners (levelled body frame, metres) that the localizer's association
     (mutual nearest neighbours within ``gate_m``) pairs with a known map corner when placed in
     the world with ``pose``: {observed index, that corner}."""
-    world = np.array(pose[:2]) + np.asarray(observed_m).reshape(-1, 2) @ rotation(pose[2]).T
+    world = np.array(pose[:2]) + np.asarray(observed_m).reshape(-1, 2) @ planar_rotation(pose[2]).T
     observed, known = associate(world, known_ned_m, gate_m)
     return [{"observed": int(i), "map_ned_m": known_ned_m[j].tolist()} for i, j in zip(observed, known)]
 

@@ -33,8 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from companion.frames import planar_rotation
 from companion.nav.lines import LineParams, extract_lines
-from companion.nav.planar import rotation
 
 
 @dataclass(frozen=True)
@@ -114,7 +114,7 @@ def _segments(scans: Iterable[tuple[np.ndarray, np.ndarray, tuple[float, float, 
         near = valid & (np.hypot(points[:, 0], points[:, 1]) <= params.max_range_m)
         lines = extract_lines(points, near, line_params)
         long = lines.length >= params.min_segment_m
-        rot = rotation(yaw)
+        rot = planar_rotation(yaw)
         starts.append(np.array([x, y]) + lines.start[long] @ rot.T)
         ends.append(np.array([x, y]) + lines.end[long] @ rot.T)
     if not starts:

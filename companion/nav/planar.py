@@ -104,12 +104,13 @@ from typing import Literal
 
 import numpy as np
 
-from companion.frames import planar_moved, rotation_from_euler, wrap_pi
+from companion.frames import planar_moved, planar_rotation, rotation_from_euler, wrap_pi
 from companion.nav.corners import CornerParams, Corners, find_corners
 from companion.nav.edges import EdgeParams, Edges, occluding_ends
 from companion.nav.heading import (UNMEASURED_VARIANCE_RAD2, HeadingParams, HeadingResult,
                                    heading_hypotheses, track_heading)
 from companion.nav.lines import LineParams, LineSet, extract_lines
+from companion.nav.corner_hypotheses import distinct_poses, pose_hypotheses
 from companion.nav.wall_hypotheses import wall_families, wall_hypotheses
 from companion.nav.wall_grid import WallGrid
 from companion.messages import Scan
@@ -240,12 +241,6 @@ def _near_any(points: np.ndarray, others: np.ndarray, radius: float) -> np.ndarr
         block = others[start:start + 256]
         near |= (np.hypot(points[:, None, 0] - block[None, :, 0], points[:, None, 1] - block[None, :, 1]) <= radius).any(axis=1)
     return near
-
-
-def rotation(yaw: float) -> np.ndarray:
-    """2-D rotation from the levelled body frame to the world (north, east)."""
-    c, s = math.cos(yaw), math.sin(yaw)
-    return np.array([[c, -s], [s, c]])
 
 
 class PlanarLocalizer:
@@ -380,7 +375,7 @@ class PlanarLocalizer:
         or at ``best`` would be a guess (look-alike corners)."""
         assert self._pose is not None
         p = self.params
-        poses = _pose_hypotheses(corners.xy, self.map, np.array([yaw]), p.gate_m, best.matched)
+        poses = pose_hypotheses(corners.xy, self.map, np.array([yaw]), p.gate_m, best.matched)
         held = np.array(self._pose[:2])
         near = np.hypot(*(poses[:, 2:4] - held).T) <= self._drift_radius()
         apart = np.hypot(*(poses[:, 2:4] - best.xy).T) > p.reloc_distinct_m
@@ -422,7 +417,7 @@ class PlanarLocalizer:
         """Associate ``corners`` (levelled body frame) with the map from the position ``xy``
         and the heading, and update the position (eqs. 5-8 with outlier rejection)."""
         gate = self.params.gate_m if gate_m is None else gate_m
-        rot = rotation(heading.yaw)
+        rot = planar_rotation(heading.yaw)
         world = corners.xy @ rot.T  # R q for every corner (eq. 5 without the position)
         obs, idx = associate(xy + world, self.map, gate)
         if obs.size == 0:
@@ -463,7 +458,7 @@ class PlanarLocalizer:
             return cached[2], cached[3]
         level = rotation_from_euler(roll, pitch, 0.0)
         m = self.mount
-        matrix = level[:, :2] @ rotation(m.yaw_rad)
+        matrix = level[:, :2] @ planar_rotation(m.yaw_rad)
         offset = level @ np.array([m.x_m, m.y_m, m.z_m])
         self._level_cache = (roll, pitch, matrix, offset)
         return matrix, offset
@@ -523,7 +518,7 @@ class PlanarLocalizer:
         use = np.flatnonzero(lines.length >= p.heading.min_length_m)
         if use.size == 0:
             return None
-        rot = rotation(heading.yaw)
+        rot = planar_rotation(heading.yaw)
         angle = lines.alpha[use] + heading.yaw
         normal = np.column_stack((np.cos(angle), np.sin(angle)))  # world normals of the observed lines
         start, end = xy + lines.start[use] @ rot.T, xy + lines.end[use] @ rot.T
@@ -782,7 +777,7 @@ class PlanarLocalizer:
             return None, f"{corners.count} corners visible, at least {p.reloc_min_inliers} needed"
         spread = corners.cov[:, 0, 0] + corners.cov[:, 1, 1]
         corners = corners.subset(np.argsort(spread)[:p.reloc_max_corners])
-        poses = _pose_hypotheses(corners.xy, self.map, yaws, p.reloc_tolerance_m, p.reloc_min_inliers)
+        poses = pose_hypotheses(corners.xy, self.map, yaws, p.reloc_tolerance_m, p.reloc_min_inliers)
         if self._pose is not None:
             hx, hy, hyaw = self._pose
             near = ((np.hypot(poses[:, 2] - hx, poses[:, 3] - hy) <= max(p.reloc_local_m, self._drift_radius()))
@@ -800,7 +795,7 @@ class PlanarLocalizer:
         if poses.shape[0]:
             poses = poses[poses[:, 0] >= poses[0, 0] - 1]
         matched = []
-        for score, yaw, tx, ty in _distinct(poses, p.reloc_distinct_m, p.reloc_candidates):
+        for score, yaw, tx, ty in distinct_poses(poses, p.reloc_distinct_m, p.reloc_candidates):
             heading = _with_yaw(base, float(yaw))
             matched.append((self.match(corners, np.array([tx, ty]), heading, p.reloc_tolerance_m), heading))
         # Only the poses matching the most corners can win or tie: the wall check for those alone.
@@ -826,7 +821,7 @@ class PlanarLocalizer:
         """(H,): :meth:`_wall_fraction` at each position of ``xys`` (H, 2), m."""
         if self.walls is None or points.shape[0] == 0:
             return np.zeros(xys.shape[0])
-        body = points[::4] @ rotation(yaw).T
+        body = points[::4] @ planar_rotation(yaw).T
         world = (xys[:, None, :] + body[None, :, :]).reshape(-1, 2)
         on = self._wall_grid.near_wall(world, self.params.reloc_wall_tolerance_m)
         return on.reshape(xys.shape[0], body.shape[0]).mean(axis=1)
@@ -881,89 +876,3 @@ def _wall_chi2_scale(normal: np.ndarray, resid: np.ndarray, weight: np.ndarray, 
         return 1.0
     left = resid - normal @ delta
     return max(1.0, float(weight @ (left * left)) / dof)
-
-
-def _pose_hypotheses(observed: np.ndarray, landmarks: np.ndarray, yaws: np.ndarray, tolerance: float,
-                     min_score: int) -> np.ndarray:
-    """Rows (score, yaw, x, y): every (heading, observed corner i -> map corner a) hypothesis
-    scoring at least ``min_score``, best first. The score counts the observed corners j that
-    have a map corner b with (b - R q_j) within ``tolerance`` of the hypothesis translation.
-
-    Each (j, b) pair proposes the translation ``b - R q_j``; the score is the number of distinct
-    observed corners among the proposals within ``tolerance`` of the hypothesis' own. Proposals
-    are bucketed in a grid of ``2 tolerance`` cells, so only neighbouring cells are compared, and
-    only for proposals with ``min_score`` of them nearby: time and memory grow with k * m
-    (observed times map corners), not (k * m)^2."""
-    k, m = observed.shape[0], landmarks.shape[0]
-    owner = np.repeat(np.arange(k), m)  # the observed corner of each proposal, row i * m + a
-    rows = []
-    for yaw in yaws:
-        trans = (landmarks[None, :, :] - (observed @ rotation(float(yaw)).T)[:, None, :]).reshape(-1, 2)
-        score = _owners_within(trans, owner, k, tolerance, min_score)
-        good = score >= min_score
-        rows.append(np.column_stack((score[good], np.full(good.sum(), yaw), trans[good])))
-    out = np.concatenate(rows) if rows else np.zeros((0, 4))
-    return out[np.argsort(-out[:, 0], kind="stable")]
-
-
-def _owners_within(points: np.ndarray, owner: np.ndarray, owners: int, radius: float,
-                   at_least: int) -> np.ndarray:
-    """For every point of ``points`` (n, 2), how many distinct ``owner`` values (0 .. owners-1) the
-    points within ``radius`` of it (itself included) have; 0 for the points that cannot reach
-    ``at_least`` (fewer points than that near them: the count is not needed there).
-
-    Grid of ``2 radius`` cells: the points within ``radius`` of a point lie in the 2 x 2 block of
-    cells around the cell corner nearest to it, so four lookups per point; the pairs are compared
-    only for points whose block holds ``at_least`` points (most proposals of a large map have no
-    neighbour at all)."""
-    n = points.shape[0]
-    counts = np.zeros(n, dtype=int)
-    if n == 0:
-        return counts
-    scaled = points / (2.0 * radius)
-    cell = np.floor(scaled).astype(np.int64)
-    step = np.where(scaled - cell >= 0.5, 1, -1)  # towards the nearer neighbour, per axis
-    cell -= cell.min(axis=0) - 1  # >= 1, so that a neighbour's index stays >= 0
-    width = int(cell[:, 1].max()) + 2
-    key = cell[:, 0] * width + cell[:, 1]
-    # Work in cell order: the lookups below then search nearly sorted keys (numpy's binary search
-    # starts from its previous answer), and a point's own cell is its run.
-    order = np.argsort(key, kind="stable")
-    key, step, xy, own = key[order], step[order], points[order], owner[order]
-    run_start = np.concatenate(([True], key[1:] != key[:-1]))
-    first = np.flatnonzero(run_start)
-    keys, count = key[first], np.diff(np.append(first, n))
-    slots = [np.cumsum(run_start) - 1]
-    hits = [count[slots[0]]]
-    for dx, dy in ((1, 0), (0, 1), (1, 1)):
-        wanted = key + (dx * step[:, 0] * width + dy * step[:, 1])
-        slot = np.minimum(np.searchsorted(keys, wanted), keys.size - 1)
-        slots.append(slot)
-        hits.append(np.where(keys[slot] == wanted, count[slot], 0))
-    candidates = np.flatnonzero(sum(hits) >= at_least)
-    if candidates.size == 0:
-        return counts
-    seen = np.zeros((candidates.size, owners), dtype=bool)  # candidate x owner: a neighbour of that owner
-    for slot, hit in zip(slots, hits):
-        slot, hit = slot[candidates], hit[candidates]
-        total = int(hit.sum())
-        if total == 0:
-            continue
-        row = np.repeat(np.arange(candidates.size), hit)
-        b = np.repeat(first[slot], hit) + np.arange(total) - np.repeat(np.cumsum(hit) - hit, hit)
-        d = xy[candidates[row]] - xy[b]
-        near = d[:, 0] ** 2 + d[:, 1] ** 2 <= radius ** 2
-        seen[row[near], own[b[near]]] = True
-    counts[order[candidates]] = seen.sum(axis=1)
-    return counts
-
-
-def _distinct(poses: np.ndarray, distinct_m: float, limit: int) -> list[np.ndarray]:
-    """The first ``limit`` best-first pose rows that are not near a kept one of the same yaw."""
-    kept: list[np.ndarray] = []
-    for row in poses:
-        if not any(row[1] == k[1] and math.hypot(row[2] - k[2], row[3] - k[3]) < distinct_m for k in kept):
-            kept.append(row)
-            if len(kept) == limit:
-                break
-    return kept

@@ -34,8 +34,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from companion.frames import planar_increment, planar_moved, wrap_pi
-from companion.nav.planar import rotation
+from companion.frames import planar_increment, planar_moved, planar_rotation, wrap_pi
 
 Pose = tuple[float, float, float]
 
@@ -123,7 +122,7 @@ class _Tracker:
         best, best_pose = -1.0, centre
         for dyaw in np.arange(-yaw_half, yaw_half + 1e-12, yaw_step):
             yaw = centre[2] + dyaw
-            world = local @ rotation(yaw).T + np.array(centre[:2])  # (N, 2)
+            world = local @ planar_rotation(yaw).T + np.array(centre[:2])  # (N, 2)
             cells = (world[None, :, :] + shifts[:, None, :] - self.field_origin) / res - 0.5  # (T, N, 2), cell centres
             scores = (self._bilinear(cells) if bilinear else self._nearest(cells)).sum(axis=1)
             k = int(np.argmax(scores))
@@ -156,7 +155,7 @@ class _Tracker:
 
     def _add_keyframe(self, local: np.ndarray, pose: Pose) -> None:
         """Add the scan's points to the map and rebuild the distance field around ``pose``."""
-        self.keyframe_points.append(local @ rotation(pose[2]).T + np.array(pose[:2]))
+        self.keyframe_points.append(local @ planar_rotation(pose[2]).T + np.array(pose[:2]))
         self.keyframe_points = self.keyframe_points[-self.p.keyframes:]
         self.last_keyframe = pose
         res, half = self.p.resolution_m, self.p.window_m / 2

@@ -20,6 +20,7 @@ import math
 
 import numpy as np
 
+from companion.frames import planar_rotation
 from companion.nav.lines import LineSet
 
 
@@ -40,8 +41,7 @@ def wall_hypotheses(lines: LineSet, use: np.ndarray, held: np.ndarray, yaw: floa
         return none
     angle = lines.alpha[use] + yaw
     normal = np.column_stack((np.cos(angle), np.sin(angle)))  # world normals of the observed lines
-    c, s = math.cos(yaw), math.sin(yaw)
-    rot = np.array([[c, -s], [s, c]])
+    rot = planar_rotation(yaw)
     start, end = held + lines.start[use] @ rot.T, held + lines.end[use] @ rot.T
     mid = 0.5 * (start + end)
     wall_normal = np.column_stack((-wall_dir[:, 1], wall_dir[:, 0]))
