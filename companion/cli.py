@@ -17,7 +17,7 @@ from companion.logsetup import setup_logging
 EXIT_CONFIG_ERROR = 2
 # The log formats of `map build` and `replay` (companion.replay.FORMATS, written out here so that
 # building the parser imports no numpy; a test keeps the two equal).
-LOG_FORMATS = ("carmen", "ros", "breezyslam", "npz")
+LOG_FORMATS = ("carmen", "ros", "breezyslam", "npz", "companion")
 
 
 def repo_config_dir() -> Path:
@@ -265,7 +265,8 @@ def _cmd_config_reference(args: argparse.Namespace) -> int:
 
 def _add_topic_arguments(parser: argparse.ArgumentParser) -> None:
     """--scan-topic and --pose-topic: which topics of a ROS bag (drivers.lidar_replay.read_ros_bag)."""
-    parser.add_argument("--scan-topic", help="ros: the sensor_msgs/LaserScan topic (default: the bag's only one)")
+    parser.add_argument("--scan-topic", help="ros: the sensor_msgs/LaserScan topic (default: the bag's only one); "
+                                             "companion: the scanner's /sensors/<name> (default: the only one)")
     parser.add_argument("--pose-topic", help="ros: the reference poses, a nav_msgs/Odometry or geometry_msgs/"
                                              "PoseStamped topic (default: the bag's only one; none if several)")
 
@@ -335,7 +336,8 @@ def build_parser() -> argparse.ArgumentParser:
     maps = mapping.add_subparsers(dest="map", required=True)
     build = maps.add_parser("build", help="build a map (world YAML for pipelines.lidar.map) from a log: placed with "
                                           "its poses, or by scan matching when it has none")
-    build.add_argument("log", help="the log (e.g. a CARMEN log, plain or .gz; a ROS 1 .bag, a ROS 2 bag directory)")
+    build.add_argument("log", help="the log (e.g. a CARMEN log, plain or .gz; a ROS 1 .bag, a ROS 2 bag directory; "
+                                   "a recording of this daemon, .mcap)")
     build.add_argument("--format", required=True, choices=LOG_FORMATS,
                        help="the log's format (carmen, and ros with a pose topic, carry poses; the others are placed by "
                             "scan matching)")

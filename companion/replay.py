@@ -52,7 +52,7 @@ from companion.world import World
 
 Pose = tuple[float, float, float]  # x north, y east (m), yaw (rad) in the log's map frame as NED
 Odometry = Literal["auto", "log", "noisy", "none"]
-FORMATS = ("carmen", "ros", "breezyslam", "npz")
+FORMATS = ("carmen", "ros", "breezyslam", "npz", "companion")
 WHEEL_ERROR_FRACTION = 0.05  # simulated wheel odometry: 1-sigma error, fraction of each step's length and turn
 WHEEL_ERROR_DEG_PER_M = 1.0  # ... and 1-sigma heading error per metre driven, deg
 SAME_POSE_M = 1e-6  # odometry this close to the reference everywhere is the reference
@@ -90,7 +90,8 @@ def read_log(path: str | Path, log_format: str, laser: str = "front", scan_topic
              pose_topic: str | None = None) -> list[LogScan]:
     """The scans of ``path``; ValueError for a format not readable here or a malformed log,
     OSError when it cannot be read. ``laser``: carmen's; ``scan_topic``, ``pose_topic``: ros's
-    (:func:`drivers.lidar_replay.read_ros_bag`, None: the bag's only one). A bag's pose topic is
+    (:func:`drivers.lidar_replay.read_ros_bag`, None: the bag's only one); ``scan_topic`` also
+    companion's (:func:`recorded_scans`). A bag's pose topic is
     both its reference and its odometry, like the CARMEN "corrected" logs (so ``auto`` adds
     simulated wheel-odometry errors to it); a scan outside the pose topic's time span has neither."""
     from drivers.lidar_replay import (breezyslam_angles, breezyslam_valid, carmen_valid, read_breezyslam,
@@ -111,7 +112,34 @@ def read_log(path: str | Path, log_format: str, laser: str = "front", scan_topic
     if log_format == "npz":
         angles, stamps, ranges, valid, _ = read_npz(path)
         return [LogScan(float(t), angles, r, v, None, None) for t, r, v in zip(stamps, ranges, valid)]
+    if log_format == "companion":
+        return recorded_scans(path, scan_topic)
     raise ValueError(f"--format {log_format}: not a log format (those: {', '.join(FORMATS)})")
+
+
+def recorded_scans(path: str | Path, scan_topic: str | None = None) -> list[LogScan]:
+    """The scans of one scanner in a flight recording of this daemon (``record.enabled``; any
+    part of it, companion/recording): the topic ``scan_topic`` (``/sensors/<name>``), by default
+    the recording's only scanner. A recording holds no reference poses (a walk recorded to build
+    a map has no map to localize in yet): ``map build`` places its scans by scan matching.
+    ValueError (RecordingError) for a file that is no recording or a topic it does not hold."""
+    from companion.messages import Scan
+    from companion.recording.codec import decode_message, message_schema
+    from companion.recording.reader import Recording
+
+    schema = message_schema(Scan).name
+    by_topic: dict[str, list[LogScan]] = {}
+    for msg in Recording.open(path).messages():
+        if msg.schema == schema and scan_topic in (None, msg.topic):
+            scan = decode_message(Scan, msg.doc)
+            by_topic.setdefault(msg.topic, []).append(
+                LogScan(scan.t_capture, scan.angles_rad, scan.ranges_m, scan.valid, None, None))
+    if scan_topic is None and len(by_topic) > 1:
+        raise ValueError(f"{path}: scans of several scanners ({', '.join(sorted(by_topic))}): "
+                         "choose one with --scan-topic")
+    if scan_topic is not None and not by_topic:
+        raise ValueError(f"{path}: no scan on {scan_topic}")
+    return next(iter(by_topic.values()), [])
 
 
 def resolve_odometry(scans: list[LogScan], odometry: Odometry) -> tuple[Odometry, str]:

@@ -4,7 +4,9 @@ URG-04LX recording (its wheel odometry as the check)."""
 
 from __future__ import annotations
 
+import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -15,10 +17,12 @@ from companion.messages import Scan
 from companion.nav.bench_stages import DEFAULT_WORLD, make_mount, synthetic_scan
 from companion.nav.map_build import MapBuildParams, build_map
 from companion.nav.scan_poses import scan_poses
+from companion.recording.mcap_files import FILE_GLOB
 from companion.world import load_world
 from drivers.lidar_models import UTM_30LX
 from drivers.lidar_replay import breezyslam_angles, breezyslam_valid, read_breezyslam, record_npz
 from sitl.raycast import WorldGeometry
+from tests.test_flight_recorder import recorder
 from tests.test_nav_planar import arena_path
 from tests.test_real_corridor import CALIBRATED_SCALE, CORRIDOR, odometry_heading
 
@@ -64,6 +68,35 @@ def test_a_log_without_poses_builds_a_map_by_scan_matching(walk: tuple[np.ndarra
     built = load_world(out)  # the daemon's checks accept it
     assert len(built.walls) >= 8 and len(built.corners) >= 4 and built.survey_error_m < 0.03
     assert "scan matching" in out.read_text().splitlines()[0]
+
+
+def test_a_walk_recorded_by_the_daemon_builds_a_map_and_replays_on_it(walk: tuple[np.ndarray, list[Scan]],
+                                                                     tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture) -> None:
+    """The walk recorded by the daemon's own flight recorder (record.enabled) with a second
+    scanner beside it: `map build --format companion` takes the scanner named by --scan-topic,
+    refuses to guess between two, and the walk then replays on its map from its first pose."""
+    _, scans = walk
+    rec = recorder(tmp_path)
+    rec.start()
+    horizontal, vertical = rec.sensor("lidar_h"), rec.sensor("lidar_v")
+    for scan in scans:
+        horizontal(scan)
+        vertical(replace(scan, sensor_id="lidar_v"))
+    rec.close(timeout_s=10)
+    log = next((tmp_path / "rec").glob(FILE_GLOB))
+    out = tmp_path / "map.yaml"
+    assert main(["map", "build", str(log), "--format", "companion", "--out", str(out)]) == 2
+    assert "/sensors/lidar_h, /sensors/lidar_v" in capsys.readouterr().err and not out.exists()
+    assert main(["map", "build", str(log), "--format", "companion", "--scan-topic", "/sensors/lidar_h",
+                 "--out", str(out), "--wall-angle", "45"]) == 0
+    built = load_world(out)
+    assert len(built.walls) >= 8 and len(built.corners) >= 4 and built.survey_error_m < 0.03
+    report = tmp_path / "r.json"
+    assert main(["replay", str(log), "--format", "companion", "--scan-topic", "/sensors/lidar_h", "--map", str(out),
+                 "--start", "relocalize", "--report", str(report)]) == 0
+    result = json.loads(report.read_text())
+    assert result["scans"] == len(scans) and result["lost_fraction"] < 0.1 and result["position_median_m"] is None
 
 
 def test_the_real_corridor_walk_turns_as_its_wheel_odometry_says() -> None:
