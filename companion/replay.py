@@ -1,7 +1,8 @@
 """`companion replay`: a recorded 2-D scanner log through the lidar pipeline's localizer, scored
 against the log's own poses.
 
-The log is read by the replay backend's readers (drivers/lidar_replay.py); every scan goes, in
+The log is read by the replay backend's readers (drivers/lidar_replay.py; a recording of this
+daemon, ``--format companion``, by companion/recording/reader.py); every scan goes, in
 log order, through the same :class:`~companion.nav.planar.PlanarLocalizer` the ``lidar``
 pipeline builds (companion/nav/lidar_pipeline.py: its default thresholds, the map's survey error),
 the scanner taken as the body (the log's poses are the scanner's). Nothing of the reference
