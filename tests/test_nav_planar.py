@@ -17,7 +17,7 @@ from companion.nav.lidar_pipeline import planar_params
 from companion.nav.lines import LineSet, extract_lines
 from companion.nav.edges import occluding_ends
 from companion.nav.corner_hypotheses import pose_hypotheses
-from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer, _with_yaw
+from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer, PlanarParams, _with_yaw
 from drivers.lidar_models import UTM_30LX
 from companion.messages import Scan
 from sitl.raycast import WorldGeometry
@@ -754,3 +754,19 @@ def test_walls_that_disagree_widen_the_wall_fix() -> None:
     (clean_error, clean_sigma), (error, sigma) = errors[0.0], errors[0.1]
     assert abs(clean_error) < 0.005 and clean_sigma < 0.01
     assert 0.03 < abs(error) < 0.07 and abs(error) < 2.0 * sigma
+
+
+def test_more_wall_positions_than_the_cap_resume_nothing() -> None:
+    """The walls are never searched among a cut list: with more positions near the held pose than
+    ``reloc_wall_positions_max`` (a long drift among repeated walls) the walls resume nothing."""
+    geometry, walls = _room_without_corners()
+    truth = (1.6, 2.3, math.radians(20))
+    params = dataclasses.replace(PlanarParams(), reloc_wall_positions_max=1)  # the look-alike makes two
+    look_alike = walls + np.array([0.0, 1.0, 0.0, 1.0])
+    loc = PlanarLocalizer(np.zeros((0, 2)), 90, mount=MOUNT, walls=np.vstack((walls, look_alike)), params=params,
+                          initial_pose=(truth[0] + 0.8, truth[1] - 0.6, truth[2]))
+    rng = np.random.default_rng(35)
+    _lost_for(loc, scan_at(geometry, *truth, rng), 20)
+    for _ in range(2 * loc.params.reloc_confirm_frames):
+        fix = loc.update(scan_at(geometry, *truth, rng))
+        assert not fix.measured and "too many look-alikes" in fix.reason, fix.reason

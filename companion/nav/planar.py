@@ -156,6 +156,9 @@ class PlanarParams:
     reloc_wall_tolerance_m: float = 0.1  # a scan point on a wall, metres
     reloc_wall_margin: float = 0.1  # wall fraction lead needed to break a tie in corners
     reloc_min_wall_fraction: float = 0.5  # the winner's points on walls (when walls are known)
+    # Lost, more positions than this near the held pose putting lines on walls: too many look-alikes
+    # (a long drift in a building of repeated walls) to tell by walls, so they resume nothing.
+    reloc_wall_positions_max: int = 400
     wall_gate_m: float = 0.3  # an observed line within this of a map wall (and parallel) constrains, metres
     wall_angle_tolerance_deg: float = 3.0  # ... parallel within this, degrees
     wall_overlap_margin_m: float = 0.3  # ... and overlapping the wall's extent within this, metres
@@ -721,6 +724,8 @@ class PlanarLocalizer:
                                 p.reloc_wall_tolerance_m)
         if poses.shape[0] == 0:
             return None, "no lines of two wall directions on map walls near the held pose"
+        if poses.shape[0] > p.reloc_wall_positions_max:
+            return None, f"{poses.shape[0]} positions near the held pose put lines on walls: too many look-alikes"
         fraction = self._wall_fractions(points, poses, heading.yaw)
         best = int(np.argmax(fraction))
         if fraction[best] < p.reloc_min_wall_fraction:

@@ -26,7 +26,7 @@ from companion.nav.lines import LineSet
 
 def wall_hypotheses(lines: LineSet, use: np.ndarray, held: np.ndarray, yaw: float, walls: np.ndarray,
                     wall_dir: np.ndarray, family: np.ndarray, radius_m: float, parallel_deg: float,
-                    cluster_m: float, per_family: int = 12) -> np.ndarray:
+                    cluster_m: float) -> np.ndarray:
     """(H, 2) positions (m) within ``radius_m`` of ``held`` at which an observed line of each of
     two wall directions lies on a map wall.
 
@@ -35,7 +35,8 @@ def wall_hypotheses(lines: LineSet, use: np.ndarray, held: np.ndarray, yaw: floa
     and ``family`` (S,) int, the index of each wall's direction modulo 180 deg (walls of one
     family are parallel); ``parallel_deg``: a line lies on a wall only if they are parallel
     within this; displacements along one family closer than ``cluster_m`` are one (their
-    mean), and each family keeps the ``per_family`` smallest."""
+    mean). All of them are returned: the caller refuses to pick among too many rather than
+    dropping some (the true one among them)."""
     none = np.zeros((0, 2))
     if use.size == 0 or walls.shape[0] == 0:
         return none
@@ -63,7 +64,7 @@ def wall_hypotheses(lines: LineSet, use: np.ndarray, held: np.ndarray, yaw: floa
     for f in fams:
         pick = family[wall_j] == f
         sign = np.sign(wall_normal[wall_j[pick]] @ reference[f])
-        shifts[int(f)] = _clustered(sign * shift[line_i[pick], wall_j[pick]], cluster_m, per_family)
+        shifts[int(f)] = _clustered(sign * shift[line_i[pick], wall_j[pick]], cluster_m)
     out = []
     keys = sorted(shifts)
     for a_index, a in enumerate(keys):
@@ -89,10 +90,8 @@ def wall_families(wall_dir: np.ndarray, wall_angle_rad: float, offset_rad: float
     return np.mod(np.round((angle - offset_rad) / wall_angle_rad).astype(int), steps)
 
 
-def _clustered(values: np.ndarray, within: float, keep: int) -> np.ndarray:
-    """The means of runs of sorted ``values`` whose steps are under ``within``; the ``keep``
-    smallest in magnitude."""
+def _clustered(values: np.ndarray, within: float) -> np.ndarray:
+    """The means of the runs of sorted ``values`` whose steps are under ``within``."""
     v = np.sort(values)
     breaks = np.flatnonzero(np.diff(v) > within) + 1
-    means = np.array([run.mean() for run in np.split(v, breaks)])
-    return means[np.argsort(np.abs(means), kind="stable")[:keep]]
+    return np.array([run.mean() for run in np.split(v, breaks)])
