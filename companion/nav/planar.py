@@ -66,7 +66,7 @@ by walls). A fix that is not ``measured`` must not be sent to the autopilot.
 Relocalization (beyond the paper), tried when lost or when no pose is known: the wall
 directions fix the heading modulo the wall angle, so the candidate headings are a small
 discrete set (360 / A of them). For each, every correspondence (observed corner i, map corner
-a) proposes a translation; its score is the number of observed corners that then land within
+a) proposes a translation (corner_hypotheses.py); its score is the number of observed corners that then land within
 ``reloc_tolerance_m`` of a map corner (a score of 2 or more means an observed pair matches a
 map pair in distance AND direction). The best distinct poses are refined by the normal
 association and update; if the walls are known, the fraction of scan points lying on a wall
