@@ -378,8 +378,9 @@ def build_parser() -> argparse.ArgumentParser:
     replay.add_argument("--odometry", choices=["auto", "log", "noisy", "none"], default="auto",
                         help="motion between scans: the log's odometry, with simulated wheel errors, or none "
                              "(default auto: noisy when the log's odometry is its reference)")
-    replay.add_argument("--start", choices=["reference", "relocalize"], default="reference",
-                        help="start at the log's first reference pose (default) or relocalize from nothing")
+    replay.add_argument("--start", choices=["reference", "relocalize", "map"], default="reference",
+                        help="start at the log's first reference pose (default), relocalize from nothing, or at the "
+                             "map's start (map build sets it to the first scan's pose: the walk it was built from)")
     replay.add_argument("--seed", type=int, default=0, help="seed of the simulated wheel-odometry errors")
     replay.set_defaults(func=_cmd_replay)
 

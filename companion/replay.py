@@ -7,7 +7,9 @@ log order, through the same :class:`~companion.nav.planar.PlanarLocalizer` the `
 pipeline builds (companion/nav/lidar_pipeline.py: its default thresholds, the map's survey error),
 the scanner taken as the body (the log's poses are the scanner's). Nothing of the reference
 reaches the localizer except, by default, the first pose as the start (what
-``pipelines.lidar.initial_pose`` is on a vehicle; ``--start relocalize`` starts with none).
+``pipelines.lidar.initial_pose`` is on a vehicle; ``--start relocalize`` starts with none;
+``--start map`` at the map's ``start``, which ``companion map build`` sets to the first scan's
+pose: replaying the walk a map was built from, without poses of its own, starts where it began).
 
 Motion between scans (``--odometry``), standing in for the fused IMU of a vehicle:
 
@@ -237,16 +239,21 @@ def score(steps: list[ReplayStep]) -> dict[str, float | int | None]:
 
 def replay_report(log: str | Path, log_format: str, world_map: World, map_path: str | Path, *,
                   laser: str = "front", scan_topic: str | None = None, pose_topic: str | None = None,
-                  odometry: Odometry = "auto", start: Literal["reference", "relocalize"] = "reference",
+                  odometry: Odometry = "auto", start: Literal["reference", "relocalize", "map"] = "reference",
                   seed: int = 0) -> dict:
-    """The replay report of ``log`` on ``world_map``: the contract's fields and what the replay used."""
+    """The replay report of ``log`` on ``world_map``: the contract's fields and what the replay used.
+    ``start``: the log's first reference pose, none (relocalize), or the map's ``start`` pose."""
     scans = read_log(log, log_format, laser, scan_topic, pose_topic)
     if not scans:
         raise ValueError(f"{log}: no scan to replay")
     mode, why = resolve_odometry(scans, odometry)
     initial = scans[0].reference if start == "reference" else None
     if start == "reference" and initial is None:
-        raise ValueError("--start reference: the log has no reference pose; use --start relocalize")
+        raise ValueError("--start reference: the log has no reference pose; use --start map (a map built from "
+                         "this log starts where it began) or --start relocalize")
+    if start == "map":
+        x, y, yaw_deg = world_map.start
+        initial = (x, y, math.radians(yaw_deg))
     report = score(replay(scans, world_map, mode, initial, seed))
     return {**report, "log": str(log), "format": log_format, "map": str(map_path),
             "odometry": {"mode": mode, "why": why, "seed": seed if mode == "noisy" else None},

@@ -75,7 +75,8 @@ def test_a_walk_recorded_by_the_daemon_builds_a_map_and_replays_on_it(walk: tupl
                                                                      capsys: pytest.CaptureFixture) -> None:
     """The walk recorded by the daemon's own flight recorder (record.enabled) with a second
     scanner beside it: `map build --format companion` takes the scanner named by --scan-topic,
-    refuses to guess between two, and the walk then replays on its map from its first pose."""
+    refuses to guess between two, and the walk then replays on its map, relocalized or from the
+    map's start (the walk's first pose); it has no reference pose to start from."""
     _, scans = walk
     rec = recorder(tmp_path)
     rec.start()
@@ -93,10 +94,13 @@ def test_a_walk_recorded_by_the_daemon_builds_a_map_and_replays_on_it(walk: tupl
     built = load_world(out)
     assert len(built.walls) >= 8 and len(built.corners) >= 4 and built.survey_error_m < 0.03
     report = tmp_path / "r.json"
-    assert main(["replay", str(log), "--format", "companion", "--scan-topic", "/sensors/lidar_h", "--map", str(out),
-                 "--start", "relocalize", "--report", str(report)]) == 0
-    result = json.loads(report.read_text())
-    assert result["scans"] == len(scans) and result["lost_fraction"] < 0.1 and result["position_median_m"] is None
+    for start in ("relocalize", "map"):  # the map's start: where the walk it was built from began
+        assert main(["replay", str(log), "--format", "companion", "--scan-topic", "/sensors/lidar_h", "--map", str(out),
+                     "--start", start, "--report", str(report)]) == 0
+        result = json.loads(report.read_text())
+        assert result["scans"] == len(scans) and result["lost_fraction"] < 0.1 and result["position_median_m"] is None
+    assert main(["replay", str(log), "--format", "companion", "--scan-topic", "/sensors/lidar_h", "--map", str(out)]) == 2
+    assert "use --start map" in capsys.readouterr().err  # no reference pose to start from
 
 
 def test_the_real_corridor_walk_turns_as_its_wheel_odometry_says() -> None:
