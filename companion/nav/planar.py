@@ -50,9 +50,9 @@ variance of the beam spacing there). Walls in two directions, or one direction a
 give the position; a corridor's parallel walls alone give the cross-track position only, and the
 fix reports the along-track direction with ``lost_variance_m2`` (``walls_matched`` > 0,
 ``matched`` 0, ``degraded``, measured). As for corners, the covariance is scaled up by the
-residual chi-square per degree of freedom when the walls (and ends) disagree more than their
-variances say: a wall a few centimetres off its map line, or furniture along a wall taken for it
-(the walls' own residuals: along a corridor the ends are the only along-track measurement).
+residual chi-square per degree of freedom when the wall lines disagree more than their variances
+say: a wall a few centimetres off its map line, or furniture along a wall taken for it (the lines'
+own residuals; the ends are left out: along a corridor they are the only along-track measurement).
 
 States: ``tracking`` (>= ``min_matches`` corners), ``degraded`` (1 corner; walls only; or
 neither for fewer than ``lost_after_frames`` frames: then the fix is not a measurement,
@@ -66,9 +66,9 @@ by walls). A fix that is not ``measured`` must not be sent to the autopilot.
 Relocalization (beyond the paper), tried when lost or when no pose is known: the wall
 directions fix the heading modulo the wall angle, so the candidate headings are a small
 discrete set (360 / A of them). For each, every correspondence (observed corner i, map corner
-a) proposes a translation (corner_hypotheses.py); its score is the number of observed corners that then land within
-``reloc_tolerance_m`` of a map corner (a score of 2 or more means an observed pair matches a
-map pair in distance AND direction). The best distinct poses are refined by the normal
+a) proposes a translation (corner_hypotheses.py); its score is the number of observed corners
+that then land within ``reloc_tolerance_m`` of a map corner (a score of 2 or more means an
+observed pair matches a map pair in distance AND direction). The best distinct poses are refined by the normal
 association and update; if the walls are known, the fraction of scan points lying on a wall
 breaks ties (it sees, for instance, which room's doors the beams go through). Only a clear
 winner is accepted (more corners than every other distinct pose, or as many but a wall fraction
