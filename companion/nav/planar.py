@@ -111,7 +111,7 @@ from companion.nav.heading import (UNMEASURED_VARIANCE_RAD2, HeadingParams, Head
                                    heading_hypotheses, track_heading)
 from companion.nav.lines import LineParams, LineSet, extract_lines
 from companion.nav.corner_hypotheses import distinct_poses, pose_hypotheses
-from companion.nav.wall_hypotheses import wall_families, wall_hypotheses
+from companion.nav.wall_hypotheses import lines_on_walls, wall_families, wall_hypotheses
 from companion.nav.wall_grid import WallGrid
 from companion.messages import Scan
 
@@ -275,6 +275,7 @@ class PlanarLocalizer:
             edge = self.walls[:, 2:4] - self.walls[:, 0:2]
             self._wall_len = np.hypot(edge[:, 0], edge[:, 1])
             self._wall_dir = edge / np.maximum(self._wall_len, 1e-9)[:, None]  # unit, start -> end
+            self._wall_normal = np.column_stack((-self._wall_dir[:, 1], self._wall_dir[:, 0]))  # left of it
             # (S, 2): whether the wall's start / end is a listed corner. Only there does the map
             # vouch that the wall really ends; a map built from a log also ends walls where the
             # walk saw no more of them.
@@ -524,28 +525,15 @@ class PlanarLocalizer:
         if use.size == 0:
             return None
         rot = planar_rotation(heading.yaw)
-        angle = lines.alpha[use] + heading.yaw
-        normal = np.column_stack((np.cos(angle), np.sin(angle)))  # world normals of the observed lines
-        start, end = xy + lines.start[use] @ rot.T, xy + lines.end[use] @ rot.T
-        mid = 0.5 * (start + end)
-        # Residual to every wall along the wall's normal (a real wall is a little off its map line:
-        # measured along the observed line's normal, a long wall's residual would grow with its
-        # length), its angle and extent overlap.
-        parallel = np.abs(normal @ self._wall_dir.T) <= math.sin(math.radians(p.wall_angle_tolerance_deg))
-        wall_normal = np.column_stack((-self._wall_dir[:, 1], self._wall_dir[:, 0]))
-        resid = np.sum(wall_normal * self.walls[:, 0:2], axis=1)[None, :] - mid @ wall_normal.T
-        u_start = np.einsum("jik,ik->ji", start[:, None, :] - self.walls[None, :, 0:2], self._wall_dir)
-        u_end = np.einsum("jik,ik->ji", end[:, None, :] - self.walls[None, :, 0:2], self._wall_dir)
-        overlap = ((np.maximum(u_start, u_end) >= -p.wall_overlap_margin_m)
-                   & (np.minimum(u_start, u_end) <= self._wall_len + p.wall_overlap_margin_m))
-        candidate = parallel & overlap & (np.abs(resid) <= p.wall_gate_m)
+        mid, resid, candidate = lines_on_walls(lines, use, xy, heading.yaw, self.walls, self._wall_dir, self._wall_len,
+                                               p.wall_angle_tolerance_deg, p.wall_gate_m, p.wall_overlap_margin_m)
         has = candidate.any(axis=1)
         if not has.any():
             return None
         nearest = np.argmin(np.where(candidate, np.abs(resid), np.inf), axis=1)[has]
         # Along the map wall's normal, not the observed line's: a corridor's parallel walls then
         # leave the along-track direction exactly unmeasured.
-        n, r = wall_normal[nearest], resid[has, nearest]
+        n, r = self._wall_normal[nearest], resid[has, nearest]
         k = use[has]
         tangent = np.column_stack((-np.sin(lines.alpha[k]), np.cos(lines.alpha[k])))
         lever = np.einsum("ij,ij->i", lines.centroid[k], tangent)  # the offset is measured at the foot of the normal
@@ -721,9 +709,9 @@ class PlanarLocalizer:
         assert self._pose is not None and self.walls is not None
         held = np.array(self._pose[:2])
         use = np.flatnonzero(lines.length >= p.heading.min_length_m)
-        poses = wall_hypotheses(lines, use, held, heading.yaw, self.walls, self._wall_dir, self._wall_family,
-                                max(p.reloc_local_m, self._drift_radius()), p.wall_angle_tolerance_deg,
-                                p.reloc_wall_tolerance_m)
+        poses = wall_hypotheses(lines, use, held, heading.yaw, self.walls, self._wall_dir, self._wall_len,
+                                self._wall_family, max(p.reloc_local_m, self._drift_radius()),
+                                p.wall_angle_tolerance_deg, p.reloc_wall_tolerance_m)
         if poses.shape[0] == 0:
             return None, "no lines of two wall directions on map walls near the held pose"
         if poses.shape[0] > p.reloc_wall_positions_max:

@@ -24,39 +24,56 @@ from companion.frames import planar_rotation
 from companion.nav.lines import LineSet
 
 
+def lines_on_walls(lines: LineSet, use: np.ndarray, xy: np.ndarray, yaw: float, walls: np.ndarray,
+                   wall_dir: np.ndarray, wall_len: np.ndarray, parallel_deg: float, gate_m: float,
+                   overlap_margin_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Which observed lines may lie on which map walls, seen from the position ``xy`` (m) at
+    heading ``yaw`` (rad): (the lines' middles (L, 2) in the map, m; the displacement of ``xy``
+    along each wall's normal (left of its direction) that puts each line's middle on the wall's
+    line (L, S), m; whether the pair may match (L, S): parallel within ``parallel_deg``, that
+    displacement within ``gate_m``, the line overlapping the wall's extent within
+    ``overlap_margin_m``). ``use``: indices of the lines (L of them); ``walls`` (S, 4) [x0, y0, x1,
+    y1] m with unit directions ``wall_dir`` and lengths ``wall_len`` (m). Measured along the wall's
+    normal, not the line's: a real wall is a little off its map line, and along the line's normal
+    a long wall's residual would grow with its length."""
+    angle = lines.alpha[use] + yaw
+    normal = np.column_stack((np.cos(angle), np.sin(angle)))  # world normals of the observed lines
+    rot = planar_rotation(yaw)
+    start, end = xy + lines.start[use] @ rot.T, xy + lines.end[use] @ rot.T
+    mid = 0.5 * (start + end)
+    wall_normal = np.column_stack((-wall_dir[:, 1], wall_dir[:, 0]))
+    parallel = np.abs(normal @ wall_dir.T) <= math.sin(math.radians(parallel_deg))
+    shift = np.sum(wall_normal * walls[:, 0:2], axis=1)[None, :] - mid @ wall_normal.T
+    u0 = np.einsum("lsk,sk->ls", start[:, None, :] - walls[None, :, 0:2], wall_dir)
+    u1 = np.einsum("lsk,sk->ls", end[:, None, :] - walls[None, :, 0:2], wall_dir)
+    overlap = (np.maximum(u0, u1) >= -overlap_margin_m) & (np.minimum(u0, u1) <= wall_len + overlap_margin_m)
+    return mid, shift, parallel & overlap & (np.abs(shift) <= gate_m)
+
+
 def wall_hypotheses(lines: LineSet, use: np.ndarray, held: np.ndarray, yaw: float, walls: np.ndarray,
-                    wall_dir: np.ndarray, family: np.ndarray, radius_m: float, parallel_deg: float,
-                    cluster_m: float) -> np.ndarray:
+                    wall_dir: np.ndarray, wall_len: np.ndarray, family: np.ndarray, radius_m: float,
+                    parallel_deg: float, cluster_m: float) -> np.ndarray:
     """(H, 2) positions (m) within ``radius_m`` of ``held`` at which an observed line of each of
     two wall directions lies on a map wall.
 
     ``use``: indices of the lines to place (long enough to trust their direction); ``yaw``: the
-    heading (rad); ``walls`` (S, 4) [x0, y0, x1, y1] m with unit directions ``wall_dir`` (S, 2)
-    and ``family`` (S,) int, the index of each wall's direction modulo 180 deg (walls of one
-    family are parallel); ``parallel_deg``: a line lies on a wall only if they are parallel
-    within this; displacements along one family closer than ``cluster_m`` are one (their
-    mean). All of them are returned: the caller refuses to pick among too many rather than
-    dropping some (the true one among them)."""
+    heading (rad); ``walls``, ``wall_dir``, ``wall_len`` as for :func:`lines_on_walls`, and
+    ``family`` (S,) int, the index of each wall's direction modulo 180 deg (walls of one family
+    are parallel); ``parallel_deg``: a line lies on a wall only if they are parallel within
+    this; displacements along one family closer than ``cluster_m`` are one (their mean). All of
+    them are returned: the caller refuses to pick among too many rather than dropping some (the
+    true one among them)."""
     none = np.zeros((0, 2))
     if use.size == 0 or walls.shape[0] == 0:
         return none
-    angle = lines.alpha[use] + yaw
-    normal = np.column_stack((np.cos(angle), np.sin(angle)))  # world normals of the observed lines
-    rot = planar_rotation(yaw)
-    start, end = held + lines.start[use] @ rot.T, held + lines.end[use] @ rot.T
-    mid = 0.5 * (start + end)
-    wall_normal = np.column_stack((-wall_dir[:, 1], wall_dir[:, 0]))
-    parallel = np.abs(normal @ wall_dir.T) <= math.sin(math.radians(parallel_deg))  # (L, S)
-    # The displacement along each wall's normal that puts the line's middle on the wall's line.
-    shift = (np.einsum("sk,sk->s", wall_normal, walls[:, 0:2])[None, :] - mid @ wall_normal.T)
-    # The line must overlap the wall once moved by at most the radius along it as well.
-    u0 = np.einsum("lsk,sk->ls", start[:, None, :] - walls[None, :, 0:2], wall_dir)
-    u1 = np.einsum("lsk,sk->ls", end[:, None, :] - walls[None, :, 0:2], wall_dir)
-    length = np.hypot(*(walls[:, 2:4] - walls[:, 0:2]).T)
-    overlap = (np.maximum(u0, u1) >= -radius_m) & (np.minimum(u0, u1) <= length + radius_m)
-    line_i, wall_j = np.nonzero(parallel & overlap & (np.abs(shift) <= radius_m))
+    # Each line on a wall within the radius along its normal, overlapping it once moved by at most
+    # the radius along it as well.
+    _, shift, pairs = lines_on_walls(lines, use, held, yaw, walls, wall_dir, wall_len, parallel_deg,
+                                     radius_m, radius_m)
+    line_i, wall_j = np.nonzero(pairs)
     if line_i.size == 0:
         return none
+    wall_normal = np.column_stack((-wall_dir[:, 1], wall_dir[:, 0]))
     # Per family, displacements along the family's reference normal (its first wall's).
     fams = np.unique(family[wall_j])
     reference = {f: wall_normal[wall_j[family[wall_j] == f][0]] for f in fams}
