@@ -132,8 +132,9 @@ def recorded_scans(path: str | Path, scan_topic: str | None = None) -> list[LogS
 
     schema = message_schema(Scan).name
     by_topic: dict[str, list[LogScan]] = {}
-    for msg in Recording.open(path).messages():
-        if msg.schema == schema and scan_topic in (None, msg.topic):
+    # With the topic named, only its messages are decoded (a recording is mostly IMU, estimates, MAVLink).
+    for msg in Recording.open(path).messages(None if scan_topic is None else {scan_topic}):
+        if msg.schema == schema:
             scan = decode_message(Scan, msg.doc)
             by_topic.setdefault(msg.topic, []).append(
                 LogScan(scan.t_capture, scan.angles_rad, scan.ranges_m, scan.valid, None, None))
