@@ -13,7 +13,8 @@ pose: replaying the walk a map was built from, without poses of its own, starts 
 
 Motion between scans (``--odometry``), standing in for the fused IMU of a vehicle:
 
-- ``log``: the increments of the log's own odometry poses;
+- ``log``: the increments of the log's own odometry poses (a BreezySLAM log's: its wheel ticks
+  through BreezySLAM's model of its rover, drivers/lidar_replay.py ``wheel_odometry``);
 - ``noisy``: the same with wheel-odometry errors drawn (``--seed``): each step's length and turn
   off by :data:`WHEEL_ERROR_FRACTION` (1-sigma) and the heading by
   :data:`WHEEL_ERROR_DEG_PER_M` per metre driven;
@@ -98,7 +99,7 @@ def read_log(path: str | Path, log_format: str, laser: str = "front", scan_topic
     both its reference and its odometry, like the CARMEN "corrected" logs (so ``auto`` adds
     simulated wheel-odometry errors to it); a scan outside the pose topic's time span has neither."""
     from drivers.lidar_replay import (breezyslam_angles, breezyslam_valid, carmen_valid, read_breezyslam,
-                                      read_carmen, read_npz, read_ros_bag)
+                                      read_carmen, read_npz, read_ros_bag, wheel_odometry)
 
     if log_format == "ros":
         return [LogScan(s.t_s, s.angles_rad, s.ranges_m, s.valid, s.pose_ned, s.pose_ned)
@@ -109,9 +110,10 @@ def read_log(path: str | Path, log_format: str, laser: str = "front", scan_topic
         return [LogScan(s.t_s, s.angles_rad, s.ranges_m, carmen_valid(s, log_max), s.pose_ned, s.odometry_ned)
                 for s in scans]
     if log_format == "breezyslam":
-        stamps, ranges, _ = read_breezyslam(path)  # wheel ticks need the rig's wheel geometry: not used
+        stamps, ranges, ticks = read_breezyslam(path)
         angles = breezyslam_angles()
-        return [LogScan(float(t), angles, r, breezyslam_valid(r), None, None) for t, r in zip(stamps, ranges)]
+        return [LogScan(float(t), angles, r, breezyslam_valid(r), None, tuple(map(float, odometry)))  # type: ignore[arg-type]
+                for t, r, odometry in zip(stamps, ranges, wheel_odometry(ticks))]
     if log_format == "npz":
         angles, stamps, ranges, valid, _ = read_npz(path)
         return [LogScan(float(t), angles, r, v, None, None) for t, r, v in zip(stamps, ranges, valid)]

@@ -7,7 +7,8 @@ Formats:
   whitespace separated: token 0 timestamp (microseconds), tokens 2 and 3 left and right wheel
   odometry (ticks), tokens 24 .. 705 the 682 ranges (millimetres, 0 = no return), one trailing
   token that BreezySLAM's own loader ignores too. The timestamp is taken as the capture time
-  of the scan's first beam.
+  of the scan's first beam. The ticks become the scanner's odometry poses with BreezySLAM's
+  model of the rover that recorded these logs (:data:`MINES_ROVER`, :func:`wheel_odometry`).
 
   Sweep direction, checked on the corridor recording: the beams run in Hokuyo step order,
   from the scanner's right to its left (counter-clockwise seen from above), beam i being step
@@ -125,6 +126,39 @@ def read_breezyslam(path: str | Path) -> tuple[np.ndarray, np.ndarray, np.ndarra
         odometry.append(odo)
     return (np.array(stamps), np.array(ranges).reshape(-1, BREEZYSLAM_BEAMS),
             np.array(odometry, dtype=np.int64).reshape(-1, 2))
+
+
+@dataclass(frozen=True)
+class WheelRig:
+    """A differential-drive robot's odometry geometry, as BreezySLAM's ``WheeledVehicle`` models it."""
+
+    wheel_radius_m: float
+    half_axle_m: float  # wheel to the axle's middle, m
+    ticks_per_wheel_turn: float
+    scanner_ahead_m: float  # the scanner's centre ahead of the axle's middle, m
+
+
+# The rover of the BreezySLAM logs (BreezySLAM's examples/mines.py: wheels of 77 mm, half axle 165 mm,
+# laser 145 mm ahead). Its ``ticks * 180 / 2000`` degrees per wheel, taken by BreezySLAM's
+# computePoseChange with twice the textbook distance and turn, is 2000 ticks per wheel turn; the
+# corridor log's walls line up with that (tests/test_real_corridor.py), not with half of it.
+MINES_ROVER = WheelRig(wheel_radius_m=0.077, half_axle_m=0.165, ticks_per_wheel_turn=2000.0, scanner_ahead_m=0.145)
+
+
+def wheel_odometry(ticks: np.ndarray, rig: WheelRig = MINES_ROVER, heading_scale: float = 1.0) -> np.ndarray:
+    """(S, 3) scanner poses [x north m, y east m, yaw rad] (FRD: yaw grows clockwise seen from
+    above) integrated from wheel ticks (S, 2) [left, right], in the frame of the first scan's axle
+    (so the first pose is ``(scanner_ahead_m, 0, 0)``). Each step moves the axle's middle by the
+    mean of the wheel arcs along the mean heading of the step and turns it by (left - right) /
+    (2 half axle), times ``heading_scale`` (an effective-track calibration; 1: the rig's)."""
+    arcs = np.diff(np.asarray(ticks, dtype=float), axis=0) * (2.0 * math.pi / rig.ticks_per_wheel_turn) * rig.wheel_radius_m
+    forward = arcs.mean(axis=1)
+    turn = heading_scale * (arcs[:, 0] - arcs[:, 1]) / (2.0 * rig.half_axle_m)
+    yaw = np.concatenate(([0.0], np.cumsum(turn)))
+    heading = yaw[:-1] + 0.5 * turn
+    x = np.concatenate(([0.0], np.cumsum(forward * np.cos(heading))))
+    y = np.concatenate(([0.0], np.cumsum(forward * np.sin(heading))))
+    return np.column_stack((x + rig.scanner_ahead_m * np.cos(yaw), y + rig.scanner_ahead_m * np.sin(yaw), yaw))
 
 
 def breezyslam_valid(ranges_m: np.ndarray) -> np.ndarray:

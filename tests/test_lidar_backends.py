@@ -23,8 +23,8 @@ from companion.schema import SchemaError, load_text
 from drivers.base import Backend, EndOfData, SensorDriver
 from drivers.checks import sensor_driver
 from drivers.lidar_models import MODELS, URG_04LX, UTM_30LX
-from drivers.lidar_replay import (ReplayLidar, ReplayLidarSettings, breezyslam_angles, carmen_valid,
-                                  parse_carmen_line, read_breezyslam, read_carmen, record_npz)
+from drivers.lidar_replay import (MINES_ROVER, ReplayLidar, ReplayLidarSettings, breezyslam_angles, carmen_valid,
+                                  parse_carmen_line, read_breezyslam, read_carmen, record_npz, wheel_odometry)
 from sitl.lidar_sim import SimLidarSettings, SimulatedLidar
 from drivers.mount import Mount
 from companion.messages import Scan
@@ -214,27 +214,36 @@ def test_breezyslam_sweep_direction_matches_odometry() -> None:
     """Scans a few apart, placed with the wheel odometry, overlap with the driver's beam angles and
     not with the mirrored ones (see drivers/lidar_replay.py)."""
     stamps, ranges, ticks = read_breezyslam(REAL_FILE)
-    wheel_rad = np.radians(ticks * 180.0 / 2000.0)
-    heading = np.cumsum(np.r_[0.0, 0.077 / 0.165 * np.diff(wheel_rad[:, 1] - wheel_rad[:, 0])])  # CCW, rad
-    distance = np.r_[0.0, 0.077 * np.diff(wheel_rad.sum(axis=1)) / 2]
-    mid = heading - np.r_[0.0, np.diff(heading)] / 2
-    position = np.column_stack((np.cumsum(distance * np.cos(mid)), np.cumsum(distance * np.sin(mid))))  # x fwd, y left
+    poses = wheel_odometry(ticks)  # the scanner's, FRD
 
-    def points(k: int, ccw_angles: np.ndarray) -> np.ndarray:
+    def points(k: int, angles: np.ndarray) -> np.ndarray:
         ok = (ranges[k] > 0.02) & (ranges[k] < 4.0)
-        r, a = ranges[k][ok], ccw_angles[ok]
-        x, y = r * np.cos(a) + 0.145, r * np.sin(a)  # laser 145 mm ahead of the axle
-        c, s = math.cos(heading[k]), math.sin(heading[k])
-        return position[k] + np.column_stack((c * x - s * y, s * x + c * y))
+        r, a = ranges[k][ok], angles[ok]
+        x, y, yaw = poses[k]
+        c, s = math.cos(yaw), math.sin(yaw)
+        return np.array([x, y]) + np.column_stack((r * np.cos(a), r * np.sin(a))) @ np.array([[c, -s], [s, c]]).T
 
     def misfit(k: int, ccw_angles: np.ndarray) -> float:
         p, q = points(k, ccw_angles), points(k + 3, ccw_angles)
         return float(np.median(np.sqrt(((q[:, None] - p[None]) ** 2).sum(-1)).min(axis=1)))
 
-    driver_ccw = -breezyslam_angles()  # the driver's angles are positive to the right; odometry's are CCW
-    turning = [k for k in range(0, len(stamps) - 3, 7) if abs(heading[k + 3] - heading[k]) > math.radians(10)]
-    wins = [misfit(k, driver_ccw) < misfit(k, -driver_ccw) for k in turning]
+    driver = breezyslam_angles()
+    turning = [k for k in range(0, len(stamps) - 3, 7) if abs(poses[k + 3, 2] - poses[k, 2]) > math.radians(10)]
+    wins = [misfit(k, driver) < misfit(k, -driver) for k in turning]
     assert len(turning) >= 15 and sum(wins) >= 0.8 * len(wins)
+
+
+def test_wheel_odometry_places_the_scanner_ahead_of_the_axle_and_turns_clockwise_when_the_left_wheel_leads() -> None:
+    """BreezySLAM's model of the rover (drivers/lidar_replay.py, MINES_ROVER): equal ticks drive
+    straight ahead by the wheel arc; the left wheel rolling further turns right (FRD yaw grows) by
+    the arc difference over the axle, and the scanner, 145 mm ahead, swings with it."""
+    per_m = MINES_ROVER.ticks_per_wheel_turn / (2 * math.pi * MINES_ROVER.wheel_radius_m)  # ticks per metre of arc
+    arc = MINES_ROVER.half_axle_m * math.pi / 2  # each wheel's arc, opposite ways, for a quarter turn in place
+    ticks = np.array([[0.0, 0.0], [per_m, per_m], [per_m * (1 + arc), per_m * (1 - arc)]])
+    poses = wheel_odometry(ticks)
+    assert poses[0] == pytest.approx([0.145, 0.0, 0.0])
+    assert poses[1] == pytest.approx([1.145, 0.0, 0.0])  # one metre straight ahead
+    assert poses[2] == pytest.approx([1.0, 0.145, math.pi / 2])  # turned right in place: the scanner east of the axle
 
 
 def _carmen_world_points(scan: object, log_max: float) -> np.ndarray:

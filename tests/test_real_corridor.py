@@ -55,16 +55,14 @@ import pytest
 from companion.nav.heading import HeadingResult, track_heading, wall_mod
 from companion.nav.lines import LineParams, LineSet, extract_lines
 from drivers.hokuyo import HokuyoScip, HokuyoSettings
-from drivers.lidar_replay import breezyslam_angles, read_breezyslam
+from drivers.lidar_replay import MINES_ROVER, breezyslam_angles, read_breezyslam, wheel_odometry
 from companion.messages import Scan
 from sitl.scip_emulator import MODELS, ScipEmulator
 
 CORRIDOR = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "urg04lx-corridor-exp2.dat"
 
-# Rig (README / BreezySLAM examples/mines.py) and the odometry model of the module docstring.
-WHEEL_RADIUS_M = 0.077
-HALF_AXLE_M = 0.165
-WHEEL_RAD_PER_TICK = math.radians(180 / 2000)
+# The odometry model of the module docstring: the rig is drivers/lidar_replay.py's MINES_ROVER
+# (README / BreezySLAM examples/mines.py), whose wheel_odometry is BreezySLAM's.
 BREEZYSLAM_SCALE = 2.0  # BreezySLAM's heading change over the textbook one with these ticks
 CALIBRATED_SCALE = 1.09 * BREEZYSLAM_SCALE  # best wall alignment on this file (measured)
 ODOMETRY_LEAD_S = 0.15  # the odometry of a line leads its scan by this much (measured)
@@ -107,9 +105,7 @@ def odometry_heading(stamps_s: np.ndarray, ticks: np.ndarray, scale: float = BRE
                      lead_s: float = ODOMETRY_LEAD_S) -> np.ndarray:
     """FRD heading (rad, 0 at the first scan) from the wheel ticks [left, right], at each
     line's scan time (the odometry interpolated ``lead_s`` before the line's timestamp)."""
-    arc = np.diff(ticks.astype(float), axis=0) * WHEEL_RAD_PER_TICK * WHEEL_RADIUS_M  # (S-1, 2) m
-    d_yaw = scale * (arc[:, 0] - arc[:, 1]) / (2 * HALF_AXLE_M)  # left further: clockwise, yaw grows
-    yaw = np.concatenate(([0.0], np.cumsum(d_yaw)))
+    yaw = wheel_odometry(ticks, MINES_ROVER, heading_scale=scale / BREEZYSLAM_SCALE)[:, 2]  # left further: yaw grows
     at_scan = np.interp(stamps_s - lead_s, stamps_s, yaw)
     return at_scan - at_scan[0]
 
