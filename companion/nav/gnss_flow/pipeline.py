@@ -87,7 +87,7 @@ import cv2
 import numpy as np
 
 from companion.calibration import CameraCalibration, load_calibration
-from companion.frames import rotation_from_euler
+from companion.frames import euler_from_rotation, rotation_from_euler
 from companion.health import Health, State
 from companion.messages import AttitudeEstimate, Estimate, FlowField, Frame, GnssFix, ImuSample, RangeEstimate
 from companion.nav.gnss_flow.config import GnssFlowConfig
@@ -106,6 +106,7 @@ from drivers.mount import Mount
 
 STREAM = "gnss_flow"
 PITCH_OFFSET_TAU_S = 5.0  # the pitch offset in the gyro roll blend's Euler conversion is averaged over this, s
+PITCH_OFFSET_FRESH_S = 0.5  # a pitch offset older than this (no focus of expansion since: a turn) is not measured, s
 IMU_BRACKET_S = 0.25  # samples this far beyond a span bracket it for the gyro's mean (delay and IMU_HOLD_S included), s
 IMU_HISTORY_S = 2.0  # IMU samples kept beyond the smoothing lag, s: a frame interval and the wait for its fix
 FRAME_SLACK = 0.1  # a frame up to this fraction of 1 / pair_rate_hz early is used (capture-time jitter)
@@ -165,6 +166,10 @@ class GnssFlowPipeline:
         self._gyro_pitch_yaw = {p.source: (GyroAidedAngle(tau), GyroAidedAngle(tau))
                                 for p in self.paths} if gyro and tau > 0 else {}
         self._pitch_offset: float | None = None  # the first path's pitch offsets averaged over PITCH_OFFSET_TAU_S, rad
+        self._newest_offsets: tuple[float, float, float] | None = None  # the first path's: (capture s, pitch offset, drift rad)
+        # the roll blend's pitch (_carry_pitch): learning a bias of the gyro's pitch rate from the averaged offset's
+        # lag and noise, it carried that into the turns (Table 1 roll std 0.28 deg instead of 0.24)
+        self._carried_pitch = GyroAidedAngle(PITCH_OFFSET_TAU_S, learn_bias=False)
         # the gyro's bias (body FRD rad/s) learnt from the flow in straight flight, taken off its rates
         self.gyro_bias = np.zeros(3)
 
@@ -418,6 +423,7 @@ class GnssFlowPipeline:
         if path is self.paths[0]:
             previous = offsets[0] if self._pitch_offset is None else self._pitch_offset
             self._pitch_offset = previous + min(1.0, dt / PITCH_OFFSET_TAU_S) * (offsets[0] - previous)
+            self._newest_offsets = (later.t, *offsets)
         if specific_force is not None:
             coordinated, lateral = coordination_check(specific_force, math.radians(cfg.max_lateral_deg))
         else:
@@ -458,24 +464,53 @@ class GnssFlowPipeline:
         SITL with 0.5 m/s gusts). Beyond ``max_lateral_deg`` (a slip, or a push-over where the
         normal specific force vanishes: in SITL a 44 deg roll-out read 180 deg) the pseudo-roll is
         not the airframe's and the gyro alone carries the roll. The gyro's Euler rate takes the
-        body's pitch: the pseudo-pitch plus the pitch offset averaged over the pairs of the last
-        ``PITCH_OFFSET_TAU_S`` (in a turn the yaw rate's share of the roll rate goes with the pitch:
-        with one pair's offset, its ~1 deg of flow noise put 0.5 deg/s into the roll rate and nearly
-        doubled the roll error, sitl/gnss_flow_flight_eval.py)."""
+        blend's roll and the body's pitch carried through turns (:meth:`_carry_pitch`; in a turn the
+        yaw rate's share of the roll rate goes with the pitch: with one pair's offset instead of an
+        average, its ~1 deg of flow noise put 0.5 deg/s into the roll rate and nearly doubled the roll
+        error, sitl/gnss_flow_flight_eval.py)."""
         last = blend.last_time_s
         if last is not None and pseudo.time_s <= last + SAME_INSTANT_S:  # the other path's instant at the same time
             return blend.update(last, pseudo.roll, 0.0)
         inside = self._imu_since(last, pseudo.time_s)
         if not inside:
             blend.reset()
+            self._carried_pitch.reset()
+            self._carry_pitch(pseudo, pseudo.roll, np.zeros(3), 0.0)  # restarts at the measured pitch, if there is one
             return blend.update(pseudo.time_s, pseudo.roll, 0.0)
         coordinated, lateral = coordination_check(np.mean([s.accel_body for s in inside], axis=0),
                                                   math.radians(self.cfg.max_lateral_deg))
         roll = pseudo.roll - lateral if coordinated else None
-        pitch = pseudo.pitch + (self._pitch_offset or 0.0)
-        rates = euler_rates_from_body_rates(pseudo.roll if roll is None else roll, pitch,
-                                            self._gyro_mean(last, pseudo.time_s))
-        return blend.update(pseudo.time_s, roll, rates[0] * (pseudo.time_s - last))
+        gyro = self._gyro_mean(last, pseudo.time_s)
+        dt = pseudo.time_s - last
+        roll_then = blend.angle
+        assert roll_then is not None  # the blend has a last time, so an angle
+        rates = euler_rates_from_body_rates(roll_then, self._carry_pitch(pseudo, roll_then, gyro, dt), gyro)
+        return blend.update(pseudo.time_s, roll, rates[0] * dt)
+
+    def _carry_pitch(self, pseudo: PseudoAttitude, roll: float, gyro: np.ndarray, dt: float) -> float:
+        """The body pitch (rad) the roll blend converts the gyro's ``dt`` s (up to ``pseudo``'s instant,
+        body rates ``gyro`` rad/s, at ``roll`` rad) with: the carried pitch at the span's start, which
+        is then advanced to the instant. The carried pitch follows the pseudo-attitude turned by the
+        first path's newest offsets (:func:`.true_attitude.wind_to_body`) while its pairs measure them
+        (the newest within ``PITCH_OFFSET_FRESH_S``), smoothed over ``PITCH_OFFSET_TAU_S`` with the
+        gyro's pitch rate, and the gyro alone where none does: in a turn (no focus of expansion) the
+        angle of attack changes, and a stale offset put the error of the pitch times the yaw rate
+        into the roll rate, up to 1.5 deg/s at 45 deg of bank in the Table 1 flight (the blend then
+        carried its learnt share of it for seconds after the turn: roll errors of +1-1.5 deg).
+        Before any offset: the pseudo-pitch."""
+        carried = self._carried_pitch
+        newest = self._newest_offsets
+        measured = None
+        if newest is not None and pseudo.time_s - newest[0] <= PITCH_OFFSET_FRESH_S:
+            measured = euler_from_rotation(rotation_from_euler(roll, pseudo.pitch, pseudo.yaw)
+                                           @ wind_to_body(newest[1], newest[2]).T)[1]
+        pitch = carried.angle
+        if pitch is None:
+            if measured is not None:
+                carried.update(pseudo.time_s, measured, 0.0)
+            return pseudo.pitch + (self._pitch_offset or 0.0)
+        carried.update(pseudo.time_s, measured, euler_rates_from_body_rates(roll, pitch, gyro)[1] * dt)
+        return pitch
 
     def _imu_since(self, last: float | None, t: float) -> list[ImuSample]:
         """The IMU samples after ``last`` up to ``t`` (s); for a span with none in it, shorter than

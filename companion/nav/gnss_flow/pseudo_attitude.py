@@ -325,7 +325,10 @@ class GyroAidedAngle:
     ``tau_s`` (s), with the gyro's rate bias estimated (integral term), so a constant gyro bias
     leaves no steady error. Critically damped: ``angle' = rate - bias + (2 / tau) e``,
     ``bias' = -e / tau^2``, ``e = measured - angle``; its response to the measurement is a
-    second-order low pass of natural period ``2 pi tau``. After a (re)start the angle's gain is
+    second-order low pass of natural period ``2 pi tau``. Without ``learn_bias`` the bias stays 0:
+    a first-order blend, ``angle' = rate + (2 / tau) e``, for an angle whose gyro rate has no bias
+    of its own to learn (the gyro's is taken off before) and whose measurement's slow errors must
+    not be learnt as one. After a (re)start the angle's gain is
     the running mean's (1/n at the n-th measurement) until the filter's is larger, so it does
     not hold the first measurement's error for a time constant.
 
@@ -334,8 +337,9 @@ class GyroAidedAngle:
     expansion's, from pair to pair; the gyro is exact there, its errors a bias and a scale error,
     slow. Angles rad (wrapped to [-pi, pi]), times s, on the caller's clock, in time order."""
 
-    def __init__(self, tau_s: float) -> None:
+    def __init__(self, tau_s: float, learn_bias: bool = True) -> None:
         self.tau_s = tau_s
+        self.learn_bias = learn_bias
         self._time_s: float | None = None
         self._start_s: float | None = None  # time of the first update since construction or reset
         self._measured_s: float | None = None  # time of the last update with a measurement
@@ -347,6 +351,11 @@ class GyroAidedAngle:
     def last_time_s(self) -> float | None:
         """Time (s) of the last update, None before the first or after :meth:`reset`."""
         return self._time_s
+
+    @property
+    def angle(self) -> float | None:
+        """The angle (rad) at the last update, None before the first or after :meth:`reset`."""
+        return None if self._time_s is None else self._angle
 
     @property
     def last_measured_s(self) -> float | None:
@@ -394,5 +403,6 @@ class GyroAidedAngle:
         error = wrap_pi(measured - predicted)
         gain = max(min(1.0, 2.0 * dt / self.tau_s), 1.0 / self._measurements)  # a running mean at the start
         self._angle = wrap_pi(predicted + gain * error)
-        self._bias -= dt / self.tau_s**2 * error
+        if self.learn_bias:
+            self._bias -= dt / self.tau_s**2 * error
         return self._angle
