@@ -10,8 +10,8 @@ The bridge is a ground station on an extra link of the SITL vehicle (start the v
 matching ``--gcs``, here ``udpout:127.0.0.1:14560``; ``companion sitl`` does it when
 ``sitl.scip_sensors`` names sensors). It asks the vehicle for ``SIM_STATE`` at 100 Hz
 (SET_MESSAGE_INTERVAL, asked again whenever the stream stops for a second), converts every
-sample to LOCAL_NED at ``--home`` (:func:`companion.frames.ned_from_geodetic`, as
-sitl/truth.py does) stamped with this process's monotonic clock on arrival, and keeps
+sample to LOCAL_NED at ``--home`` (as sitl/truth.py does: the built-in vehicle's ATT_POS_MOCAP
+refines the 1.1 cm steps of SIM_STATE's lat_int/lon_int) stamped with this process's monotonic clock on arrival, and keeps
 two seconds of it. For every ``--sensor`` it serves a :class:`sitl.scip_emulator.ScipEmulator`
 on TCP 127.0.0.1:PORT, so the daemon's *real* driver (drivers/hokuyo.py, ``backend: real``,
 ``host: 127.0.0.1``) talks SCIP 2.0 to it exactly as to an Ethernet scanner.
@@ -74,13 +74,13 @@ from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import ardupilotmega as mav  # noqa: E402
 
 from companion.config import MountConfig  # noqa: E402
-from companion.frames import ned_from_geodetic  # noqa: E402
 from companion.schema import SchemaError  # noqa: E402
 from drivers.lidar_models import MODELS as LIDAR_MODELS  # noqa: E402
 from sitl.lidar_sim import SimLidarSettings, SimulatedLidar  # noqa: E402
 from drivers.mount import Mount  # noqa: E402
 from companion.messages import Scan  # noqa: E402
 from sitl.scip_emulator import ScipEmulator  # noqa: E402
+from sitl.truth import MocapRefinement, sim_state_position  # noqa: E402
 from companion.world import World, load_world  # noqa: E402
 
 SIM_STATE_HZ = 100.0
@@ -196,6 +196,7 @@ class VehicleTruth:
                                                dialect="ardupilotmega")
         self.samples = 0
         self.requests = 0
+        self._mocap = MocapRefinement()
         self._autopilot: tuple[int, int] | None = None
         self._last_sample: float | None = None
         self._last_request = -math.inf
@@ -221,11 +222,10 @@ class VehicleTruth:
 
     def _handle(self, msg: mav.MAVLink_message, now: float) -> None:
         mtype = msg.get_type()
-        if mtype == "SIM_STATE":
-            lat_int = getattr(msg, "lat_int", 0)
-            lat = lat_int * 1e-7 if lat_int else msg.lat
-            lon = msg.lon_int * 1e-7 if lat_int else msg.lon
-            self.history.add(now, ned_from_geodetic(lat, lon, msg.alt, self.home),
+        if mtype == "ATT_POS_MOCAP":
+            self._mocap.on_mocap(msg, now)
+        elif mtype == "SIM_STATE":
+            self.history.add(now, self._mocap.position(sim_state_position(msg, self.home), now),
                              np.array([msg.vn, msg.ve, msg.vd]), np.array([msg.q1, msg.q2, msg.q3, msg.q4]))
             if self._last_sample is None:
                 print(f"sitl.scip_bridge: SIM_STATE truth flowing from {self.url}", flush=True)

@@ -1,5 +1,6 @@
-"""Simulator truth from ArduPilot 4.0 SITL's SIMSTATE (sitl/truth.py): it has no velocity and no
-time stamp, and a TCP link delivers it in bursts."""
+"""Simulator truth (sitl/truth.py): from ArduPilot 4.0 SITL's SIMSTATE (no velocity, no time stamp,
+delivered in bursts by a TCP link), interpolated between samples, and the built-in vehicle's
+SIM_STATE refined by its ATT_POS_MOCAP."""
 
 from __future__ import annotations
 
@@ -65,3 +66,39 @@ def test_the_attitude_between_two_samples_is_interpolated_not_snapped() -> None:
         assert abs(pitch - 0.1) < 1e-9 and abs(yaw - 2.0) < 1e-9
     halfway = slerp(quat_from_euler(0.0, 0.0, 3.1), quat_from_euler(0.0, 0.0, -3.1), 0.5)  # through 180 deg
     assert abs(abs(float(np.dot(halfway, quat_from_euler(0.0, 0.0, np.pi)))) - 1.0) < 1e-9
+
+
+def _sim_state(position_ned: np.ndarray) -> mavlink.MAVLink_message:
+    """The built-in vehicle's SIM_STATE at ``position_ned`` (m from ORIGIN): lat_int/lon_int in 1e-7 deg."""
+    lat, lon, alt = geodetic_from_ned(position_ned, (ORIGIN.lat, ORIGIN.lon, ORIGIN.alt))
+    return mavlink.MAVLink_sim_state_message(1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, -9.8, 0.0, 0.0, 0.0,
+                                             lat, lon, alt, 0.0, 0.0, 0.0, 0.0, 0.0, round(lat * 1e7), round(lon * 1e7))
+
+
+def _mocap(position_ned: np.ndarray) -> mavlink.MAVLink_message:
+    return mavlink.MAVLink_att_pos_mocap_message(0, [1.0, 0.0, 0.0, 0.0], *(float(v) for v in position_ned),
+                                                 [float("nan")] + [0.0] * 20)
+
+
+def test_the_position_is_the_vehicles_motion_capture_not_the_centimetre_steps_of_lat_int() -> None:
+    """SIM_STATE's lat_int/lon_int step by 1.1 cm: a scanner rendering from them saw the arena up to
+    5.5 mm off. The ATT_POS_MOCAP sent just before it gives the position to the micrometre; one
+    that disagrees by more than a quantum (another anchor) or comes alone changes nothing."""
+    true = np.array([3.4567891, -2.3456789, -1.2345678])
+
+    async def main() -> list[np.ndarray]:
+        link = MavlinkLink(MavlinkConfig(), VehicleConfig(), "udpout:127.0.0.1:9", Health(clock.now))
+        truth = TruthSource(link, ORIGIN)
+        positions = []
+        for messages in ([_sim_state(true)], [_mocap(true), _sim_state(true)],
+                         [_mocap(true + np.array([1.0, 0.0, 0.0])), _sim_state(true)],  # another anchor's frame
+                         [_sim_state(true)]):  # a SIM_STATE without its own ATT_POS_MOCAP
+            for msg in messages:
+                link._dispatch(from_autopilot(msg))
+            positions.append(truth.latest.position_ned.copy())
+        return positions
+
+    coarse, refined, other_anchor, alone = asyncio.run(main())
+    assert 1e-4 < np.linalg.norm(coarse[:2] - true[:2]) < 0.01  # lat_int's steps
+    assert np.linalg.norm(refined - true) < 1e-5
+    assert np.allclose(other_anchor, coarse) and np.allclose(alone, coarse)

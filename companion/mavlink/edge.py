@@ -41,6 +41,7 @@ BOUNDS: dict[str, dict[str, float]] = {
     "SIM_STATE": {"q1": 1.01, "q2": 1.01, "q3": 1.01, "q4": 1.01, "lat": 90.0, "lon": 180.0, "alt": 1.0e5,
                   "vn": SPEED_MPS, "ve": SPEED_MPS, "vd": SPEED_MPS, "lat_int": LAT_E7, "lon_int": LON_E7},
     "SIMSTATE": {**_EULER, "lat": LAT_E7, "lng": LON_E7},
+    "ATT_POS_MOCAP": {"x": POSITION_M, "y": POSITION_M, "z": POSITION_M},  # the built-in SITL vehicle's truth
     "SCALED_PRESSURE": {"press_abs": 2000.0},
 }
 

@@ -236,6 +236,14 @@ class MessagesMixin:
             *q, roll, pitch, yaw, ax, ay, az, gx, gy, gz, lat, lon, float(tr.alt_m), 0.0, 0.0,
             vn, ve, vd, _e7(lat), _e7(lon))
 
+    def _truth_position(self) -> mav.MAVLink_message:
+        """Ground truth's position as a motion-capture system gives it: NED metres from the anchor
+        (``--home``), float32 (micrometres here; SIM_STATE's lat_int/lon_int step by 1.1 cm), sent
+        just before each SIM_STATE (sitl/truth.py)."""
+        tr = self.copter.truth
+        x, y, z = (float(v) for v in tr.pos_ned)
+        return mav.MAVLink_att_pos_mocap_message(self.t_us, [float(v) for v in tr.quat], x, y, z, [math.nan] + [0.0] * 20)
+
     def _autopilot_version(self) -> mav.MAVLink_message:
         return mav.MAVLink_autopilot_version_message(
             CAPABILITIES, FLIGHT_SW_VERSION, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, self.sysid, [0] * 18)

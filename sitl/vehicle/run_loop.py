@@ -141,8 +141,14 @@ class RunLoopMixin:
                 if msgid not in built:
                     built[msgid] = self._builders[msgid]()
                 msg = built[msgid]
-                if msg is not None:
-                    link.send(msg)
+                if msg is None:
+                    continue
+                if msgid == mav.MAVLINK_MSG_ID_SIM_STATE:  # its position to the micrometre (sitl/truth.py)
+                    mocap = mav.MAVLINK_MSG_ID_ATT_POS_MOCAP
+                    if mocap not in built:
+                        built[mocap] = self._truth_position()
+                    link.send(built[mocap])
+                link.send(msg)
 
     def _wait_until(self, wall_deadline: float) -> None:
         """Handle incoming traffic until time.monotonic() reaches ``wall_deadline`` (real time)."""
