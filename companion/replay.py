@@ -112,8 +112,8 @@ def read_log(path: str | Path, log_format: str, laser: str = "front", scan_topic
     if log_format == "breezyslam":
         stamps, ranges, ticks = read_breezyslam(path)
         angles = breezyslam_angles()
-        return [LogScan(float(t), angles, r, breezyslam_valid(r), None, tuple(map(float, odometry)))  # type: ignore[arg-type]
-                for t, r, odometry in zip(stamps, ranges, wheel_odometry(ticks))]
+        return [LogScan(float(t), angles, r, breezyslam_valid(r), None, (float(x), float(y), float(yaw)))
+                for t, r, (x, y, yaw) in zip(stamps, ranges, wheel_odometry(ticks))]
     if log_format == "npz":
         angles, stamps, ranges, valid, _ = read_npz(path)
         return [LogScan(float(t), angles, r, v, None, None) for t, r, v in zip(stamps, ranges, valid)]

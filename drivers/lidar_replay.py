@@ -151,7 +151,8 @@ def wheel_odometry(ticks: np.ndarray, rig: WheelRig = MINES_ROVER, heading_scale
     (so the first pose is ``(scanner_ahead_m, 0, 0)``). Each step moves the axle's middle by the
     mean of the wheel arcs along the mean heading of the step and turns it by (left - right) /
     (2 half axle), times ``heading_scale`` (an effective-track calibration; 1: the rig's)."""
-    arcs = np.diff(np.asarray(ticks, dtype=float), axis=0) * (2.0 * math.pi / rig.ticks_per_wheel_turn) * rig.wheel_radius_m
+    metres_per_tick = 2.0 * math.pi / rig.ticks_per_wheel_turn * rig.wheel_radius_m
+    arcs = np.diff(np.asarray(ticks, dtype=float), axis=0) * metres_per_tick  # (S-1, 2) [left, right]
     forward = arcs.mean(axis=1)
     turn = heading_scale * (arcs[:, 0] - arcs[:, 1]) / (2.0 * rig.half_axle_m)
     yaw = np.concatenate(([0.0], np.cumsum(turn)))

@@ -11,8 +11,8 @@ matching ``--gcs``, here ``udpout:127.0.0.1:14560``; ``companion sitl`` does it 
 ``sitl.scip_sensors`` names sensors). It asks the vehicle for ``SIM_STATE`` at 100 Hz
 (SET_MESSAGE_INTERVAL, asked again whenever the stream stops for a second), converts every
 sample to LOCAL_NED at ``--home`` (as sitl/truth.py does: the built-in vehicle's ATT_POS_MOCAP
-refines the 1.1 cm steps of SIM_STATE's lat_int/lon_int) stamped with this process's monotonic clock on arrival, and keeps
-two seconds of it. For every ``--sensor`` it serves a :class:`sitl.scip_emulator.ScipEmulator`
+refines the 1.1 cm steps of SIM_STATE's lat_int/lon_int) stamped with this process's monotonic
+clock on arrival, and keeps two seconds of it. For every ``--sensor`` it serves a :class:`sitl.scip_emulator.ScipEmulator`
 on TCP 127.0.0.1:PORT, so the daemon's *real* driver (drivers/hokuyo.py, ``backend: real``,
 ``host: 127.0.0.1``) talks SCIP 2.0 to it exactly as to an Ethernet scanner.
 

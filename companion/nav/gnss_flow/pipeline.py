@@ -166,7 +166,8 @@ class GnssFlowPipeline:
         self._gyro_pitch_yaw = {p.source: (GyroAidedAngle(tau), GyroAidedAngle(tau))
                                 for p in self.paths} if gyro and tau > 0 else {}
         self._pitch_offset: float | None = None  # the first path's pitch offsets averaged over PITCH_OFFSET_TAU_S, rad
-        self._newest_offsets: tuple[float, float, float] | None = None  # the first path's: (capture s, pitch offset, drift rad)
+        # the first path's newest pair: (capture time s, pitch offset rad, drift angle rad)
+        self._newest_offsets: tuple[float, float, float] | None = None
         # the roll blend's pitch (_carry_pitch): learning a bias of the gyro's pitch rate from the averaged offset's
         # lag and noise, it carried that into the turns (Table 1 roll std 0.28 deg instead of 0.24)
         self._carried_pitch = GyroAidedAngle(PITCH_OFFSET_TAU_S, learn_bias=False)
