@@ -17,7 +17,7 @@ import pytest
 import yaml
 
 from companion.config import MountConfig
-from companion.frames import quat_from_euler
+from companion.frames import planar_rotation, quat_from_euler
 from companion.health import Health, State
 from companion.schema import SchemaError, load_text
 from drivers.base import Backend, EndOfData, SensorDriver
@@ -220,11 +220,10 @@ def test_breezyslam_sweep_direction_matches_odometry() -> None:
         ok = (ranges[k] > 0.02) & (ranges[k] < 4.0)
         r, a = ranges[k][ok], angles[ok]
         x, y, yaw = poses[k]
-        c, s = math.cos(yaw), math.sin(yaw)
-        return np.array([x, y]) + np.column_stack((r * np.cos(a), r * np.sin(a))) @ np.array([[c, -s], [s, c]]).T
+        return np.array([x, y]) + np.column_stack((r * np.cos(a), r * np.sin(a))) @ planar_rotation(yaw).T
 
-    def misfit(k: int, ccw_angles: np.ndarray) -> float:
-        p, q = points(k, ccw_angles), points(k + 3, ccw_angles)
+    def misfit(k: int, angles: np.ndarray) -> float:
+        p, q = points(k, angles), points(k + 3, angles)
         return float(np.median(np.sqrt(((q[:, None] - p[None]) ** 2).sum(-1)).min(axis=1)))
 
     driver = breezyslam_angles()
