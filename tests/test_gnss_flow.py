@@ -15,11 +15,12 @@ import cv2
 import numpy as np
 
 from companion.calibration import CameraCalibration
-from companion.frames import rotation_from_euler
+from companion.frames import GRAVITY_MPS2, rotation_from_euler
 from companion.nav.gnss_flow.flow import (derotate, depths, focus_of_expansion, grid_flow,
                                           height_above_ground, normalised_flow, velocity_offsets)
 from companion.nav.gnss_flow.bench_flow import K, bench_frames, exact_flow, flow_accuracy
-from companion.nav.gnss_flow.true_attitude import rotation_correction
+from companion.nav.gnss_flow.pseudo_attitude import KinematicEstimate, pseudo_attitude
+from companion.nav.gnss_flow.true_attitude import rotation_correction, true_euler
 from drivers.mount import OPTICAL_TO_SENSOR
 
 CAM_TO_BODY = OPTICAL_TO_SENSOR
@@ -227,6 +228,29 @@ def test_velocity_offsets_give_the_angle_of_attack_and_sideslip() -> None:
     v_body = np.array([math.cos(alpha) * math.cos(beta), math.sin(beta), math.sin(alpha) * math.cos(beta)])
     got = velocity_offsets(CAM_TO_BODY.T @ v_body, CAM_TO_BODY)
     np.testing.assert_allclose(got, (alpha, beta), atol=1e-12)
+
+
+def test_the_true_attitude_of_a_crabbing_climb_keeps_the_specific_force_in_the_body_symmetry_plane() -> None:
+    # Coordinated flight (no lateral specific force in the body) climbing and speeding up, the
+    # ground track 7 deg right of the nose (a crosswind's crab), 3 deg below it.
+    truth = (math.radians(2.0), math.radians(8.0), math.radians(30.0))
+    r_nb = rotation_from_euler(*truth)
+    a, b = math.radians(3.0), math.radians(7.0)
+    v_body = np.array([math.cos(a) * math.cos(b), math.sin(b), math.sin(a) * math.cos(b)])
+    specific_force_body = np.array([1.5, 0.0, -9.6])  # m/s^2: thrust over drag, lift; nothing sideways
+    estimate = KinematicEstimate(0.0, 20.0 * r_nb @ v_body, r_nb @ specific_force_body + np.array([0.0, 0.0, GRAVITY_MPS2]),
+                                 np.eye(6) * 1e-4)
+    pseudo = pseudo_attitude(estimate)
+    assert pseudo is not None
+    direction_cam = CAM_TO_BODY.T @ v_body
+    foe_n = direction_cam[:2] / direction_cam[2]
+    angles = np.array([pseudo.roll, pseudo.pitch, pseudo.yaw])
+    euler, offsets = true_euler(angles, foe_n, 1.0, CAM_TO_BODY, pseudo.along_over_normal)
+    np.testing.assert_allclose(offsets, (a, b), atol=1e-9)
+    np.testing.assert_allclose(euler, truth, atol=1e-9)
+    # turned by the offsets alone the body would feel the along-track force sideways: a roll error
+    unturned, _ = true_euler(angles, foe_n, 1.0, CAM_TO_BODY)
+    assert abs(math.degrees(unturned[0] - truth[0])) > 0.5
 
 
 def test_depth_and_height_above_ground_noise_free() -> None:

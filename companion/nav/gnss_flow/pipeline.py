@@ -415,7 +415,7 @@ class GnssFlowPipeline:
         half_turn, _ = cv2.Rodrigues(np.asarray(rates, dtype=float) * dt / 2)  # v_body_earlier = half_turn @ v_body_mid
         cam_to_mid_body = half_turn.T @ cam_to_body
         forward = 1.0 if foe.direction_cam[2] > 0 else -1.0
-        euler, offsets = true_euler(np.array(pseudo_euler), foe.point_n, forward, cam_to_mid_body)
+        euler, offsets = true_euler(np.array(pseudo_euler), foe.point_n, forward, cam_to_mid_body, mid.along_over_normal)
         if abs(offsets[0]) > math.radians(cfg.max_pitch_offset_deg):
             reason = f"implausible focus of expansion: pitch offset {math.degrees(offsets[0]):.1f} deg"
             path.refuse(reason)

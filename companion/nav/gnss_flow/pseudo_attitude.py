@@ -211,13 +211,16 @@ class PseudoAttitude:
     """Pseudo Euler angles (ZYX, rad) of the velocity vector at ``time_s`` (s): roll = bank of
     the lift (right positive), pitch = flight-path angle (climb positive), yaw = course (from
     north towards east); ``covariance`` (3x3, rad^2, order roll, pitch, yaw) first-order from
-    the velocity/acceleration covariance."""
+    the velocity/acceleration covariance; ``along_over_normal`` the specific force's component
+    along the velocity over its part normal to it (dimensionless: the along-track acceleration
+    plus g times the sine of the flight-path angle, over the lift's share)."""
 
     time_s: float
     roll: float
     pitch: float
     yaw: float
     covariance: np.ndarray
+    along_over_normal: float = 0.0
 
 
 def pseudo_attitude_refusal(velocity_ned: np.ndarray, acceleration_ned: np.ndarray,
@@ -270,8 +273,11 @@ def pseudo_attitude(estimate: KinematicEstimate,
         jacobian[:, i] = [wrap_pi(float(d)) for d in diff]
         jacobian[:, i] /= 2 * step
     covariance = jacobian @ estimate.covariance @ jacobian.T
+    v, f = x[:3], x[3:] - _GRAVITY_NED
+    along = float(f @ v) / float(np.linalg.norm(v))
+    normal = math.sqrt(max(float(f @ f) - along * along, 0.0))  # > 0: the refusal checked it
     return PseudoAttitude(estimate.time_s, float(angles[0]), float(angles[1]), float(angles[2]),
-                          0.5 * (covariance + covariance.T))
+                          0.5 * (covariance + covariance.T), along / normal)
 
 
 def pseudo_euler_rates(earlier: PseudoAttitude, later: PseudoAttitude) -> np.ndarray:

@@ -20,20 +20,28 @@ from companion.nav.gnss_flow.pseudo_attitude import PseudoAttitude
 JACOBIAN_STEP = 1e-6  # central-difference step of the attitude covariance, rad and normalised units
 
 
-def true_euler(pseudo_rad: np.ndarray, foe_n: np.ndarray, forward: float,
-               cam_to_body: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
+def true_euler(pseudo_rad: np.ndarray, foe_n: np.ndarray, forward: float, cam_to_body: np.ndarray,
+               along_over_normal: float = 0.0) -> tuple[np.ndarray, tuple[float, float]]:
     """(roll, pitch, yaw) rad of body FRD in NED, and the (pitch offset, drift angle) rad, from the
     pseudo Euler angles ``pseudo_rad`` (3,) (the frame whose x is the velocity and whose -z the
-    normal specific force) and the focus of expansion ``foe_n`` (2,) (normalised coordinates of the
-    camera ``cam_to_body``; ``forward`` +1 when the flow expands from it, -1 when it converges).
+    normal specific force), the focus of expansion ``foe_n`` (2,) (normalised coordinates of the
+    camera ``cam_to_body``; ``forward`` +1 when the flow expands from it, -1 when it converges) and
+    the specific force's ``along_over_normal`` (:class:`.pseudo_attitude.PseudoAttitude`).
 
     The velocity in the body is ``(cos a cos b, sin b, sin a cos b)`` (a the pitch offset, b the
     drift angle, :func:`.flow.velocity_offsets`), so body = pseudo frame turned by the
-    wind-to-body rotation (:func:`wind_to_body`): ``R_nb = R_nw C_bw^T``.
-    Level and wings level this is pitch = flight path + a, yaw = course - b."""
+    wind-to-body rotation (:func:`wind_to_body`): ``R_nb = R_nw C_bw^T``. Coordinated flight
+    keeps the specific force in the body's x-z plane, but the pseudo frame holds only its part
+    normal to the (ground) velocity: turned by the offsets alone, a body crabbing by b would feel
+    the along-track part times sin b sideways. So the pseudo frame is first rolled about the
+    velocity by ``asin(tan b * along_over_normal)`` (in the SITL Table 1 flight 0.5 deg, descending
+    with 7 deg of crab; 0.2 deg RMS over its wings-level flight). Level and wings level this is
+    pitch = flight path + a, yaw = course - b."""
     direction = forward * np.append(foe_n, 1.0) / math.hypot(foe_n[0], foe_n[1], 1.0)
     a, b = velocity_offsets(direction, cam_to_body)
-    r_nb = rotation_from_euler(*(float(x) for x in pseudo_rad)) @ wind_to_body(a, b).T
+    roll, pitch, yaw = (float(x) for x in pseudo_rad)
+    roll += math.asin(max(-1.0, min(1.0, math.tan(b) * along_over_normal)))
+    r_nb = rotation_from_euler(roll, pitch, yaw) @ wind_to_body(a, b).T
     return np.array(euler_from_rotation(r_nb)), (a, b)
 
 
@@ -57,8 +65,8 @@ def true_euler_covariance(pseudo: PseudoAttitude, foe: FocusOfExpansion, forward
     for i in range(5):
         dx = np.zeros(5)
         dx[i] = JACOBIAN_STEP
-        plus = true_euler(x[:3] + dx[:3], x[3:] + dx[3:], forward, cam_to_body)[0]
-        minus = true_euler(x[:3] - dx[:3], x[3:] - dx[3:], forward, cam_to_body)[0]
+        plus = true_euler(x[:3] + dx[:3], x[3:] + dx[3:], forward, cam_to_body, pseudo.along_over_normal)[0]
+        minus = true_euler(x[:3] - dx[:3], x[3:] - dx[3:], forward, cam_to_body, pseudo.along_over_normal)[0]
         jacobian[:, i] = [wrap_pi(float(d)) / (2 * JACOBIAN_STEP) for d in plus - minus]
     cov = jacobian @ cov_in @ jacobian.T
     return 0.5 * (cov + cov.T)
@@ -113,4 +121,5 @@ def midway(earlier: PseudoAttitude, later: PseudoAttitude) -> PseudoAttitude:
                           wrap_pi(earlier.roll + 0.5 * wrap_pi(later.roll - earlier.roll)),
                           0.5 * (earlier.pitch + later.pitch),
                           wrap_pi(earlier.yaw + 0.5 * wrap_pi(later.yaw - earlier.yaw)),
-                          0.5 * (earlier.covariance + later.covariance))
+                          0.5 * (earlier.covariance + later.covariance),
+                          0.5 * (earlier.along_over_normal + later.along_over_normal))
