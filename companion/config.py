@@ -396,7 +396,8 @@ class SitlConfig:
         "Start pose: north m, east m, yaw deg. null = the world's `start`."))
     start_in_flight: InFlightStart | None = field(default=None, metadata=meta(
         "vehicle: plane only: {height_m, airspeed_mps}: start flying level at `start` along its heading (armed, "
-        "in GUIDED, circling the start point at that height) instead of on the runway; null = on the ground."))
+        "in FBWA, wings level; a mission's mode step switches to GUIDED) instead of on the runway; null = on the "
+        "ground."))
     wind_ned_mps: tuple[float, float, float] = field(default=(0.0, 0.0, 0.0), metadata=meta("Mean wind, NED m/s.", (-20, 20)))
     events: list[SimEvent] = field(default_factory=list, metadata=meta(
         "Scripted disturbances of the built-in vehicle (not ArduPilot SITL's), each {start_s, end_s (simulation "

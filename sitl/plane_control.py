@@ -28,7 +28,7 @@ from companion.frames import wrap_pi
 from sitl.estimator import SEVERITY_INFO, Estimator, StatusQueue
 from sitl.fixedwing import FixedWingCommand
 from sitl.flight_controller_base import IGNORE_YAW, FlightControllerBase, target_kind
-from sitl.plane_guidance import PlaneLimits, Tecs, attitude_rates, bank_for_course, line_course, orbit_course
+from sitl.plane_guidance import L1Loiter, PlaneLimits, Tecs, attitude_rates, bank_for_accel, bank_for_course, line_course
 
 MANUAL, CIRCLE, STABILIZE, FBWA, AUTO, RTL, LOITER, TAKEOFF, GUIDED = 0, 1, 2, 5, 10, 11, 12, 13, 15
 MODE_NAMES = {MANUAL: "MANUAL", CIRCLE: "CIRCLE", STABILIZE: "STABILIZE", FBWA: "FBWA", AUTO: "AUTO", RTL: "RTL",
@@ -58,6 +58,7 @@ class PlaneController(FlightControllerBase):
         super().__init__(status=status, estimator=estimator, mode=MANUAL)
         self.limits = limits or PlaneLimits()
         self.tecs = Tecs(self.limits)
+        self.loiter = L1Loiter(self.limits)
         self.rudder_rad_s = 0.0
         self._phase = ""  # "takeoff", "loiter", "level", "circle", "neutral"; AUTO: "to_final", "final", "flare", "rollout"
         self._centre = (0.0, 0.0)
@@ -96,13 +97,13 @@ class PlaneController(FlightControllerBase):
         return True, ""
 
     def start_in_flight(self) -> None:
-        """Begin airborne: armed, in GUIDED, loitering where the estimate is, at its height."""
+        """Begin airborne: armed, in FBWA, wings level along the heading it has (as after a hand
+        launch); a mission switches to GUIDED and gives it a target. (In GUIDED it would circle
+        where it is: no straight flight for what needs one before the mission starts.)"""
         self.armed = True
         self.landed = False
         self._arming_z = 0.0
-        self.mode = GUIDED
-        n, e, _ = self._position()
-        self._loiter_at((n, e), self._height())
+        self._enter_mode(FBWA)
 
     def set_position_target(self, frame: int, type_mask: int, pos: tuple[float, float, float],
                             vel: tuple[float, float, float], acc: tuple[float, float, float],
@@ -175,12 +176,12 @@ class PlaneController(FlightControllerBase):
         if self._phase == "circle":
             return lim.roll_limit_rad / 3.0
         n, e = self.est.axes[0], self.est.axes[1]
-        course, speed = math.atan2(e.v, n.v), math.hypot(n.v, e.v)
         if self._phase == "final":
             course_d, _ = line_course(n.p, e.p, self._final_start, self.home_ned[:2])
-            return bank_for_course(course_d, course, speed, 0.0, lim.loiter_radius_m, lim.roll_limit_rad)
-        course_d, centripetal = orbit_course(n.p, e.p, self._centre, lim.loiter_radius_m)
-        return bank_for_course(course_d, course, speed, centripetal, lim.loiter_radius_m, lim.roll_limit_rad)
+            return bank_for_course(course_d, math.atan2(e.v, n.v), math.hypot(n.v, e.v), lim.roll_limit_rad)
+        ahrs = self.est.ahrs
+        accel = self.loiter.lateral_accel(n.p, e.p, n.v, e.v, ahrs.yaw, self._centre, lim.loiter_radius_m)
+        return bank_for_accel(accel, ahrs.pitch, lim.roll_limit_rad)
 
     def _glide_rate(self) -> float:
         """Climb rate (m/s, negative) of the glide-slope height demand on the final approach, else 0."""

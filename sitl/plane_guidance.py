@@ -1,9 +1,13 @@
 """Guidance and control laws of the simulated ArduPlane-like autopilot (plain floats, no I/O).
 
-- Lateral guidance on the ground course (vector fields of Beard & McLain, *Small Unmanned
-  Aircraft*, ch. 10, in the role of ArduPlane's L1 controller): an orbit (loiter) field and a
-  straight-line field; the course error becomes a lateral acceleration and so a bank angle
-  (phi = atan(a / g)), with the centripetal feed-forward V^2 / R on an orbit.
+- Loiter: ArduPlane's own L1 loiter law (:class:`L1Loiter`, AP_L1_Control::update_loiter): an L1
+  capture of the centre from outside the circle, handed over to a PD law on the radial error with
+  the centripetal feed-forward where the two demands cross; its lateral acceleration becomes a
+  bank angle (phi = atan(a / g)). (Until 2026-12-05 an orbit vector field of Beard & McLain,
+  *Small Unmanned Aircraft*, ch. 10, which is singular at the centre: arriving at a target it
+  reversed a 45 deg bank 3-4 times in 15 s, at up to 170 deg/s of roll rate.)
+- The final approach: a straight-line vector field (Beard & McLain's) on the ground course; the
+  course error becomes a lateral acceleration and so a bank angle.
 - :class:`Tecs`: a small total-energy controller (ArduPlane's TECS in spirit): throttle from the
   specific total-energy rate, pitch from the energy-balance rate, both with an integrator.
 - :func:`attitude_rates`: the roll and pitch attitude loops and the turn coordination, giving
@@ -19,7 +23,6 @@ from dataclasses import dataclass
 
 from companion.frames import GRAVITY_MPS2, wrap_pi
 
-ORBIT_GAIN = 4.0  # how hard the orbit field turns towards the circle (Beard & McLain's k_orbit)
 LINE_GAIN = 0.03  # 1/m: cross-track error -> course offset (k_path)
 LINE_ENTRY_RAD = math.radians(60.0)  # course offset far from the line (chi_inf)
 COURSE_GAIN = 1.2  # 1/s: course error -> lateral acceleration per m/s of ground speed
@@ -40,6 +43,8 @@ class PlaneLimits:
     sink_max_mps: float = 4.0  # TECS_SINK_MAX
     throttle_trim: float = 0.2  # TRIM_THROTTLE (this airframe's level flight at cruise)
     loiter_radius_m: float = 40.0  # WP_LOITER_RAD
+    l1_period_s: float = 17.0  # NAVL1_PERIOD
+    l1_damping: float = 0.75  # NAVL1_DAMPING
     takeoff_alt_m: float = 30.0  # TKOFF_ALT
     takeoff_rotate_mps: float = 12.0  # TKOFF_ROTATE_SPD
     takeoff_pitch_rad: float = math.radians(12.0)  # TKOFF_LVL_PITCH
@@ -51,20 +56,65 @@ class PlaneLimits:
     land_disarm_delay_s: float = 20.0  # LAND_DISARMDELAY
 
 
-def orbit_course(north: float, east: float, centre: tuple[float, float], radius_m: float,
-                 clockwise: bool = True) -> tuple[float, float]:
-    """(commanded course rad, signed centripetal factor) of the orbit field around ``centre``.
+class L1Loiter:
+    """ArduPlane's L1 loiter law (AP_L1_Control::update_loiter, with its ``_prevent_indecision``):
+    the lateral acceleration (m/s^2, right positive) that brings the aircraft onto a circle of
+    ``radius_m`` around ``centre`` (NED north, east m) and holds it there, clockwise
+    (``direction`` +1) or counter-clockwise (-1).
 
-    The factor is +1 (clockwise, right turn) or -1 near the circle (0.5 R .. 2 R) and 0 farther,
-    where the field points nearly straight at the circle.
-    """
-    dn, de = north - centre[0], east - centre[1]
-    d = math.hypot(dn, de)
-    lam = 1.0 if clockwise else -1.0
-    around = math.atan2(de, dn)
-    course = around + lam * (math.pi / 2 + math.atan(ORBIT_GAIN * (d - radius_m) / radius_m))
-    near = 0.5 * radius_m < d < 2.0 * radius_m
-    return wrap_pi(course), (lam if near else 0.0)
+    Outside the circle the L1 capture law steers at the centre (``K_L1 V^2 / L1 sin(Nu)``,
+    ``Nu`` the angle between the ground velocity and the direction to the centre, at most 90
+    deg); the circle law is a PD on the radial error and radial velocity plus the centripetal
+    acceleration of the tangential speed. The capture flies while the aircraft is outside and its
+    demand is the smaller of the two (turning in the loiter's sense), so the hand-over is where
+    they cross. Frames: NED m, m/s; angles rad."""
+
+    def __init__(self, limits: PlaneLimits) -> None:
+        self.limits = limits
+        self._last_nu = 0.0
+
+    def lateral_accel(self, north: float, east: float, v_north: float, v_east: float, yaw: float,
+                      centre: tuple[float, float], radius_m: float, direction: int = 1) -> float:
+        """Lateral acceleration demand (m/s^2, right positive) at the position (m) with the ground
+        velocity (m/s) and heading ``yaw`` (rad) of the aircraft."""
+        period, damping = self.limits.l1_period_s, self.limits.l1_damping
+        omega = 2.0 * math.pi / period
+        kx, kv = omega * omega, 2.0 * damping * omega
+        k_l1 = 4.0 * damping * damping
+        speed = max(math.hypot(v_north, v_east), 1.0)
+        l1_m = damping * period * speed / math.pi
+        an, ae = north - centre[0], east - centre[1]  # the aircraft from the centre
+        distance = math.hypot(an, ae)
+        if distance > 0.1:
+            un, ue = an / distance, ae / distance
+        else:  # on the centre: along the velocity
+            un, ue = v_north / speed, v_east / speed
+        across = un * v_east - ue * v_north  # velocity across the radial line (A x v)
+        inbound = -(v_north * un + v_east * ue)  # velocity along it, towards the centre
+        nu = math.atan2(across, inbound)
+        bearing_to_centre = math.atan2(-ae, -an)
+        limit = 0.9 * math.pi
+        if (abs(nu) > limit and abs(self._last_nu) > limit and abs(wrap_pi(bearing_to_centre - yaw)) > math.radians(120.0)
+                and nu * self._last_nu < 0.0):
+            nu = self._last_nu  # flying away from the centre: keep turning the way it started (indecision)
+        self._last_nu = nu
+        nu = max(-math.pi / 2, min(math.pi / 2, nu))
+        capture = k_l1 * speed * speed / l1_m * math.sin(nu)
+        radial_error = distance - radius_m
+        circle_pd = radial_error * kx - inbound * kv
+        tangential = across * direction
+        if inbound > 0.0 and tangential < 0.0:  # flying the wrong way round: the PD must not turn it further
+            circle_pd = max(circle_pd, 0.0)
+        circle = direction * (circle_pd + tangential * tangential / max(0.5 * radius_m, radius_m + radial_error))
+        if radial_error > 0.0 and direction * capture < direction * circle:
+            return capture
+        return circle
+
+
+def bank_for_accel(accel_mps2: float, pitch: float, roll_limit: float) -> float:
+    """Bank angle (rad, right positive) for a lateral acceleration demand (m/s^2), as ArduPlane's
+    nav_roll_cd: ``cos(pitch) atan(a / g)``, within the roll limit."""
+    return max(-roll_limit, min(roll_limit, math.cos(pitch) * math.atan(accel_mps2 / GRAVITY_MPS2)))
 
 
 def line_course(north: float, east: float, start: tuple[float, float], end: tuple[float, float]) -> tuple[float, float]:
@@ -77,11 +127,10 @@ def line_course(north: float, east: float, start: tuple[float, float], end: tupl
     return wrap_pi(line - LINE_ENTRY_RAD * 2.0 / math.pi * math.atan(LINE_GAIN * cross)), to_go
 
 
-def bank_for_course(course_cmd: float, course: float, ground_speed: float, centripetal: float,
-                    radius_m: float, roll_limit: float) -> float:
-    """Bank angle (rad, right positive) that turns the ground course towards ``course_cmd``."""
-    v = max(ground_speed, 1.0)
-    accel = COURSE_GAIN * v * wrap_pi(course_cmd - course) + centripetal * v * v / radius_m
+def bank_for_course(course_cmd: float, course: float, ground_speed: float, roll_limit: float) -> float:
+    """Bank angle (rad, right positive) that turns the ground course (rad) towards ``course_cmd`` at
+    ``ground_speed`` (m/s)."""
+    accel = COURSE_GAIN * max(ground_speed, 1.0) * wrap_pi(course_cmd - course)
     return max(-roll_limit, min(roll_limit, math.atan(accel / GRAVITY_MPS2)))
 
 

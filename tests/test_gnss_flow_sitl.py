@@ -18,7 +18,7 @@ import yaml
 from tests.conftest import REPO, free_port
 
 CONFIG = REPO / "config" / "sitl-fixedwing.yaml"
-TARGET = (900.0, 0.0, -100.0)  # straight north from the start, then circle
+TARGET = (900.0, 900.0, -100.0)  # straight north-east from the start (the faults on the way), then circle
 SIDESLIP_S = (20.0, 28.0)
 TILT_FAULT_S = (40.0, 52.0)
 
@@ -33,7 +33,7 @@ def fly_leg(tmp_path: Path) -> tuple[dict, dict]:
     raw["sitl"]["events"] = [{"start_s": SIDESLIP_S[0], "end_s": SIDESLIP_S[1], "sideslip_deg_s": 5.0},
                              {"start_s": TILT_FAULT_S[0], "end_s": TILT_FAULT_S[1], "tilt_fault_deg": [0.0, 15.0]}]
     mission = {"name": "leg", "steps": [{"wait_ready": {"timeout_s": 30}}, {"mode": "GUIDED"},
-                                        {"goto": {"position": list(TARGET), "seconds": 62}}]}
+                                        {"goto": {"position": list(TARGET), "seconds": 85}}]}
     (tmp_path / "missions").mkdir()
     (tmp_path / "missions" / "leg.yaml").write_text(yaml.safe_dump(mission, sort_keys=False))
     for folder in ("worlds", "cameras"):
