@@ -104,6 +104,11 @@ class GnssFlowConfig:
         "a bank change less (pseudo_attitude.DopplerAccelerationFilter); 0.2 gives the least roll error with "
         "`smoothing_lag_s` 0.6 at 5 or 10 Hz and 0.05 m/s Doppler noise (sitl/pseudo_attitude_eval.py).",
         (0.001, 1000)))
+    lateral_window_s: float = field(default=0.25, metadata=meta(
+        "With IMU samples: the accelerometer's lateral angle that turns the pseudo-roll to the airframe's is "
+        "its mean over this long either side of the instant, s: about the spread of the smoothed Doppler "
+        "acceleration's response (std 0.14 s at 10 Hz fixes, `jerk_psd` 0.2, `smoothing_lag_s` 0.6), so a gust's "
+        "lateral jolt cancels between the two instead of entering the roll.", (0.0, 2.0)))
     gyro_roll_tau_s: float = field(default=3.0, metadata=meta(
         "With IMU samples: the roll is blended with the gyro's roll rate, following the gyro over spans shorter "
         "than this and the GNSS beyond, the gyro's bias estimated (pseudo_attitude.GyroAidedAngle), s; 0: the "

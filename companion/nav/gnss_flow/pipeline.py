@@ -459,10 +459,11 @@ class GnssFlowPipeline:
         """The pseudo-roll (rad) blended with the IMU gyro's Euler roll rate since the previous
         instant (``gyro_roll_tau_s``); as it is, the blend restarting, without IMU samples covering
         that span. The pseudo-roll is first turned to the airframe's by the accelerometer's lateral
-        angle over that span (:func:`.pseudo_attitude.coordination_check`): the blend passes the
-        pseudo-roll's slow part only, so the angle's fast part (gusts) cancels there with the
-        pseudo-roll's own (per pair, the correction lagged it and left a third of it, wrong way, in
-        SITL with 0.5 m/s gusts). Beyond ``max_lateral_deg`` (a slip, or a push-over where the
+        angle (:func:`.pseudo_attitude.coordination_check`), its mean within ``lateral_window_s`` of
+        the instant: as wide as the smoothed Doppler acceleration's response, so a gust's lateral
+        jolt cancels between the two (over the span since the previous instant alone, the Table 1
+        SITL flight's roll std was 0.166 instead of 0.154 deg), and the blend passes the rest's slow
+        part only. Beyond ``max_lateral_deg`` (a slip, or a push-over where the
         normal specific force vanishes: in SITL a 44 deg roll-out read 180 deg) the pseudo-roll is
         not the airframe's and the gyro alone carries the roll. The gyro's Euler rate takes the
         blend's roll and the body's pitch carried through turns (:meth:`_carry_pitch`; in a turn the
@@ -478,8 +479,9 @@ class GnssFlowPipeline:
             self._carried_pitch.reset()
             self._carry_pitch(pseudo, pseudo.roll, np.zeros(3), 0.0)  # restarts at the measured pitch, if there is one
             return blend.update(pseudo.time_s, pseudo.roll, 0.0)
-        coordinated, lateral = coordination_check(np.mean([s.accel_body for s in inside], axis=0),
-                                                  math.radians(self.cfg.max_lateral_deg))
+        window = self.cfg.lateral_window_s
+        around = [s.accel_body for s in self._imu if abs(s.t - pseudo.time_s) <= window] or [s.accel_body for s in inside]
+        coordinated, lateral = coordination_check(np.mean(around, axis=0), math.radians(self.cfg.max_lateral_deg))
         roll = pseudo.roll - lateral if coordinated else None
         gyro = self._gyro_mean(last, pseudo.time_s)
         dt = pseudo.time_s - last
