@@ -97,7 +97,7 @@ from companion.nav.gnss_flow.pseudo_attitude import (DopplerAccelerationFilter, 
                                                      PseudoAttitudeLimits, body_rates_from_euler_rates,
                                                      coordination_check, euler_rates_from_body_rates, pseudo_attitude,
                                                      pseudo_attitude_refusal, pseudo_euler_rates)
-from companion.nav.gnss_flow.true_attitude import (midway, rotation_correction, true_euler, true_euler_covariance,
+from companion.nav.gnss_flow.true_attitude import (crab_roll, midway, rotation_correction, true_euler, true_euler_covariance,
                                                    wind_to_body)
 from companion.pipeline import PipelineContext
 from companion.plugins import register_pipeline
@@ -168,6 +168,7 @@ class GnssFlowPipeline:
         self._pitch_offset: float | None = None  # the first path's pitch offsets averaged over PITCH_OFFSET_TAU_S, rad
         # the first path's newest pair: (capture time s, pitch offset rad, drift angle rad)
         self._newest_offsets: tuple[float, float, float] | None = None
+        self._crab_roll = 0.0  # the roll blend's crab roll at its last instant (_crab_roll_at), rad
         # the roll blend's pitch (_carry_pitch): learning a bias of the gyro's pitch rate from the averaged offset's
         # lag and noise, it carried that into the turns (Table 1 roll std 0.28 deg instead of 0.24)
         self._carried_pitch = GyroAidedAngle(PITCH_OFFSET_TAU_S, learn_bias=False)
@@ -463,7 +464,10 @@ class GnssFlowPipeline:
         the instant: as wide as the smoothed Doppler acceleration's response, so a gust's lateral
         jolt cancels between the two (over the span since the previous instant alone, the Table 1
         SITL flight's roll std was 0.166 instead of 0.154 deg), and the blend passes the rest's slow
-        part only. Beyond ``max_lateral_deg`` (a slip, or a push-over where the
+        part only. The blend's angle is the pseudo frame's roll, which the true attitude turns by the
+        crab roll (:func:`.true_attitude.crab_roll`) to the body's; the gyro's increments are the
+        body's, so the crab roll's change between instants is taken off them (roll std 0.154 ->
+        0.135 deg in that flight, 0.88 -> 0.64 replaying a real ArduPlane SITL flight). Beyond ``max_lateral_deg`` (a slip, or a push-over where the
         normal specific force vanishes: in SITL a 44 deg roll-out read 180 deg) the pseudo-roll is
         not the airframe's and the gyro alone carries the roll. The gyro's Euler rate takes the
         blend's roll and the body's pitch carried through turns (:meth:`_carry_pitch`; in a turn the
@@ -478,6 +482,7 @@ class GnssFlowPipeline:
             blend.reset()
             self._carried_pitch.reset()
             self._carry_pitch(pseudo, pseudo.roll, np.zeros(3), 0.0)  # restarts at the measured pitch, if there is one
+            self._crab_roll = self._crab_roll_at(pseudo)
             return blend.update(pseudo.time_s, pseudo.roll, 0.0)
         window = self.cfg.lateral_window_s
         around = [s.accel_body for s in self._imu if abs(s.t - pseudo.time_s) <= window] or [s.accel_body for s in inside]
@@ -488,7 +493,17 @@ class GnssFlowPipeline:
         roll_then = blend.angle
         assert roll_then is not None  # the blend has a last time, so an angle
         rates = euler_rates_from_body_rates(roll_then, self._carry_pitch(pseudo, roll_then, gyro, dt), gyro)
-        return blend.update(pseudo.time_s, roll, rates[0] * dt)
+        previous, self._crab_roll = self._crab_roll, self._crab_roll_at(pseudo)
+        return blend.update(pseudo.time_s, roll, rates[0] * dt - (self._crab_roll - previous))
+
+    def _crab_roll_at(self, pseudo: PseudoAttitude) -> float:
+        """The crab roll (rad, :func:`.true_attitude.crab_roll`) at ``pseudo``'s instant with the first
+        path's newest drift angle while its pairs measure it (within ``PITCH_OFFSET_FRESH_S``); held
+        where none does (a turn: the drift turns with the wind)."""
+        newest = self._newest_offsets
+        if newest is None or pseudo.time_s - newest[0] > PITCH_OFFSET_FRESH_S:
+            return self._crab_roll
+        return crab_roll(newest[2], pseudo.along_over_normal)
 
     def _carry_pitch(self, pseudo: PseudoAttitude, roll: float, gyro: np.ndarray, dt: float) -> float:
         """The body pitch (rad) the roll blend converts the gyro's ``dt`` s (up to ``pseudo``'s instant,

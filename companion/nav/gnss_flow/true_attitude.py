@@ -40,9 +40,15 @@ def true_euler(pseudo_rad: np.ndarray, foe_n: np.ndarray, forward: float, cam_to
     direction = forward * np.append(foe_n, 1.0) / math.hypot(foe_n[0], foe_n[1], 1.0)
     a, b = velocity_offsets(direction, cam_to_body)
     roll, pitch, yaw = (float(x) for x in pseudo_rad)
-    roll += math.asin(max(-1.0, min(1.0, math.tan(b) * along_over_normal)))
+    roll += crab_roll(b, along_over_normal)
     r_nb = rotation_from_euler(roll, pitch, yaw) @ wind_to_body(a, b).T
     return np.array(euler_from_rotation(r_nb)), (a, b)
+
+
+def crab_roll(drift: float, along_over_normal: float) -> float:
+    """The roll (rad) about the velocity that keeps a body crabbing by ``drift`` (rad) free of
+    lateral specific force: ``asin(tan(drift) * along_over_normal)`` (:func:`true_euler`)."""
+    return math.asin(max(-1.0, min(1.0, math.tan(drift) * along_over_normal)))
 
 
 def wind_to_body(pitch_offset: float, drift: float) -> np.ndarray:
