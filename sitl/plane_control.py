@@ -28,7 +28,8 @@ from companion.frames import wrap_pi
 from sitl.estimator import SEVERITY_INFO, Estimator, StatusQueue
 from sitl.fixedwing import FixedWingCommand
 from sitl.flight_controller_base import IGNORE_YAW, FlightControllerBase, target_kind
-from sitl.plane_guidance import L1Loiter, PlaneLimits, Tecs, attitude_rates, bank_for_accel, bank_for_course, line_course
+from sitl.plane_guidance import (L1Loiter, PlaneLimits, Tecs, attitude_rates, bank_for_accel, bank_for_course,
+                                 line_course)
 
 MANUAL, CIRCLE, STABILIZE, FBWA, AUTO, RTL, LOITER, TAKEOFF, GUIDED = 0, 1, 2, 5, 10, 11, 12, 13, 15
 MODE_NAMES = {MANUAL: "MANUAL", CIRCLE: "CIRCLE", STABILIZE: "STABILIZE", FBWA: "FBWA", AUTO: "AUTO", RTL: "RTL",

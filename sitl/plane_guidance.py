@@ -94,8 +94,8 @@ class L1Loiter:
         nu = math.atan2(across, inbound)
         bearing_to_centre = math.atan2(-ae, -an)
         limit = 0.9 * math.pi
-        if (abs(nu) > limit and abs(self._last_nu) > limit and abs(wrap_pi(bearing_to_centre - yaw)) > math.radians(120.0)
-                and nu * self._last_nu < 0.0):
+        away = abs(wrap_pi(bearing_to_centre - yaw)) > math.radians(120.0)
+        if abs(nu) > limit and abs(self._last_nu) > limit and away and nu * self._last_nu < 0.0:
             nu = self._last_nu  # flying away from the centre: keep turning the way it started (indecision)
         self._last_nu = nu
         nu = max(-math.pi / 2, min(math.pi / 2, nu))

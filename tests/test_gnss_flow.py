@@ -238,8 +238,8 @@ def test_the_true_attitude_of_a_crabbing_climb_keeps_the_specific_force_in_the_b
     a, b = math.radians(3.0), math.radians(7.0)
     v_body = np.array([math.cos(a) * math.cos(b), math.sin(b), math.sin(a) * math.cos(b)])
     specific_force_body = np.array([1.5, 0.0, -9.6])  # m/s^2: thrust over drag, lift; nothing sideways
-    estimate = KinematicEstimate(0.0, 20.0 * r_nb @ v_body, r_nb @ specific_force_body + np.array([0.0, 0.0, GRAVITY_MPS2]),
-                                 np.eye(6) * 1e-4)
+    acceleration = r_nb @ specific_force_body + np.array([0.0, 0.0, GRAVITY_MPS2])
+    estimate = KinematicEstimate(0.0, 20.0 * r_nb @ v_body, acceleration, np.eye(6) * 1e-4)
     pseudo = pseudo_attitude(estimate)
     assert pseudo is not None
     direction_cam = CAM_TO_BODY.T @ v_body

@@ -97,8 +97,8 @@ from companion.nav.gnss_flow.pseudo_attitude import (DopplerAccelerationFilter, 
                                                      PseudoAttitudeLimits, body_rates_from_euler_rates,
                                                      coordination_check, euler_rates_from_body_rates, pseudo_attitude,
                                                      pseudo_attitude_refusal, pseudo_euler_rates)
-from companion.nav.gnss_flow.true_attitude import (crab_roll, midway, rotation_correction, true_euler, true_euler_covariance,
-                                                   wind_to_body)
+from companion.nav.gnss_flow.true_attitude import (crab_roll, midway, rotation_correction, true_euler,
+                                                   true_euler_covariance, wind_to_body)
 from companion.pipeline import PipelineContext
 from companion.plugins import register_pipeline
 from companion.timing import Timings
@@ -416,7 +416,8 @@ class GnssFlowPipeline:
         half_turn, _ = cv2.Rodrigues(np.asarray(rates, dtype=float) * dt / 2)  # v_body_earlier = half_turn @ v_body_mid
         cam_to_mid_body = half_turn.T @ cam_to_body
         forward = 1.0 if foe.direction_cam[2] > 0 else -1.0
-        euler, offsets = true_euler(np.array(pseudo_euler), foe.point_n, forward, cam_to_mid_body, mid.along_over_normal)
+        euler, offsets = true_euler(np.array(pseudo_euler), foe.point_n, forward, cam_to_mid_body,
+                                    mid.along_over_normal)
         if abs(offsets[0]) > math.radians(cfg.max_pitch_offset_deg):
             reason = f"implausible focus of expansion: pitch offset {math.degrees(offsets[0]):.1f} deg"
             path.refuse(reason)
@@ -467,13 +468,13 @@ class GnssFlowPipeline:
         part only. The blend's angle is the pseudo frame's roll, which the true attitude turns by the
         crab roll (:func:`.true_attitude.crab_roll`) to the body's; the gyro's increments are the
         body's, so the crab roll's change between instants is taken off them (roll std 0.154 ->
-        0.135 deg in that flight, 0.88 -> 0.64 replaying a real ArduPlane SITL flight). Beyond ``max_lateral_deg`` (a slip, or a push-over where the
-        normal specific force vanishes: in SITL a 44 deg roll-out read 180 deg) the pseudo-roll is
-        not the airframe's and the gyro alone carries the roll. The gyro's Euler rate takes the
-        blend's roll and the body's pitch carried through turns (:meth:`_carry_pitch`; in a turn the
-        yaw rate's share of the roll rate goes with the pitch: with one pair's offset instead of an
-        average, its ~1 deg of flow noise put 0.5 deg/s into the roll rate and nearly doubled the roll
-        error, sitl/gnss_flow_flight_eval.py)."""
+        0.135 deg in that flight, 0.88 -> 0.64 replaying a real ArduPlane SITL flight). Beyond
+        ``max_lateral_deg`` (a slip, or a push-over where the normal specific force vanishes: in SITL
+        a 44 deg roll-out read 180 deg) the pseudo-roll is not the airframe's and the gyro alone
+        carries the roll. The gyro's Euler rate takes the blend's roll and the body's pitch carried
+        through turns (:meth:`_carry_pitch`; in a turn the yaw rate's share of the roll rate goes with
+        the pitch: with one pair's offset instead of an average, its ~1 deg of flow noise put 0.5
+        deg/s into the roll rate and nearly doubled the roll error, sitl/gnss_flow_flight_eval.py)."""
         last = blend.last_time_s
         if last is not None and pseudo.time_s <= last + SAME_INSTANT_S:  # the other path's instant at the same time
             return blend.update(last, pseudo.roll, 0.0)
@@ -485,7 +486,8 @@ class GnssFlowPipeline:
             self._crab_roll = self._crab_roll_at(pseudo)
             return blend.update(pseudo.time_s, pseudo.roll, 0.0)
         window = self.cfg.lateral_window_s
-        around = [s.accel_body for s in self._imu if abs(s.t - pseudo.time_s) <= window] or [s.accel_body for s in inside]
+        around = ([s.accel_body for s in self._imu if abs(s.t - pseudo.time_s) <= window]
+                  or [s.accel_body for s in inside])
         coordinated, lateral = coordination_check(np.mean(around, axis=0), math.radians(self.cfg.max_lateral_deg))
         roll = pseudo.roll - lateral if coordinated else None
         gyro = self._gyro_mean(last, pseudo.time_s)
