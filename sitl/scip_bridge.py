@@ -12,9 +12,10 @@ matching ``--gcs``, here ``udpout:127.0.0.1:14560``; ``companion sitl`` does it 
 (SET_MESSAGE_INTERVAL, asked again whenever the stream stops for a second), converts every
 sample to LOCAL_NED at ``--home`` (as sitl/truth.py does: the built-in vehicle's ATT_POS_MOCAP
 refines the 1.1 cm steps of SIM_STATE's lat_int/lon_int) stamped with this process's monotonic
-clock on arrival, and keeps two seconds of it. For every ``--sensor`` it serves a :class:`sitl.scip_emulator.ScipEmulator`
-on TCP 127.0.0.1:PORT, so the daemon's *real* driver (drivers/hokuyo.py, ``backend: real``,
-``host: 127.0.0.1``) talks SCIP 2.0 to it exactly as to an Ethernet scanner.
+clock on arrival, and keeps two seconds of it. For every ``--sensor`` it serves a
+:class:`sitl.scip_emulator.ScipEmulator` on TCP 127.0.0.1:PORT, so the daemon's *real* driver
+(drivers/hokuyo.py, ``backend: real``, ``host: 127.0.0.1``) talks SCIP 2.0 to it exactly as to an
+Ethernet scanner.
 
 Scans are rendered like the ``sim`` backend's (sitl/lidar_sim.py: same world, model,
 mount, range noise and dropout; sensor ``i`` draws its noise from seed ``--seed + i``), with one difference that the
