@@ -294,7 +294,7 @@ def test_covariance_grows_with_fewer_corners(arena: World, geometry: WorldGeomet
     assert corners.count >= 4
     traces = []
     for n in (corners.count, 3, 2, 1):
-        m = loc.match(corners.subset(np.arange(n)), np.array([2.0, 2.0]), heading)
+        m = loc.match(lines, corners.subset(np.arange(n)), np.array([2.0, 2.0]), heading)
         assert m.matched == n and math.hypot(*(m.xy - 2.0)) < 0.03
         assert np.all(np.linalg.eigvalsh(m.covariance) > 0)
         traces.append(np.trace(m.covariance[:2, :2]))
@@ -770,3 +770,31 @@ def test_more_wall_positions_than_the_cap_resume_nothing() -> None:
     for _ in range(2 * loc.params.reloc_confirm_frames):
         fix = loc.update(scan_at(geometry, *truth, rng))
         assert not fix.measured and "too many look-alikes" in fix.reason, fix.reason
+
+
+@pytest.mark.parametrize("pose", [(2.0, 2.0, math.radians(30)), (3.0, 7.5, math.radians(170))])
+def test_fix_covariance_matches_the_spread_of_fixes_from_noisy_scans(arena: World, geometry: WorldGeometry,
+                                                                      pose: tuple[float, float, float]) -> None:
+    """With the floors off (an exact map, ideal beams) a fix's position covariance is what the line
+    fits' errors make it: corners and heading from the same lines, propagated jointly
+    (companion/nav/corner_fix.py). Scored against the spread of fixes over many noisy scans."""
+    params = PlanarParams(corners=dataclasses.replace(PlanarParams().corners, floor_m=0.0, floor_per_m=0.0),
+                          heading=dataclasses.replace(PlanarParams().heading, variance_floor_rad2=0.0),
+                          lines=dataclasses.replace(PlanarParams().lines, model_floor_m=0.0))
+    loc = PlanarLocalizer(arena.corner_array(), arena.wall_angle_deg, mount=MOUNT, params=params)
+    rng = np.random.default_rng(1)
+    errors, covariances = [], []
+    for _ in range(250):
+        points, valid, ranges = loc.level_points(scan_at(geometry, *pose, rng))
+        lines = extract_lines(points, valid, params.lines, ranges)
+        heading = track_heading(lines, pose[2], A45, 0.0, params.heading)
+        m = loc.match(lines, find_corners(lines, params.corners), np.array(pose[:2]), heading)
+        assert m.matched >= 3
+        errors.append([m.xy[0], m.xy[1], math.remainder(heading.yaw - pose[2], 2 * math.pi)])
+        covariances.append(m.covariance)
+    e = np.array(errors) - np.mean(errors, axis=0)  # the scanner's mount offset is a constant, not noise
+    cov = np.array(covariances)
+    per_axis = np.mean(e[:, :2] ** 2 / cov[:, [0, 1], [0, 1]], axis=0)  # north, east: 1 if consistent
+    assert np.all((per_axis > 0.7) & (per_axis < 1.3)), per_axis  # shared errors counted twice: 0.54-0.66
+    position = np.einsum("ni,nij,nj->n", e[:, :2], np.linalg.inv(cov[:, :2, :2]), e[:, :2])
+    assert 1.45 < position.mean() < 2.6  # 2 if consistent; the residual scaling leans cautious

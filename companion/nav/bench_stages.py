@@ -99,7 +99,7 @@ def run_stage_bench(repeat: int, world: World | None = None) -> dict[str, tuple[
         "lidar.lines (split-and-merge + fit)": lambda: extract_lines(points, valid, localizer.params.lines, ranges),
         "lidar.heading": lambda: track_heading(lines, pose[2], wall_angle, 0.0, localizer.params.heading),
         "lidar.corners": lambda: find_corners(lines, localizer.params.corners),
-        "lidar.associate + update": lambda: localizer.match(corners, pose[:2], heading),
+        "lidar.associate + update": lambda: localizer.match(lines, corners, pose[:2], heading),
         "lidar.planar update (whole pipeline)": planar_update,
         "lidar.relocalize (whole pipeline, no prior)": relocalize,
         "lidar.height (vertical scan)": lambda: height.update(vertical),

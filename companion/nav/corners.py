@@ -10,10 +10,14 @@ the known-corner map does not contain.
 
 Frame: the frame of the lines (the planar localizer uses the levelled body frame: x forward,
 y right, metres). Each corner carries a 2x2 covariance propagated from the two line fits:
-the normal offset of line k at the corner has the variance ``offset_var_k + alpha_var_k s_k^2``
-(``s_k`` = distance along the line from its centroid to the corner: the lever arm of its
-direction error), and the intersection maps the two offsets to x, y through the inverse of the
-matrix of the normals. Far lines have fewer points and larger residuals, so far corners get
+line k moves along its normal at the corner by ``du_k - s_k dalpha_k`` (``du_k``: its offset
+error at the centroid, variance ``offset_var_k``; ``dalpha_k``: its direction error, variance
+``alpha_var_k``; ``s_k`` = signed distance along the line's tangent (-sin, cos) from its
+centroid to the corner: the lever arm of the direction error), and the intersection maps the
+two moves to x, y through the inverse of the matrix of the normals (``gain``). The corners also
+keep those terms (``gain``, ``lever``, ``floor_var``) so that a fix from several corners and a
+heading from the same lines can propagate the shared line errors jointly
+(companion/nav/corner_fix.py). Far lines have fewer points and larger residuals, so far corners get
 larger covariances. A floor ``floor_m + floor_per_m * range`` (1-sigma) is added for what the
 fits do not see: the map itself (companion/world.py accepts a listed corner within 1 cm of the
 walls' corner, about 5 mm 1-sigma), rounded corners, wall roughness, beam width.
@@ -43,9 +47,12 @@ class Corners:
     """K corners, as parallel arrays, in the frame of the lines."""
 
     xy: np.ndarray  # (K, 2) metres
-    cov: np.ndarray  # (K, 2, 2) m^2
+    cov: np.ndarray  # (K, 2, 2) m^2: the two lines' errors plus the floor
     range_m: np.ndarray  # (K,) distance from the frame origin, metres
     lines: np.ndarray  # (K, 2) int: indices of the two lines in the LineSet
+    gain: np.ndarray  # (K, 2, 2): column j is the corner's move (m) per metre line lines[:, j] moves along its normal
+    lever: np.ndarray  # (K, 2) m: s_k of each of the two lines (the module docstring)
+    floor_var: np.ndarray  # (K,) m^2 per axis: the floor's part of ``cov`` (independent from corner to corner)
 
     @property
     def count(self) -> int:
@@ -53,13 +60,15 @@ class Corners:
 
     def subset(self, keep: np.ndarray) -> Corners:
         """The corners selected by a boolean mask or index array."""
-        return Corners(self.xy[keep], self.cov[keep], self.range_m[keep], self.lines[keep])
+        return Corners(self.xy[keep], self.cov[keep], self.range_m[keep], self.lines[keep], self.gain[keep],
+                       self.lever[keep], self.floor_var[keep])
 
 
 def find_corners(lines: LineSet, params: CornerParams = CornerParams()) -> Corners:
     """Corners between consecutive lines of ``lines`` (see the module docstring)."""
     if lines.count < 2:
-        return Corners(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0), np.zeros((0, 2), dtype=int))
+        return Corners(np.zeros((0, 2)), np.zeros((0, 2, 2)), np.zeros(0), np.zeros((0, 2), dtype=int),
+                       np.zeros((0, 2, 2)), np.zeros((0, 2)), np.zeros(0))
     a = np.arange(lines.count - 1)
     b = a + 1
     c, s = np.cos(lines.alpha), np.sin(lines.alpha)  # every line's normal
@@ -75,22 +84,23 @@ def find_corners(lines: LineSet, params: CornerParams = CornerParams()) -> Corne
     keep = steep & near
     a, b, xy, det = a[keep], b[keep], xy[keep], det[keep]
     rng = np.hypot(xy[:, 0], xy[:, 1])
-    var_a = _offset_variance(lines, a, xy, c, s)
-    var_b = _offset_variance(lines, b, xy, c, s)
-    # Columns of the inverse of [[cos a, sin a], [cos b, sin b]]: the effect of each offset.
+    lever_a = _lever(lines, a, xy, c, s)
+    lever_b = _lever(lines, b, xy, c, s)
+    var_a = lines.offset_var[a] + lines.alpha_var[a] * lever_a ** 2  # each line's move at the corner
+    var_b = lines.offset_var[b] + lines.alpha_var[b] * lever_b ** 2
+    # Columns of the inverse of [[cos a, sin a], [cos b, sin b]]: the effect of each line's move.
     ga = np.column_stack((s[b], -c[b])) / det[:, None]
     gb = np.column_stack((-s[a], c[a])) / det[:, None]
     floor = (params.floor_m + params.floor_per_m * rng) ** 2
     cov = (var_a[:, None, None] * ga[:, :, None] * ga[:, None, :]
            + var_b[:, None, None] * gb[:, :, None] * gb[:, None, :]
            + floor[:, None, None] * np.eye(2))
-    return Corners(xy, cov, rng, np.column_stack((a, b)))
+    return Corners(xy, cov, rng, np.column_stack((a, b)), np.stack((ga, gb), axis=2),
+                   np.column_stack((lever_a, lever_b)), floor)
 
 
-def _offset_variance(lines: LineSet, k: np.ndarray, xy: np.ndarray, cos_alpha: np.ndarray,
-                     sin_alpha: np.ndarray) -> np.ndarray:
-    """Variance (m^2) of the normal offset of lines ``k`` at the points ``xy``; ``cos_alpha``,
-    ``sin_alpha``: every line's normal."""
-    lever = ((xy[:, 1] - lines.centroid[k, 1]) * cos_alpha[k]  # along the tangent (-sin, cos)
-             - (xy[:, 0] - lines.centroid[k, 0]) * sin_alpha[k])
-    return lines.offset_var[k] + lines.alpha_var[k] * lever ** 2
+def _lever(lines: LineSet, k: np.ndarray, xy: np.ndarray, cos_alpha: np.ndarray, sin_alpha: np.ndarray) -> np.ndarray:
+    """Signed distance (m) along the tangent (-sin, cos) of lines ``k`` from their centroids to the
+    points ``xy``; ``cos_alpha``, ``sin_alpha``: every line's normal."""
+    return ((xy[:, 1] - lines.centroid[k, 1]) * cos_alpha[k]
+            - (xy[:, 0] - lines.centroid[k, 0]) * sin_alpha[k])

@@ -40,7 +40,7 @@ Deviations from the paper, all for robustness:
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -81,6 +81,10 @@ class HeadingResult:
     lines_used: int  # inlier lines
     consensus: float  # weight fraction of the inliers, 0..1
     limit_rad: float  # the inter-frame rotation limit A/2 beyond which the heading aliases
+    # (K,) d yaw / d alpha of every line of the LineSet (rad/rad): minus each inlier's weight
+    # fraction, 0 for the others; empty when not measured. ``variance`` without the residual
+    # scaling and the floor is sum(alpha_gain^2 alpha_var).
+    alpha_gain: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def measured(self) -> bool:
@@ -123,6 +127,8 @@ def track_heading(lines: LineSet, previous_yaw: float, wall_angle_rad: float,
     w = weight[inl]
     resid = -diff[best, inl]  # line correction minus the candidate, wrapped
     mean_resid = float(w @ resid / w.sum())
+    gain = np.zeros(lines.count)
+    gain[np.flatnonzero(use)[inl]] = -w / w.sum()  # the correction is the inliers' weighted mean of -alpha
     correction = float(wall_mod(corr[best] + mean_resid, wall_angle_rad))
     variance = max(_variance(w, resid - mean_resid), params.variance_floor_rad2)
     yaw = wrap_pi(predicted + correction)
@@ -135,8 +141,8 @@ def track_heading(lines: LineSet, previous_yaw: float, wall_angle_rad: float,
         return HeadingResult(yaw, correction, variance, "near_limit",
                              f"correction {math.degrees(correction):.1f} deg approaches the inter-frame "
                              f"limit A/2 = {math.degrees(limit):.1f} deg: a faster turn aliases by "
-                             f"{math.degrees(wall_angle_rad):g} deg", int(inl.sum()), consensus, limit)
-    return HeadingResult(yaw, correction, variance, "ok", "", int(inl.sum()), consensus, limit)
+                             f"{math.degrees(wall_angle_rad):g} deg", int(inl.sum()), consensus, limit, gain)
+    return HeadingResult(yaw, correction, variance, "ok", "", int(inl.sum()), consensus, limit, gain)
 
 
 def _variance(weight: np.ndarray, resid: np.ndarray) -> float:

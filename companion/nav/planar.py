@@ -105,6 +105,7 @@ from typing import Literal
 import numpy as np
 
 from companion.frames import planar_moved, planar_rotation, rotation_from_euler, wrap_pi
+from companion.nav.corner_fix import corner_fix_covariance
 from companion.nav.corners import CornerParams, Corners, find_corners
 from companion.nav.edges import EdgeParams, Edges, occluding_ends
 from companion.nav.heading import (UNMEASURED_VARIANCE_RAD2, HeadingParams, HeadingResult,
@@ -348,7 +349,7 @@ class PlanarLocalizer:
         if not heading.measured:
             return self._miss(heading, heading.reason, heading.status == "ambiguous", lines, corners,
                               points[ok], timing, t0)
-        best, yaw_used = self._best_alias(corners, np.array([x, y]), heading)
+        best, yaw_used = self._best_alias(lines, corners, np.array([x, y]), heading)
         timing["match"] = (time.perf_counter() - t3) * 1e3
         # Once lost, the held position is stale: resume tracking only on a cross-checked match.
         needed = self.params.min_matches if self._misses >= self.params.lost_after_frames else 1
@@ -418,10 +419,11 @@ class PlanarLocalizer:
                 ok &= above_floor <= self.ceiling_m - min(clearance, self.ceiling_m - scanner - clearance)
         return levelled[:, :2], ok, r
 
-    def match(self, corners: Corners, xy: np.ndarray, heading: HeadingResult,
+    def match(self, lines: LineSet, corners: Corners, xy: np.ndarray, heading: HeadingResult,
               gate_m: float | None = None) -> Match:
-        """Associate ``corners`` (levelled body frame) with the map from the position ``xy``
-        and the heading, and update the position (eqs. 5-8 with outlier rejection)."""
+        """Associate ``corners`` (levelled body frame, found in ``lines``) with the map from the
+        position ``xy`` and the heading (measured from ``lines``), and update the position (eqs.
+        5-8 with outlier rejection; the covariance: companion/nav/corner_fix.py)."""
         gate = self.params.gate_m if gate_m is None else gate_m
         rot = planar_rotation(heading.yaw)
         world = corners.xy @ rot.T  # R q for every corner (eq. 5 without the position)
@@ -432,19 +434,12 @@ class PlanarLocalizer:
         cov = rot @ corners.cov[obs] @ rot.T
         weight = 1.0 / (cov[:, 0, 0] + cov[:, 1, 1])
         keep = self._inliers(disp, weight)
-        disp, cov, weight, arms = disp[keep], cov[keep], weight[keep], world[obs][keep]
+        disp, cov, weight = disp[keep], cov[keep], weight[keep]
         w = weight / weight.sum()
         delta = w @ disp
         resid = disp - delta
-        pos_cov = ((w * w) @ cov.reshape(-1, 4)).reshape(2, 2) * _chi2_scale(resid, cov)
-        if w.size == 1:
-            pos_cov = pos_cov * self.params.single_corner_inflation
-        lever = w @ arms  # d(position)/d(yaw) = (lever_y, -lever_x): p = m - R(yaw) q
-        dp_dyaw = np.array([lever[1], -lever[0]])
-        full = np.empty((3, 3))
-        full[:2, :2] = pos_cov + heading.variance * np.outer(dp_dyaw, dp_dyaw)
-        full[:2, 2] = full[2, :2] = heading.variance * dp_dyaw
-        full[2, 2] = heading.variance
+        scale = _chi2_scale(resid, cov) * (self.params.single_corner_inflation if w.size == 1 else 1.0)
+        full = corner_fix_covariance(lines, corners.subset(obs[keep]), w, rot, heading, scale)
         rms = math.sqrt(float(np.dot(resid.ravel(), resid.ravel())) / w.size)
         return Match(xy + delta, full, int(w.size), rms)
 
@@ -482,15 +477,16 @@ class PlanarLocalizer:
             keep &= ~bad
         return keep
 
-    def _best_alias(self, corners: Corners, xy: np.ndarray, heading: HeadingResult) -> tuple[Match, float]:
+    def _best_alias(self, lines: LineSet, corners: Corners, xy: np.ndarray,
+                    heading: HeadingResult) -> tuple[Match, float]:
         """Match with the measured heading; near the inter-frame limit also with its aliases
         +/- A (a rotation beyond A/2 aliases by A), and keep the one matching most corners."""
-        best = self.match(corners, xy, heading)
+        best = self.match(lines, corners, xy, heading)
         yaw = heading.yaw
         if heading.status == "near_limit":
             for k in (-1, 1):
                 alias = _with_yaw(heading, wrap_pi(heading.yaw + k * self.wall_angle))
-                m = self.match(corners, xy, alias)
+                m = self.match(lines, corners, xy, alias)
                 if m.matched > best.matched or (m.matched == best.matched > 0 and m.rms_m < best.rms_m):
                     best, yaw = m, alias.yaw
         return best, yaw
@@ -777,13 +773,13 @@ class PlanarLocalizer:
             hx, hy, hyaw = self._pose
             near = ((np.hypot(poses[:, 2] - hx, poses[:, 3] - hy) <= max(p.reloc_local_m, self._drift_radius()))
                     & (np.abs(wrap_pi(poses[:, 1] - hyaw)) <= 0.5 * self.wall_angle))
-            found, _ = self._clear_winner(poses[near], corners, points, base)
+            found, _ = self._clear_winner(poses[near], lines, corners, points, base)
             if found is not None:
                 return (*found, True), ""
-        found, detail = self._clear_winner(poses, corners, points, base)
+        found, detail = self._clear_winner(poses, lines, corners, points, base)
         return (None, detail) if found is None else ((*found, False), "")
 
-    def _clear_winner(self, poses: np.ndarray, corners: Corners, points: np.ndarray,
+    def _clear_winner(self, poses: np.ndarray, lines: LineSet, corners: Corners, points: np.ndarray,
                       base: HeadingResult) -> tuple[tuple[Match, HeadingResult] | None, str]:
         """Refine the best distinct pose rows (score, yaw, x, y) and keep a clear winner, if any."""
         p = self.params
@@ -792,7 +788,7 @@ class PlanarLocalizer:
         matched = []
         for score, yaw, tx, ty in distinct_poses(poses, p.reloc_distinct_m, p.reloc_candidates):
             heading = _with_yaw(base, float(yaw))
-            matched.append((self.match(corners, np.array([tx, ty]), heading, p.reloc_tolerance_m), heading))
+            matched.append((self.match(lines, corners, np.array([tx, ty]), heading, p.reloc_tolerance_m), heading))
         # Only the poses matching the most corners can win or tie: the wall check for those alone.
         most = max((m.matched for m, _ in matched), default=0)
         scored = [(m.matched, self._wall_fraction(points, m.xy, heading.yaw) if m.matched == most else 0.0, m, heading)
@@ -823,8 +819,7 @@ class PlanarLocalizer:
 
 
 def _with_yaw(heading: HeadingResult, yaw: float) -> HeadingResult:
-    return HeadingResult(yaw, heading.correction, heading.variance, heading.status, heading.reason,
-                         heading.lines_used, heading.consensus, heading.limit_rad)
+    return replace(heading, yaw=yaw)
 
 
 def associate(predicted: np.ndarray, landmarks: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
