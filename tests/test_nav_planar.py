@@ -9,7 +9,10 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from companion.nav.lidar_pipeline import LidarPipelineConfig
+from companion.config import MountConfig
+from companion.health import Health
+from companion.nav.height import HeightParams
+from companion.nav.lidar_pipeline import LidarPipeline, LidarPipelineConfig
 from companion.nav.bench_stages import DEFAULT_WORLD, make_mount, run_stage_bench, synthetic_scan, tiled_map
 from companion.nav.corners import find_corners
 from companion.nav.heading import HeadingResult, track_heading, wall_mod
@@ -608,6 +611,21 @@ def test_heading_result_is_reported(arena: World, geometry: WorldGeometry) -> No
 def test_the_configured_correspondence_gate_reaches_the_localizer() -> None:
     cfg = LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v", correspondence_gate_m=0.3)
     assert planar_params(cfg).gate_m == 0.3
+
+
+def test_the_configured_noise_floors_reach_the_localizer_the_height_fix_and_the_fusion(arena: World) -> None:
+    cfg = LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v", accel_noise_density=0.0015,
+                              line_model_error_m=0.0, corner_error_per_m=0.0, heading_error_deg=0.0,
+                              height_model_error_m=0.001)
+    params = planar_params(cfg)
+    assert params.lines.model_floor_m == 0.0 and params.corners.floor_per_m == 0.0
+    assert params.heading.variance_floor_rad2 == 0.0
+    assert params.lines.max_missing_beams == PlanarParams().lines.max_missing_beams  # the rest as they were
+    pipeline = LidarPipeline(cfg, arena, MountConfig(), MountConfig(rpy_deg=(90.0, 0.0, 0.0)), Health(lambda: 0.0))
+    assert pipeline.fusion.config.accel_noise_density == 0.0015
+    assert pipeline.height.params.variance_floor_m2 == pytest.approx(0.001 ** 2)
+    assert pipeline.height.params.lines.model_floor_m == 0.0
+    assert pipeline.height.params.lines.noise_m == HeightParams().lines.noise_m
 
 
 def test_the_maps_survey_error_widens_every_fix_from_it(arena: World, geometry: WorldGeometry) -> None:

@@ -36,10 +36,11 @@ from companion.frames import planar_increment, wrap_pi
 from companion.health import Health, State
 from companion.messages import Estimate, PoseEstimate, Scan
 from companion.nav.corners import CornerParams
-from companion.nav.fusion import FusedState, FusionFilter, to_pose_estimate, without_direction
+from companion.nav.fusion import FusedState, FusionConfig, FusionFilter, to_pose_estimate, without_direction
 from companion.nav.fusion_io import FusedOutput, ImuFeed
 from companion.nav.heading import HeadingParams
-from companion.nav.height import HeightEstimator
+from companion.nav.height import HeightEstimator, HeightParams
+from companion.nav.lines import LineParams
 from companion.nav.lidar_streams import STREAMS, ProcessedScan, map_payload, scan_payloads
 from companion.nav.planar import Mount2D, PlanarLocalizer, PlanarParams
 from companion.pipeline import PipelineContext
@@ -95,6 +96,25 @@ class LidarPipelineConfig:
         "Scans that must find a relocalization jump (each near the previous one moved as the fused IMU says, turned "
         "as the gyro says; scans too poor to test it carry it, one finding another pose starts over) before it "
         "becomes the pose; until then the lidar pose is lost.", (1, 40)))
+    # The noise the vehicle's sensors and building add beyond what each fit sees (the map's own, its
+    # survey error, is in the map). The defaults suit a real multirotor with a Hokuyo in a real building.
+    accel_noise_density: float = field(default=FusionConfig.accel_noise_density, metadata=meta(
+        "White acceleration noise of the fusion's IMU prediction, m/s^2/sqrt(Hz): the IMU's own plus the autopilot's "
+        "tilt error seen through gravity (the part ArduPilot's EK3_ACC_P_NSE plays). The built-in simulator's IMU "
+        "(0.03 m/s^2 per 400 Hz sample) has 0.0015.", (1e-5, 1.0)))
+    line_model_error_m: float = field(default=LineParams.model_floor_m, metadata=meta(
+        "1-sigma error of every fitted line beyond what its residuals show (wall roughness, a range bias that "
+        "depends on the surface), m; both scanners. The simulator's walls are flat and its ranges unbiased: 0.",
+        (0.0, 0.1)))
+    corner_error_per_m: float = field(default=CornerParams.floor_per_m, metadata=meta(
+        "1-sigma error of every corner per metre of range (beam width, rounded corners), m/m; the simulator's "
+        "beams are rays and its corners sharp: 0.", (0.0, 0.05)))
+    heading_error_deg: float = field(default=math.degrees(math.sqrt(HeadingParams.variance_floor_rad2)), metadata=meta(
+        "1-sigma floor of the lidar heading (walls a little off the map's wall angle), degrees; the simulator's walls "
+        "are exactly on it: 0.", (0.0, 5.0)))
+    height_model_error_m: float = field(default=math.sqrt(HeightParams.variance_floor_m2), metadata=meta(
+        "1-sigma error of every height fix beyond its floor line's fit (an uneven floor), m; the simulator's floor "
+        "is flat: 0.", (0.0, 0.5)))
 
     def sensor_inputs(self) -> dict[str, str]:
         return {"horizontal_sensor": "lidar", "vertical_sensor": "lidar", "imu_sensor": "imu"}
@@ -110,11 +130,21 @@ class LidarPipelineConfig:
 
 
 def planar_params(cfg: LidarPipelineConfig, survey_error_m: float = CornerParams.floor_m) -> PlanarParams:
-    """The localizer's thresholds from the config and the map's survey error (m, 1-sigma: the floor
-    of every corner's and wall's covariance); the rest keep the defaults of companion/nav."""
+    """The localizer's thresholds and noise floors from the config and the map's survey error (m,
+    1-sigma: the floor of every corner's and wall's covariance); the rest keep the defaults of
+    companion/nav."""
+    lines = dataclasses.replace(PlanarParams().lines, model_floor_m=cfg.line_model_error_m)
     return PlanarParams(gate_m=cfg.correspondence_gate_m, reloc_confirm_frames=cfg.relocalization_confirm_scans,
-                        corners=CornerParams(floor_m=survey_error_m), map_error_m=survey_error_m,
-                        heading=HeadingParams(prediction_sigma_deg=GYRO_PREDICTION_SIGMA_DEG))
+                        corners=CornerParams(floor_m=survey_error_m, floor_per_m=cfg.corner_error_per_m),
+                        map_error_m=survey_error_m, lines=lines,
+                        heading=HeadingParams(prediction_sigma_deg=GYRO_PREDICTION_SIGMA_DEG,
+                                              variance_floor_rad2=math.radians(cfg.heading_error_deg) ** 2))
+
+
+def height_params(cfg: LidarPipelineConfig) -> HeightParams:
+    """The vertical scanner's height fix with the config's noise floors."""
+    lines = dataclasses.replace(HeightParams().lines, model_floor_m=cfg.line_model_error_m)
+    return HeightParams(lines=lines, variance_floor_m2=cfg.height_model_error_m ** 2)
 
 
 def planar_mount(mount: MountConfig) -> Mount2D:
@@ -155,8 +185,9 @@ class LidarPipeline:
             initial = (x, y, math.radians(yaw_deg))
         self.localizer = planar_localizer(planar_params(cfg, world_map.survey_error_m), world_map,
                                           planar_mount(horizontal), initial)
-        self.height = HeightEstimator(tuple(vertical.position_m), tuple(math.radians(a) for a in vertical.rpy_deg))
-        self.fusion = FusionFilter()
+        self.height = HeightEstimator(tuple(vertical.position_m), tuple(math.radians(a) for a in vertical.rpy_deg),
+                                      height_params(cfg))
+        self.fusion = FusionFilter(FusionConfig(accel_noise_density=cfg.accel_noise_density))
         self.output = FusedOutput(self.fusion, health, "nav:fusion")
         self.stats = LidarPipelineStats()
         self.timings = {"lidar": Timings(), "fusion": Timings()}
