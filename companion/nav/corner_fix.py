@@ -45,16 +45,17 @@ def corner_fix_covariance(lines: LineSet, corners: Corners, weights: np.ndarray,
     n = lines.count
     if heading.alpha_gain.shape != (n,):
         raise ValueError(f"the heading was measured from {heading.alpha_gain.size} lines, the corners from {n}")
-    moves = -weights[:, None, None] * np.einsum("ij,kjl->kil", rot, corners.gain)  # (K, 2 axes, 2 lines): dp per line move
+    k = corners.count
+    # (2 axes, 2K): the fix's move per metre each corner's line (a then b) moves at the corner
+    moves = (rot @ corners.gain * -weights[:, None, None]).transpose(1, 0, 2).reshape(2, 2 * k)
+    which = np.zeros((2 * k, n))  # row j: the line of that move
+    which[np.arange(2 * k), corners.lines.ravel()] = 1.0
     arm = weights @ (corners.xy @ rot.T)
     dp_dyaw = np.array([arm[1], -arm[0]])
-    jac = np.zeros((3, 2 * n))  # rows north, east, yaw; columns du (n), dalpha (n)
-    for side in (0, 1):
-        line = corners.lines[:, side]
-        for axis in (0, 1):
-            jac[axis, :n] += np.bincount(line, moves[:, axis, side], n)
-            jac[axis, n:] -= np.bincount(line, moves[:, axis, side] * corners.lever[:, side], n)
-    jac[:2, n:] += np.outer(dp_dyaw, heading.alpha_gain)
+    jac = np.empty((3, 2 * n))  # rows north, east, yaw; columns du (n), dalpha (n)
+    jac[:2, :n] = moves @ which
+    jac[:2, n:] = (moves * -corners.lever.ravel()) @ which + np.outer(dp_dyaw, heading.alpha_gain)
+    jac[2, :n] = 0.0
     jac[2, n:] = heading.alpha_gain
     cov = (jac * np.concatenate((lines.offset_var, lines.alpha_var))) @ jac.T
     cov[:2, :2] += float(weights ** 2 @ corners.floor_var) * np.eye(2)
