@@ -16,15 +16,16 @@ BANK_TAU_S = 0.25  # the attitude loop's time constant (attitude_rates: 4 /s)
 
 
 def fly(start: tuple[float, float], heading_rad: float, centre: tuple[float, float],
-        seconds: float) -> tuple[list[float], list[float]]:
-    """(distances to ``centre`` m, banks rad) every step of a loiter flown from ``start`` (NED m)."""
+        seconds: float, direction: int = 1) -> tuple[list[float], list[float]]:
+    """(distances to ``centre`` m, banks rad) every step of a loiter flown from ``start`` (NED m),
+    clockwise (``direction`` 1) or counter-clockwise (-1)."""
     limits = PlaneLimits()
     loiter = L1Loiter(limits)
     north, east, heading, bank = start[0], start[1], heading_rad, 0.0
     distances, banks = [], []
     for _ in range(int(seconds / DT)):
         vn, ve = SPEED * math.cos(heading), SPEED * math.sin(heading)
-        accel = loiter.lateral_accel(north, east, vn, ve, heading, centre, limits.loiter_radius_m)
+        accel = loiter.lateral_accel(north, east, vn, ve, heading, centre, limits.loiter_radius_m, direction)
         bank += (bank_for_accel(accel, 0.0, limits.roll_limit_rad) - bank) * DT / BANK_TAU_S
         heading += GRAVITY_MPS2 * math.tan(bank) / SPEED * DT
         north, east = north + vn * DT, east + ve * DT
@@ -46,6 +47,14 @@ def test_an_aircraft_far_away_flies_to_its_loiter_circle_and_holds_it_clockwise(
     assert all(abs(d - radius) < 3.0 for d in tail), (min(tail), max(tail))
     assert min(banks[-int(30.0 / DT):]) > 0.0  # clockwise: right bank all round
     # Head-on to the centre, joining a clockwise circle takes one veer left onto its tangent first.
+    assert reversals(banks) <= 1
+
+
+def test_a_counter_clockwise_loiter_holds_its_circle_banking_left() -> None:
+    radius = PlaneLimits().loiter_radius_m
+    distances, banks = fly((0.0, 0.0), 0.0, (600.0, 300.0), 90.0, direction=-1)
+    assert all(abs(d - radius) < 3.0 for d in distances[-int(30.0 / DT):])
+    assert max(banks[-int(30.0 / DT):]) < 0.0  # counter-clockwise: left bank all round
     assert reversals(banks) <= 1
 
 
