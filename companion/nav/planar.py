@@ -112,7 +112,7 @@ from companion.nav.heading import (UNMEASURED_VARIANCE_RAD2, HeadingParams, Head
                                    heading_hypotheses, track_heading)
 from companion.nav.lines import LineParams, LineSet, extract_lines
 from companion.nav.corner_hypotheses import distinct_poses, pose_hypotheses
-from companion.nav.wall_hypotheses import lines_on_walls, wall_families, wall_hypotheses
+from companion.nav.wall_hypotheses import MapWalls, lines_on_walls, wall_hypotheses
 from companion.nav.wall_grid import WallGrid
 from companion.messages import Scan
 
@@ -273,16 +273,12 @@ class PlanarLocalizer:
         self.walls = None if walls is None else np.asarray(walls, dtype=float).reshape(-1, 4)
         if self.walls is not None:
             self._wall_grid = WallGrid(self.walls, params.reloc_wall_tolerance_m)  # relocalization's wall check
-            edge = self.walls[:, 2:4] - self.walls[:, 0:2]
-            self._wall_len = np.hypot(edge[:, 0], edge[:, 1])
-            self._wall_dir = edge / np.maximum(self._wall_len, 1e-9)[:, None]  # unit, start -> end
-            self._wall_normal = np.column_stack((-self._wall_dir[:, 1], self._wall_dir[:, 0]))  # left of it
+            self._map_walls = MapWalls.from_segments(self.walls, self.wall_angle, self.wall_offset)
             # (S, 2): whether the wall's start / end is a listed corner. Only there does the map
             # vouch that the wall really ends; a map built from a log also ends walls where the
             # walk saw no more of them.
             self._wall_end_is_corner = np.column_stack([
                 _near_any(self.walls[:, c:c + 2], self.map, params.edge_corner_m) for c in (0, 2)])
-            self._wall_family = wall_families(self._wall_dir, self.wall_angle, self.wall_offset)
         self.params = params
         self._pose: tuple[float, float, float] | None = None
         self.last_lines: LineSet | None = None  # what update() extracted from its last scan (never mutated)
@@ -521,15 +517,15 @@ class PlanarLocalizer:
         if use.size == 0:
             return None
         rot = planar_rotation(heading.yaw)
-        mid, resid, candidate = lines_on_walls(lines, use, xy, heading.yaw, self.walls, self._wall_dir, self._wall_len,
-                                               p.wall_angle_tolerance_deg, p.wall_gate_m, p.wall_overlap_margin_m)
+        mid, resid, candidate = lines_on_walls(lines, use, xy, heading.yaw, self._map_walls, p.wall_angle_tolerance_deg,
+                                               p.wall_gate_m, p.wall_overlap_margin_m)
         has = candidate.any(axis=1)
         if not has.any():
             return None
         nearest = np.argmin(np.where(candidate, np.abs(resid), np.inf), axis=1)[has]
         # Along the map wall's normal, not the observed line's: a corridor's parallel walls then
         # leave the along-track direction exactly unmeasured.
-        n, r = self._wall_normal[nearest], resid[has, nearest]
+        n, r = self._map_walls.normal[nearest], resid[has, nearest]
         k = use[has]
         tangent = np.column_stack((-np.sin(lines.alpha[k]), np.cos(lines.alpha[k])))
         lever = np.einsum("ij,ij->i", lines.centroid[k], tangent)  # the offset is measured at the foot of the normal
@@ -598,10 +594,10 @@ class PlanarLocalizer:
         j = np.array([of_line[int(line)] for line in edges.line[pick]])
         arm = edges.xy[pick] @ rot.T  # scanner to end, world frame
         world = xy + arm
-        direction = self._wall_dir[j]
+        direction, length = self._map_walls.direction[j], self._map_walls.length[j]
         u = np.einsum("ij,ij->i", world - self.walls[j, 0:2], direction)  # along the wall from its start
-        at_end = u >= 0.5 * self._wall_len[j]  # the nearer end: the wall's end (True) or start
-        along = np.where(at_end, self._wall_len[j], 0.0) - u
+        at_end = u >= 0.5 * length  # the nearer end: the wall's end (True) or start
+        along = np.where(at_end, length, 0.0) - u
         near = (np.abs(along) <= self.params.edge_gate_m) & self._wall_end_is_corner[j, at_end.astype(int)]
         if not near.any():
             return None
@@ -705,9 +701,9 @@ class PlanarLocalizer:
         assert self._pose is not None and self.walls is not None
         held = np.array(self._pose[:2])
         use = np.flatnonzero(lines.length >= p.heading.min_length_m)
-        poses = wall_hypotheses(lines, use, held, heading.yaw, self.walls, self._wall_dir, self._wall_len,
-                                self._wall_family, max(p.reloc_local_m, self._drift_radius()),
-                                p.wall_angle_tolerance_deg, p.reloc_wall_tolerance_m)
+        poses = wall_hypotheses(lines, use, held, heading.yaw, self._map_walls,
+                                max(p.reloc_local_m, self._drift_radius()), p.wall_angle_tolerance_deg,
+                                p.reloc_wall_tolerance_m)
         if poses.shape[0] == 0:
             return None, "no lines of two wall directions on map walls near the held pose"
         if poses.shape[0] > p.reloc_wall_positions_max:

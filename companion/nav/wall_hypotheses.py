@@ -17,6 +17,7 @@ north towards east.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -24,16 +25,40 @@ from companion.frames import planar_rotation
 from companion.nav.lines import LineSet
 
 
-def lines_on_walls(lines: LineSet, use: np.ndarray, xy: np.ndarray, yaw: float, walls: np.ndarray,
-                   wall_dir: np.ndarray, wall_len: np.ndarray, parallel_deg: float, gate_m: float,
-                   overlap_margin_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class MapWalls:
+    """A map's wall segments and what is derived from them once (map frame: north, east, metres)."""
+
+    segments: np.ndarray  # (S, 4) [x0, y0, x1, y1]
+    direction: np.ndarray  # (S, 2) unit, start -> end
+    length: np.ndarray  # (S,)
+    normal: np.ndarray  # (S, 2) unit, left of the direction
+    family: np.ndarray  # (S,) int: the direction as a multiple of the wall angle, modulo 180 deg
+
+    @classmethod
+    def from_segments(cls, segments: np.ndarray, wall_angle_rad: float, offset_rad: float) -> MapWalls:
+        """``segments`` (S, 4) of a map whose walls run at ``offset_rad`` plus multiples of
+        ``wall_angle_rad`` (parallel walls share a family)."""
+        segments = np.asarray(segments, dtype=float).reshape(-1, 4)
+        edge = segments[:, 2:4] - segments[:, 0:2]
+        length = np.hypot(edge[:, 0], edge[:, 1])
+        direction = edge / np.maximum(length, 1e-9)[:, None]
+        angle = np.arctan2(direction[:, 1], direction[:, 0])
+        steps = int(round(math.pi / wall_angle_rad))
+        family = np.mod(np.round((angle - offset_rad) / wall_angle_rad).astype(int), steps)
+        return cls(segments, direction, length, np.column_stack((-direction[:, 1], direction[:, 0])), family)
+
+
+def lines_on_walls(lines: LineSet, use: np.ndarray, xy: np.ndarray, yaw: float, walls: MapWalls,
+                   parallel_deg: float, gate_m: float, overlap_margin_m: float
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Which observed lines may lie on which map walls, seen from the position ``xy`` (m) at
     heading ``yaw`` (rad): (the lines' middles (L, 2) in the map, m; the displacement of ``xy``
     along each wall's normal (left of its direction) that puts each line's middle on the wall's
     line (L, S), m; whether the pair may match (L, S): parallel within ``parallel_deg``, that
     displacement within ``gate_m``, the line overlapping the wall's extent within
-    ``overlap_margin_m``). ``use``: indices of the lines (L of them); ``walls`` (S, 4) [x0, y0, x1,
-    y1] m with unit directions ``wall_dir`` and lengths ``wall_len`` (m). Measured along the wall's
+    ``overlap_margin_m``). ``use``: indices of the lines (L of them); ``walls``: the map's S walls.
+    Measured along the wall's
     normal, not the line's: a real wall is a little off its map line, and along the line's normal
     a long wall's residual would grow with its length."""
     angle = lines.alpha[use] + yaw
@@ -41,39 +66,36 @@ def lines_on_walls(lines: LineSet, use: np.ndarray, xy: np.ndarray, yaw: float, 
     rot = planar_rotation(yaw)
     start, end = xy + lines.start[use] @ rot.T, xy + lines.end[use] @ rot.T
     mid = 0.5 * (start + end)
-    wall_normal = np.column_stack((-wall_dir[:, 1], wall_dir[:, 0]))
+    origin, wall_dir, wall_normal = walls.segments[:, 0:2], walls.direction, walls.normal
     parallel = np.abs(normal @ wall_dir.T) <= math.sin(math.radians(parallel_deg))
-    shift = np.sum(wall_normal * walls[:, 0:2], axis=1)[None, :] - mid @ wall_normal.T
-    u0 = np.einsum("lsk,sk->ls", start[:, None, :] - walls[None, :, 0:2], wall_dir)
-    u1 = np.einsum("lsk,sk->ls", end[:, None, :] - walls[None, :, 0:2], wall_dir)
-    overlap = (np.maximum(u0, u1) >= -overlap_margin_m) & (np.minimum(u0, u1) <= wall_len + overlap_margin_m)
+    shift = np.sum(wall_normal * origin, axis=1)[None, :] - mid @ wall_normal.T
+    u0 = np.einsum("lsk,sk->ls", start[:, None, :] - origin[None, :, :], wall_dir)
+    u1 = np.einsum("lsk,sk->ls", end[:, None, :] - origin[None, :, :], wall_dir)
+    overlap = (np.maximum(u0, u1) >= -overlap_margin_m) & (np.minimum(u0, u1) <= walls.length + overlap_margin_m)
     return mid, shift, parallel & overlap & (np.abs(shift) <= gate_m)
 
 
-def wall_hypotheses(lines: LineSet, use: np.ndarray, held: np.ndarray, yaw: float, walls: np.ndarray,
-                    wall_dir: np.ndarray, wall_len: np.ndarray, family: np.ndarray, radius_m: float,
-                    parallel_deg: float, cluster_m: float) -> np.ndarray:
+def wall_hypotheses(lines: LineSet, use: np.ndarray, held: np.ndarray, yaw: float, walls: MapWalls,
+                    radius_m: float, parallel_deg: float, cluster_m: float) -> np.ndarray:
     """(H, 2) positions (m) within ``radius_m`` of ``held`` at which an observed line of each of
     two wall directions lies on a map wall.
 
     ``use``: indices of the lines to place (long enough to trust their direction); ``yaw``: the
-    heading (rad); ``walls``, ``wall_dir``, ``wall_len`` as for :func:`lines_on_walls`, and
-    ``family`` (S,) int, the index of each wall's direction modulo 180 deg (walls of one family
-    are parallel); ``parallel_deg``: a line lies on a wall only if they are parallel within
+    heading (rad); ``walls``: the map's (walls of one family are parallel); ``parallel_deg``: a
+    line lies on a wall only if they are parallel within
     this; displacements along one family closer than ``cluster_m`` are one (their mean). All of
     them are returned: the caller refuses to pick among too many rather than dropping some (the
     true one among them)."""
     none = np.zeros((0, 2))
-    if use.size == 0 or walls.shape[0] == 0:
+    if use.size == 0 or walls.segments.shape[0] == 0:
         return none
     # Each line on a wall within the radius along its normal, overlapping it once moved by at most
     # the radius along it as well.
-    _, shift, pairs = lines_on_walls(lines, use, held, yaw, walls, wall_dir, wall_len, parallel_deg,
-                                     radius_m, radius_m)
+    _, shift, pairs = lines_on_walls(lines, use, held, yaw, walls, parallel_deg, radius_m, radius_m)
     line_i, wall_j = np.nonzero(pairs)
     if line_i.size == 0:
         return none
-    wall_normal = np.column_stack((-wall_dir[:, 1], wall_dir[:, 0]))
+    wall_normal, family = walls.normal, walls.family
     # Per family, displacements along the family's reference normal (its first wall's).
     fams = np.unique(family[wall_j])
     reference = {f: wall_normal[wall_j[family[wall_j] == f][0]] for f in fams}
@@ -97,14 +119,6 @@ def wall_hypotheses(lines: LineSet, use: np.ndarray, held: np.ndarray, yaw: floa
     delta = np.concatenate(out)
     delta = delta[np.hypot(delta[:, 0], delta[:, 1]) <= radius_m]
     return held + delta
-
-
-def wall_families(wall_dir: np.ndarray, wall_angle_rad: float, offset_rad: float) -> np.ndarray:
-    """(S,) int: each wall's direction as a multiple of ``wall_angle_rad`` from ``offset_rad``,
-    modulo 180 deg (parallel walls share it)."""
-    angle = np.arctan2(wall_dir[:, 1], wall_dir[:, 0])
-    steps = int(round(math.pi / wall_angle_rad))
-    return np.mod(np.round((angle - offset_rad) / wall_angle_rad).astype(int), steps)
 
 
 def _clustered(values: np.ndarray, within: float) -> np.ndarray:
