@@ -18,8 +18,8 @@ so ``(dp, dyaw) = A (du, dalpha)`` and the covariance is ``A diag(offset_var, al
 Propagated this way, a heading error and the corner errors that come from the same line
 directions partly cancel, and two corners on one line share its error. Summing the corners as
 independent and adding the heading variance through the lever arm as if it were independent
-counted those errors twice (on a clean SITL flight: the fixes' NEES 0.50 across the arena's
-long axis, 0.78 along it).
+counted those errors twice (replaying a clean SITL flight with the floors off: the fixes' NEES
+0.78 north, 0.50 east; 1 when consistent).
 
 Added as independent: each corner's floor (``Corners.floor_var``: the map's survey error, wall
 roughness, beam width), and the part of the heading variance beyond the lines' formal one (its
