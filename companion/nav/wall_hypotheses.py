@@ -58,9 +58,8 @@ def lines_on_walls(lines: LineSet, use: np.ndarray, xy: np.ndarray, yaw: float, 
     line (L, S), m; whether the pair may match (L, S): parallel within ``parallel_deg``, that
     displacement within ``gate_m``, the line overlapping the wall's extent within
     ``overlap_margin_m``). ``use``: indices of the lines (L of them); ``walls``: the map's S walls.
-    Measured along the wall's
-    normal, not the line's: a real wall is a little off its map line, and along the line's normal
-    a long wall's residual would grow with its length."""
+    Measured along the wall's normal, not the line's: a real wall is a little off its map line, and
+    along the line's normal a long wall's residual would grow with its length."""
     angle = lines.alpha[use] + yaw
     normal = np.column_stack((np.cos(angle), np.sin(angle)))  # world normals of the observed lines
     rot = planar_rotation(yaw)
@@ -82,10 +81,9 @@ def wall_hypotheses(lines: LineSet, use: np.ndarray, held: np.ndarray, yaw: floa
 
     ``use``: indices of the lines to place (long enough to trust their direction); ``yaw``: the
     heading (rad); ``walls``: the map's (walls of one family are parallel); ``parallel_deg``: a
-    line lies on a wall only if they are parallel within
-    this; displacements along one family closer than ``cluster_m`` are one (their mean). All of
-    them are returned: the caller refuses to pick among too many rather than dropping some (the
-    true one among them)."""
+    line lies on a wall only if they are parallel within this; displacements along one family
+    closer than ``cluster_m`` are one (their mean). All of them are returned: the caller refuses to
+    pick among too many rather than dropping some (the true one among them)."""
     none = np.zeros((0, 2))
     if use.size == 0 or walls.segments.shape[0] == 0:
         return none
