@@ -97,24 +97,22 @@ class LidarPipelineConfig:
         "as the gyro says; scans too poor to test it carry it, one finding another pose starts over) before it "
         "becomes the pose; until then the lidar pose is lost.", (1, 40)))
     # The noise the vehicle's sensors and building add beyond what each fit sees (the map's own, its
-    # survey error, is in the map). The defaults suit a real multirotor with a Hokuyo in a real building.
+    # survey error, is in the map). The defaults suit a real multirotor with a Hokuyo in a real building,
+    # and the simulated vehicles (README, "The noise floors as settings").
     accel_noise_density: float = field(default=FusionConfig.accel_noise_density, metadata=meta(
         "White acceleration noise of the fusion's IMU prediction, m/s^2/sqrt(Hz): the IMU's own plus the autopilot's "
-        "tilt error seen through gravity (the part ArduPilot's EK3_ACC_P_NSE plays). The built-in simulator's IMU "
-        "(0.03 m/s^2 per 400 Hz sample) has 0.0015.", (1e-5, 1.0)))
+        "tilt error seen through gravity, vibration, impacts (the part ArduPilot's EK3_ACC_P_NSE plays).",
+        (1e-5, 1.0)))
     line_model_error_m: float = field(default=LineParams.model_floor_m, metadata=meta(
         "1-sigma error of every fitted line beyond what its residuals show (wall roughness, a range bias that "
-        "depends on the surface), m; both scanners. The simulator's walls are flat and its ranges unbiased: 0.",
-        (0.0, 0.1)))
+        "depends on the surface), m; both scanners.", (0.0, 0.1)))
     corner_error_per_m: float = field(default=CornerParams.floor_per_m, metadata=meta(
-        "1-sigma error of every corner per metre of range (beam width, rounded corners), m/m; the simulator's "
-        "beams are rays and its corners sharp: 0.", (0.0, 0.05)))
+        "1-sigma error of every corner per metre of range (beam width, rounded corners), m/m.", (0.0, 0.05)))
     heading_error_deg: float = field(default=math.degrees(math.sqrt(HeadingParams.variance_floor_rad2)), metadata=meta(
-        "1-sigma floor of the lidar heading (walls a little off the map's wall angle), degrees; the simulator's walls "
-        "are exactly on it: 0.", (0.0, 5.0)))
+        "1-sigma floor of the lidar heading (walls a little off the map's wall angle), degrees.", (0.0, 5.0)))
     height_model_error_m: float = field(default=math.sqrt(HeightParams.variance_floor_m2), metadata=meta(
-        "1-sigma error of every height fix beyond its floor line's fit (an uneven floor), m; the simulator's floor "
-        "is flat: 0.", (0.0, 0.5)))
+        "1-sigma error of every height fix beyond its floor line's fit (an uneven floor), m. Near zero the fusion "
+        "refuses the fixes after a touchdown's jolt (README, \"The noise floors as settings\").", (0.0, 0.5)))
 
     def sensor_inputs(self) -> dict[str, str]:
         return {"horizontal_sensor": "lidar", "vertical_sensor": "lidar", "imu_sensor": "imu"}
