@@ -202,3 +202,24 @@ def test_a_door_recess_seen_past_its_edge_makes_no_phantom_corner(break_grazing_
             worst_sigmas = max(worst_sigmas, math.sqrt(error @ np.linalg.solve(cov, error)))
     assert found >= 12  # the recess's real corners are still found
     assert (worst_sigmas > 5.0) == phantoms_expected, worst_sigmas
+
+
+def test_a_lines_normal_error_at_a_point_matches_the_spread_of_fits_to_noisy_scans() -> None:
+    # A wall 3 m ahead (normal angle 0) seen from y = -1 to 1 m with 1 cm range noise, fitted 400
+    # times: the spread of each fit's normal position at the middle of the wall and 4 m along it
+    # (where the direction error dominates) is what normal_error_at claims there.
+    rng = np.random.default_rng(7)
+    angles = np.arctan2(np.linspace(-1.0, 1.0, 120), 3.0)
+    params = LineParams(model_floor_m=0.0)
+    at = np.array([[3.0, 0.0], [3.0, 4.0]])
+    errors, claimed = [], []
+    for _ in range(400):
+        r = 3.0 / np.cos(angles) + rng.normal(0.0, NOISE_M, angles.size)
+        lines = extract_lines(np.column_stack((r * np.cos(angles), r * np.sin(angles))), params=params)
+        assert lines.count == 1
+        k = np.zeros(2, dtype=int)
+        errors.append(at @ np.array([math.cos(lines.alpha[0]), math.sin(lines.alpha[0])]) - lines.d[0])
+        claimed.append(lines.normal_error_at(k, at)[1])
+    spread, sigma = np.std(errors, axis=0), np.sqrt(np.mean(claimed, axis=0))
+    assert sigma[1] > 5 * sigma[0]  # the lever arm: 4 m from the centroid
+    np.testing.assert_allclose(spread, sigma, rtol=0.2)

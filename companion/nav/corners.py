@@ -84,10 +84,8 @@ def find_corners(lines: LineSet, params: CornerParams = CornerParams()) -> Corne
     keep = steep & near
     a, b, xy, det = a[keep], b[keep], xy[keep], det[keep]
     rng = np.hypot(xy[:, 0], xy[:, 1])
-    lever_a = _lever(lines, a, xy, c, s)
-    lever_b = _lever(lines, b, xy, c, s)
-    var_a = lines.offset_var[a] + lines.alpha_var[a] * lever_a ** 2  # each line's move at the corner
-    var_b = lines.offset_var[b] + lines.alpha_var[b] * lever_b ** 2
+    lever_a, var_a = lines.normal_error_at(a, xy)  # each line's move at the corner
+    lever_b, var_b = lines.normal_error_at(b, xy)
     # Columns of the inverse of [[cos a, sin a], [cos b, sin b]]: the effect of each line's move.
     ga = np.column_stack((s[b], -c[b])) / det[:, None]
     gb = np.column_stack((-s[a], c[a])) / det[:, None]
@@ -98,9 +96,3 @@ def find_corners(lines: LineSet, params: CornerParams = CornerParams()) -> Corne
     return Corners(xy, cov, rng, np.column_stack((a, b)), np.stack((ga, gb), axis=2),
                    np.column_stack((lever_a, lever_b)), floor)
 
-
-def _lever(lines: LineSet, k: np.ndarray, xy: np.ndarray, cos_alpha: np.ndarray, sin_alpha: np.ndarray) -> np.ndarray:
-    """Signed distance (m) along the tangent (-sin, cos) of lines ``k`` from their centroids to the
-    points ``xy``; ``cos_alpha``, ``sin_alpha``: every line's normal."""
-    return ((xy[:, 1] - lines.centroid[k, 1]) * cos_alpha[k]
-            - (xy[:, 0] - lines.centroid[k, 0]) * sin_alpha[k])

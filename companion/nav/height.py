@@ -105,9 +105,7 @@ class HeightEstimator:
             return _lost("no floor-like line", 0)
         furthest = floor[lines.d[floor] >= lines.d[floor].max() - p.furthest_tolerance_m]
         k = int(furthest[np.argmax(lines.length[furthest])])
-        tangent = np.array([-math.sin(lines.alpha[k]), math.cos(lines.alpha[k])])
-        lever = float(tangent @ lines.centroid[k])  # centroid to the foot of the perpendicular
-        var_d = float(lines.offset_var[k] + lines.alpha_var[k] * lever ** 2)
+        var_d = float(lines.normal_error_at(np.array([k]), np.zeros((1, 2)))[1][0])  # the variance of d
         height = gain * float(lines.d[k]) + float((level @ self.mount_position)[2])
         variance = gain * gain * var_d + p.variance_floor_m2
         if expected is not None:

@@ -111,6 +111,16 @@ class LineSet:
     def count(self) -> int:
         return int(self.alpha.shape[0])
 
+    def normal_error_at(self, k: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """How lines ``k`` (indices) are uncertain along their normals at the points ``xy`` (len(k), 2)
+        (frame of the lines, metres): (lever (len(k),) m: signed distance along each line's tangent
+        (-sin alpha, cos alpha) from its centroid to the point; variance (len(k),) m^2 of the line's
+        normal offset there, ``offset_var + alpha_var * lever^2``: a direction error swings the line
+        about its centroid). The origin gives the variance of ``d`` (the foot of the normal)."""
+        c, s = np.cos(self.alpha[k]), np.sin(self.alpha[k])
+        lever = (xy[:, 1] - self.centroid[k, 1]) * c - (xy[:, 0] - self.centroid[k, 0]) * s
+        return lever, self.offset_var[k] + self.alpha_var[k] * lever ** 2
+
 
 def extract_lines(points: np.ndarray, valid: np.ndarray | None = None, params: LineParams = LineParams(),
                   ranges: np.ndarray | None = None) -> LineSet:

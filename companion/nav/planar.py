@@ -527,9 +527,8 @@ class PlanarLocalizer:
         # leave the along-track direction exactly unmeasured.
         n, r = self._map_walls.normal[nearest], resid[has, nearest]
         k = use[has]
-        tangent = np.column_stack((-np.sin(lines.alpha[k]), np.cos(lines.alpha[k])))
-        lever = np.einsum("ij,ij->i", lines.centroid[k], tangent)  # the offset is measured at the foot of the normal
-        var = lines.offset_var[k] + lines.alpha_var[k] * lever ** 2 + p.map_error_m ** 2
+        # The offset is measured at the foot of the normal.
+        var = lines.normal_error_at(k, np.zeros((k.size, 2)))[1] + p.map_error_m ** 2
         w = 1.0 / var
         info = (w[:, None, None] * n[:, :, None] * n[:, None, :]).sum(axis=0)
         b = (w * r) @ n
