@@ -87,7 +87,7 @@ import cv2
 import numpy as np
 
 from companion.calibration import CameraCalibration, load_calibration
-from companion.frames import euler_from_rotation, rotation_from_euler
+from companion.frames import rotation_from_euler
 from companion.health import Health, State
 from companion.messages import AttitudeEstimate, Estimate, FlowField, Frame, GnssFix, ImuSample, RangeEstimate
 from companion.nav.gnss_flow.config import GnssFlowConfig
@@ -98,7 +98,7 @@ from companion.nav.gnss_flow.pseudo_attitude import (DopplerAccelerationFilter, 
                                                      coordination_check, euler_rates_from_body_rates, pseudo_attitude,
                                                      pseudo_attitude_refusal, pseudo_euler_rates)
 from companion.nav.gnss_flow.true_attitude import (crab_roll, midway, rotation_correction, true_euler,
-                                                   true_euler_covariance, wind_to_body)
+                                                   true_euler_covariance, turned_by_offsets, wind_to_body)
 from companion.pipeline import PipelineContext
 from companion.plugins import register_pipeline
 from companion.timing import Timings
@@ -511,7 +511,7 @@ class GnssFlowPipeline:
         """The body pitch (rad) the roll blend converts the gyro's ``dt`` s (up to ``pseudo``'s instant,
         body rates ``gyro`` rad/s, at ``roll`` rad) with: the carried pitch at the span's start, which
         is then advanced to the instant. The carried pitch follows the pseudo-attitude turned by the
-        first path's newest offsets (:func:`.true_attitude.wind_to_body`) while its pairs measure them
+        first path's newest offsets (:func:`.true_attitude.turned_by_offsets`) while its pairs measure them
         (the newest within ``PITCH_OFFSET_FRESH_S``), smoothed over ``PITCH_OFFSET_TAU_S`` with the
         gyro's pitch rate, and the gyro alone where none does: in a turn (no focus of expansion) the
         angle of attack changes, and a stale offset put the error of the pitch times the yaw rate
@@ -522,8 +522,7 @@ class GnssFlowPipeline:
         newest = self._newest_offsets
         measured = None
         if newest is not None and pseudo.time_s - newest[0] <= PITCH_OFFSET_FRESH_S:
-            measured = euler_from_rotation(rotation_from_euler(roll, pseudo.pitch, pseudo.yaw)
-                                           @ wind_to_body(newest[1], newest[2]).T)[1]
+            measured = float(turned_by_offsets(roll, pseudo.pitch, pseudo.yaw, newest[1], newest[2])[1])
         pitch = carried.angle
         if pitch is None:
             if measured is not None:

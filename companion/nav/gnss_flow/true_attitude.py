@@ -41,8 +41,14 @@ def true_euler(pseudo_rad: np.ndarray, foe_n: np.ndarray, forward: float, cam_to
     a, b = velocity_offsets(direction, cam_to_body)
     roll, pitch, yaw = (float(x) for x in pseudo_rad)
     roll += crab_roll(b, along_over_normal)
-    r_nb = rotation_from_euler(roll, pitch, yaw) @ wind_to_body(a, b).T
-    return np.array(euler_from_rotation(r_nb)), (a, b)
+    return turned_by_offsets(roll, pitch, yaw, a, b), (a, b)
+
+
+def turned_by_offsets(roll: float, pitch: float, yaw: float, pitch_offset: float, drift: float) -> np.ndarray:
+    """(roll, pitch, yaw) rad of the body whose velocity lies at ``pitch_offset`` below its nose and
+    ``drift`` to its right (rad), for a frame with x along the velocity at Euler angles ``roll``,
+    ``pitch``, ``yaw`` (rad, ZYX, in NED): ``R_nb = R_nw C_bw^T`` (:func:`wind_to_body`)."""
+    return np.array(euler_from_rotation(rotation_from_euler(roll, pitch, yaw) @ wind_to_body(pitch_offset, drift).T))
 
 
 def crab_roll(drift: float, along_over_normal: float) -> float:
