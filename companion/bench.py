@@ -6,11 +6,14 @@ call on this machine. Figures in the README come from this command.
 
 from __future__ import annotations
 
+import asyncio
 import platform
+import time
 from collections.abc import Callable
 
 import numpy as np
 
+from companion.clock import realtime_event_loop
 from companion.mavlink.estimate import upper_triangle
 from companion.messages import PoseEstimate
 from companion.mavlink.link import mavlink, nonfinite_fields
@@ -81,6 +84,34 @@ STAGES: dict[str, Callable[[], Callable[[], object]]] = {
 
 
 DASHBOARD_SECONDS = 10.0  # measured run of the dashboard chain
+WAKEUP_RATES_HZ = (50.0, 150.0)  # the nav tick alone; the real-driver hover's wake-ups (ticks, IMU, scans)
+WAKEUP_SECONDS = 3.0
+
+
+def wakeup_cpu_us(rate_hz: float, seconds: float) -> float:
+    """CPU time (us, user + system, this thread) the daemon's real-time event loop
+    (:func:`companion.clock.realtime_event_loop`) spends per wake-up when it sleeps until a timer
+    ``rate_hz`` times a second for ``seconds`` and does nothing else: the fixed cost of each timer,
+    datagram or scan that wakes the daemon on this machine (system call, scheduler, virtualisation,
+    the interpreter's caches gone cold while it slept), before any work."""
+    loop = realtime_event_loop()
+
+    async def sleep_at_rate() -> float:
+        period = 1.0 / rate_hz
+        due = loop.time()
+        end = due + seconds
+        wakes = 0
+        start = time.thread_time()
+        while due < end:
+            due += period
+            await asyncio.sleep(max(0.0, due - loop.time()))
+            wakes += 1
+        return (time.thread_time() - start) / wakes * 1e6
+
+    try:
+        return loop.run_until_complete(sleep_at_rate())
+    finally:
+        loop.close()
 
 
 def _stages_and_accuracy(stages: dict[str, tuple[float, float]], accuracy: dict[str, str]) -> None:
@@ -96,7 +127,8 @@ def _row(name: str, median: float, p99: float) -> None:
 
 
 def run_bench(repeat: int) -> int:
-    """Print every stage's median and p99 in ms: link, telemetry, SITL, lidar pipeline, laser-dot
+    """Print every stage's median and p99 in ms: link, telemetry, SITL, the event loop's cost per
+    wake-up, lidar pipeline, laser-dot
     pipeline (and its accuracy beside the markers-alone pose), EKF-SLAM, GNSS + optic flow (and the
     flow's accuracy), fusion, control;
     then the dashboard's publish-to-browser latency and CPU."""
@@ -113,6 +145,8 @@ def run_bench(repeat: int) -> int:
     print(f"{'stage':<50} {'median ms':>10} {'p99 ms':>10}")
     for name, make in STAGES.items():
         _row(name, *time_stage(make(), repeat))
+    costs = ", ".join(f"{wakeup_cpu_us(hz, WAKEUP_SECONDS):.0f} us at {hz:.0f} Hz" for hz in WAKEUP_RATES_HZ)
+    print(f"  event loop, CPU per wake-up with no work (the daemon's loop asleep between timers): {costs}")
     print("lidar pipeline (a 1081-beam UTM-30LX scan / 682-beam URG-04LX scan of the default arena):")
     for name, (median, p99) in run_stage_bench(repeat).items():
         _row(name, median, p99)

@@ -29,3 +29,12 @@ def test_realtime_loop_selects_and_lowers_a_descriptor_limit_above_fd_setsize() 
     assert selector == "SelectSelector"
     assert int(lowered) == min(int(raised), 1024)
     assert ticks.strip() == "[0,1,2]"
+
+
+def test_the_bench_measures_a_wake_up_of_the_loop_asleep_between_timers() -> None:
+    # companion bench's per-wake-up CPU: a loop that spun instead of sleeping in select would cost
+    # its whole period (5 ms at 200 Hz) per wake-up; one that never woke would report nothing.
+    probe = "from companion.bench import wakeup_cpu_us; print(wakeup_cpu_us(200.0, 0.5))"
+    cost_us = float(subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=60,
+                                   check=True).stdout)
+    assert 0.0 < cost_us < 2500.0
