@@ -20,6 +20,7 @@ from companion.nav.lidar_pipeline import planar_params
 from companion.nav.lines import LineSet, extract_lines
 from companion.nav.edges import occluding_ends
 from companion.nav.corner_hypotheses import pose_hypotheses
+from companion.nav.corner_shape import map_corner_rays, shapes_agree
 from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer, PlanarParams, _with_yaw
 from drivers.lidar_models import UTM_30LX
 from companion.messages import Scan
@@ -816,3 +817,47 @@ def test_fix_covariance_matches_the_spread_of_fixes_from_noisy_scans(arena: Worl
     assert np.all((per_axis > 0.7) & (per_axis < 1.3)), per_axis  # shared errors counted twice: 0.54-0.66
     position = np.einsum("ni,nij,nj->n", e[:, :2], np.linalg.inv(cov[:, :2, :2]), e[:, :2])
     assert 1.45 < position.mean() < 2.6  # 2 if consistent; the residual scaling leans cautious
+
+
+RECESSED_CORRIDOR = [(-10.0, 0.0, 20.0, 0.0), (-10.0, 2.4, 4.0, 2.4), (4.0, 2.4, 4.0, 2.6), (4.0, 2.6, 5.0, 2.6),
+                     (5.0, 2.6, 5.0, 2.4), (5.0, 2.4, 20.0, 2.4)]  # a corridor along x, a door recess on its east side
+
+
+def test_a_map_corners_rays_run_along_the_walls_ending_at_it_and_both_ways_along_one_passing_through() -> None:
+    walls = np.array(RECESSED_CORRIDOR + [(4.5, 2.6, 4.5, 3.6)])  # a wall leaving the recess's back: a T
+    rays = map_corner_rays(np.array([[4.0, 2.4], [4.5, 2.6], [30.0, 0.0]]), walls, 0.1)
+    def directions(m: int) -> set[tuple[int, int]]:
+        return {(round(float(x)), round(float(y))) for x, y in rays[m] if not math.isnan(x)}
+    assert directions(0) == {(-1, 0), (0, 1)}  # the recess's mouth: back along the corridor, into the recess
+    assert directions(1) == {(-1, 0), (1, 0), (0, 1)}  # the T on the recess's back wall
+    assert directions(2) == set()  # no wall reaches it: any observed corner agrees
+
+
+def test_only_a_ray_of_a_long_enough_line_can_veto_a_pair() -> None:
+    mouth = map_corner_rays(np.array([[4.0, 2.4]]), np.array(RECESSED_CORRIDOR), 0.1)  # rays (-1, 0), (0, 1)
+    back = np.array([[[1.0, 0.0], [0.0, -1.0]]])  # a recess's back corner: along the back wall, out of the recess
+    mouth_seen = np.array([[[-0.97, 0.24], [0.0, 1.0]]])  # the mouth, one line 14 deg off
+    assert not shapes_agree(back, mouth, 20.0)[0] and shapes_agree(mouth_seen, mouth, 20.0)[0]
+    assert shapes_agree(np.array([[[np.nan, np.nan], [0.0, 1.0]]]), mouth, 20.0)[0]  # the back wall too short to tell
+    assert not shapes_agree(np.array([[[np.nan, np.nan], [0.0, -1.0]]]), mouth, 20.0)[0]
+    assert shapes_agree(back, np.full((1, 1, 2), np.nan), 20.0)[0]  # a map corner no wall reaches: any shape
+
+
+def test_a_corner_pairs_only_with_a_map_corner_whose_walls_run_the_same_ways() -> None:
+    """A door recess's back corners lie 20 cm from its mouth's, inside the association gate, and
+    the survey missed one of them (as in config/sitl-corridor-realistic.yaml). From a held position
+    20 cm off towards the recess, each back corner lands on a mouth corner: paired by distance alone
+    they confirm the wrong position (the realistic corridor flew 3 m with its cross-track position
+    21 cm off that way); their walls run other ways, so they are not paired and the fix comes back."""
+    geometry = WorldGeometry.from_world(walls_world(RECESSED_CORRIDOR, wall_angle_deg=90))
+    mapped = walls_world(RECESSED_CORRIDOR, wall_angle_deg=90)
+    corners = np.array([(4.0, 2.4), (4.0, 2.6), (5.0, 2.4)])  # the recess's back corner (5.0, 2.6) not surveyed
+    rng = np.random.default_rng(31)
+    for x in (1.0, 1.5, 2.0):
+        scan = scan_at(geometry, x, 1.2, 0.0, rng)
+        for tolerance, off in ((20.0, False), (180.0, True)):  # 180 deg: any shape agrees, by distance alone
+            params = PlanarParams(corner_shape_tolerance_deg=tolerance)
+            loc = PlanarLocalizer(corners, 90, mount=MOUNT, walls=mapped.segments_at(HEIGHT_M - MOUNT.z_m), params=params)
+            fix = loc.update(scan, (x, 1.0, 0.0))
+            assert fix is not None and fix.measured
+            assert (abs(fix.y - 1.2) > 0.1) is off, (tolerance, fix)

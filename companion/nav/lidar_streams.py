@@ -48,7 +48,8 @@ def scan_payloads(record: ProcessedScan, localizer: PlanarLocalizer) -> dict[str
     head = {"sensor": scan.sensor_id, "t_capture": scan.t_capture, "sequence": scan.sequence, "pose": pose}
     mount = localizer.mount
     lines, corners = record.lines, record.corners
-    matched = [] if pose is None else matched_corners(corners.xy, pose, localizer.map, localizer.params.gate_m)
+    matched = [] if pose is None else matched_corners(corners.xy, pose, localizer.map, localizer.params.gate_m,
+                                                        localizer.corner_shapes(lines, corners, pose[2]))
     return {
         "scan": {**head, "sweep_s": scan.sweep_s, "angles_rad": scan.angles_rad, "ranges_m": scan.ranges_m,
                  "valid": scan.valid, "mount": (mount.x_m, mount.y_m, mount.yaw_rad)},
@@ -59,12 +60,12 @@ def scan_payloads(record: ProcessedScan, localizer: PlanarLocalizer) -> dict[str
 
 
 def matched_corners(observed_m: np.ndarray, pose: tuple[float, float, float], known_ned_m: np.ndarray,
-                    gate_m: float) -> list[dict[str, Any]]:
+                    gate_m: float, shapes: tuple[np.ndarray, np.ndarray, float] | None = None) -> list[dict[str, Any]]:
     """The observed corners (levelled body frame, metres) that the localizer's association
-    (mutual nearest neighbours within ``gate_m``) pairs with a known map corner when placed in
-    the world with ``pose``: {observed index, that corner}."""
+    (mutual nearest neighbours within ``gate_m`` among the corners of the same ``shapes``) pairs
+    with a known map corner when placed in the world with ``pose``: {observed index, that corner}."""
     world = np.array(pose[:2]) + np.asarray(observed_m).reshape(-1, 2) @ planar_rotation(pose[2]).T
-    observed, known = associate(world, known_ned_m, gate_m)
+    observed, known = associate(world, known_ned_m, gate_m, shapes)
     return [{"observed": int(i), "map_ned_m": known_ned_m[j].tolist()} for i, j in zip(observed, known)]
 
 

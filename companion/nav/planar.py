@@ -23,7 +23,9 @@ One update (eqs. 2-8):
 2. heading from the wall directions modulo the wall angle (heading.py, eqs. 2-4), predicted
    from the previous heading plus the optional gyro yaw change;
 3. observed corners to the world with the previous (or prior) position and the new heading
-   (eq. 5 with our R), mutual nearest neighbours among the known corners within ``gate_m``;
+   (eq. 5 with our R), mutual nearest neighbours among the known corners within ``gate_m``
+   (beyond the paper: with map walls, only among those whose walls run the same ways,
+   corner_shape.py: a door recess's back and mouth corners lie within the gate of each other);
 4. position = previous + weighted mean displacement (eqs. 7-8). Deviation: the weights are the
    inverse traces of the corner covariances (corners.py) rather than a bare range law; they
    fall with range as the paper asks, and also with poor line fits and short lever arms.
@@ -106,6 +108,7 @@ import numpy as np
 
 from companion.frames import planar_moved, planar_rotation, rotation_from_euler, wrap_pi
 from companion.nav.corner_fix import corner_fix_covariance
+from companion.nav.corner_shape import map_corner_rays, observed_rays, shapes_agree
 from companion.nav.corners import CornerParams, Corners, find_corners
 from companion.nav.edges import EdgeParams, Edges, occluding_ends
 from companion.nav.heading import (UNMEASURED_VARIANCE_RAD2, HeadingParams, HeadingResult,
@@ -142,6 +145,7 @@ class PlanarParams:
     heading: HeadingParams = field(default_factory=HeadingParams)
     corners: CornerParams = field(default_factory=CornerParams)
     gate_m: float = 0.5  # association gate around a predicted corner, metres
+    corner_shape_tolerance_deg: float = 20.0  # with map walls: each wall at an observed corner within this of one at the map's
     outlier_k: float = 3.0  # drop a match beyond this many median residuals ...
     outlier_floor_m: float = 0.05  # ... and beyond this, metres
     min_matches: int = 2  # fewer matched corners: degraded
@@ -279,6 +283,8 @@ class PlanarLocalizer:
             # walk saw no more of them.
             self._wall_end_is_corner = np.column_stack([
                 _near_any(self.walls[:, c:c + 2], self.map, params.edge_corner_m) for c in (0, 2)])
+        # (M, R, 2): the directions of the walls meeting at each map corner (corner_shape.py)
+        self._corner_rays = None if self.walls is None else map_corner_rays(self.map, self.walls, params.edge_corner_m)
         self.params = params
         self._pose: tuple[float, float, float] | None = None
         self.last_lines: LineSet | None = None  # what update() extracted from its last scan (never mutated)
@@ -423,7 +429,7 @@ class PlanarLocalizer:
         gate = self.params.gate_m if gate_m is None else gate_m
         rot = planar_rotation(heading.yaw)
         world = corners.xy @ rot.T  # R q for every corner (eq. 5 without the position)
-        obs, idx = associate(xy + world, self.map, gate)
+        obs, idx = associate(xy + world, self.map, gate, self.corner_shapes(lines, corners, heading.yaw))
         if obs.size == 0:
             return Match(np.asarray(xy, dtype=float), self._cov, 0, 0.0)
         disp = self.map[idx] - (xy + world[obs])  # eq. 8: map corner minus observed corner
@@ -438,6 +444,16 @@ class PlanarLocalizer:
         full = corner_fix_covariance(lines, corners.subset(obs[keep]), w, rot, heading, scale)
         rms = math.sqrt(float(np.dot(resid.ravel(), resid.ravel())) / w.size)
         return Match(xy + delta, full, int(w.size), rms)
+
+    def corner_shapes(self, lines: LineSet, corners: Corners,
+                      yaw: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """What :func:`associate` needs to pair only corners of the same shape (corner_shape.py):
+        (the rays of ``corners`` (found in ``lines``, levelled body frame) turned to the world by
+        ``yaw`` rad, the map corners' rays, the tolerance in degrees), or None without map walls."""
+        if self._corner_rays is None or corners.count == 0:
+            return None
+        rays = observed_rays(lines, corners, self.params.heading.min_length_m) @ planar_rotation(yaw).T
+        return rays, self._corner_rays, self.params.corner_shape_tolerance_deg
 
     # -- internals ----------------------------------------------------------------------------
 
@@ -817,9 +833,11 @@ def _with_yaw(heading: HeadingResult, yaw: float) -> HeadingResult:
     return replace(heading, yaw=yaw)
 
 
-def associate(predicted: np.ndarray, landmarks: np.ndarray, gate: float) -> tuple[np.ndarray, np.ndarray]:
+def associate(predicted: np.ndarray, landmarks: np.ndarray, gate: float,
+              shapes: tuple[np.ndarray, np.ndarray, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(observed indices, map indices) of mutual nearest neighbours closer than ``gate`` (the
-    localizer's association; telemetry shows the same)."""
+    localizer's association; telemetry shows the same). ``shapes`` (:meth:`PlanarLocalizer.corner_shapes`):
+    only pairs whose walls run the same ways are candidates (corner_shape.py)."""
     none = np.zeros(0, dtype=int), np.zeros(0, dtype=int)
     if landmarks.shape[0] == 0 or predicted.shape[0] == 0:
         return none
@@ -832,6 +850,10 @@ def associate(predicted: np.ndarray, landmarks: np.ndarray, gate: float) -> tupl
         return none
     diff = predicted[:, None, :] - landmarks[inside][None, :, :]
     dist = np.hypot(diff[..., 0], diff[..., 1])
+    if shapes is not None:  # only pairs inside the gate can be matched or block a match: test those
+        obs, known = np.nonzero(dist <= gate)
+        differ = ~shapes_agree(shapes[0][obs], shapes[1][inside[known]], shapes[2])
+        dist[obs[differ], known[differ]] = np.inf
     nearest = dist.argmin(axis=1)
     mutual = dist.argmin(axis=0)[nearest] == np.arange(predicted.shape[0])
     ok = mutual & (dist[np.arange(predicted.shape[0]), nearest] <= gate)
