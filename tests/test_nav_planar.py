@@ -857,7 +857,8 @@ def test_a_corner_pairs_only_with_a_map_corner_whose_walls_run_the_same_ways() -
         scan = scan_at(geometry, x, 1.2, 0.0, rng)
         for tolerance, off in ((20.0, False), (180.0, True)):  # 180 deg: any shape agrees, by distance alone
             params = PlanarParams(corner_shape_tolerance_deg=tolerance)
-            loc = PlanarLocalizer(corners, 90, mount=MOUNT, walls=mapped.segments_at(HEIGHT_M - MOUNT.z_m), params=params)
+            loc = PlanarLocalizer(corners, 90, mount=MOUNT, walls=mapped.segments_at(HEIGHT_M - MOUNT.z_m),
+                                  params=params)
             fix = loc.update(scan, (x, 1.0, 0.0))
             assert fix is not None and fix.measured
             assert (abs(fix.y - 1.2) > 0.1) is off, (tolerance, fix)

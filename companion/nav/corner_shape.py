@@ -14,9 +14,9 @@ observed corner (corners.py) has two: along its first line towards that line's s
 second towards its end (beam order); a line shorter than the heading's ``min_length_m`` (0.4 m)
 gives none (NaN), its direction being too poor to veto a pair: in the realistic corridor such
 lines, a door recess's 0.2 m side seen at a slant with mixed pixels, were 21-60 deg off on
-correctly paired corners, the lines of 0.4 m and more within 20 deg. A map corner has one per wall ending at it and two per
-wall passing through it (a T junction), from its map's walls; without walls there is nothing to
-compare and every shape agrees.
+correctly paired corners, the lines of 0.4 m and more within 20 deg. A map corner has one ray
+per wall ending at it and two per wall passing through it (a T junction), from its map's walls;
+without walls there is nothing to compare and every shape agrees.
 """
 
 from __future__ import annotations

@@ -145,7 +145,8 @@ class PlanarParams:
     heading: HeadingParams = field(default_factory=HeadingParams)
     corners: CornerParams = field(default_factory=CornerParams)
     gate_m: float = 0.5  # association gate around a predicted corner, metres
-    corner_shape_tolerance_deg: float = 20.0  # with map walls: each wall at an observed corner within this of one at the map's
+    # With map walls, a pair needs each wall at the observed corner within this of one at the map's, degrees
+    corner_shape_tolerance_deg: float = 20.0
     outlier_k: float = 3.0  # drop a match beyond this many median residuals ...
     outlier_floor_m: float = 0.05  # ... and beyond this, metres
     min_matches: int = 2  # fewer matched corners: degraded
@@ -262,8 +263,9 @@ class PlanarLocalizer:
                  wall_offset_deg: float = 0.0) -> None:
         """``corners``: (M, 2) known map corners [north, east] m; ``wall_angle_deg``: every
         wall at a multiple of it (90, 45, 30); ``walls``: optional (S, 4) segments
-        [x0, y0, x1, y1] m, used only to break relocalization ties (cut the doors and windows
-        at the scan height out of them: beams through an opening then tell rooms apart);
+        [x0, y0, x1, y1] m, for the wall fixes, the corners' shapes and relocalization's wall
+        check (cut the doors and windows at the scan height out of them: beams through an opening
+        then tell rooms apart);
         ``initial_pose``:
         (x m, y m, yaw rad), or None to relocalize from the first scans; ``ceiling_m``: the
         ceiling's height above the floor (m), if known, to drop a tilted scanner's ceiling hits;
