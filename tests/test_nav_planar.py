@@ -846,7 +846,8 @@ def test_only_a_ray_of_a_long_enough_line_can_veto_a_pair() -> None:
 def test_a_corner_pairs_only_with_a_map_corner_whose_walls_run_the_same_ways() -> None:
     """A door recess's back corners lie 20 cm from its mouth's, inside the association gate, and
     the survey missed one of them (as in config/sitl-corridor-realistic.yaml). From a held position
-    20 cm off towards the recess, each back corner lands on a mouth corner: paired by distance alone
+    20 cm off across the corridor, away from the recess, each back corner lands on a mouth corner
+    (the observed corners are placed 20 cm short of where they are): paired by distance alone
     they confirm the wrong position (the realistic corridor flew 3 m with its cross-track position
     21 cm off that way); their walls run other ways, so they are not paired and the fix comes back."""
     geometry = WorldGeometry.from_world(walls_world(RECESSED_CORRIDOR, wall_angle_deg=90))
