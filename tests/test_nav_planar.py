@@ -22,6 +22,7 @@ from companion.nav.edges import occluding_ends
 from companion.nav.corner_hypotheses import pose_hypotheses
 from companion.nav.corner_shape import map_corner_rays, shapes_agree
 from companion.nav.planar import Mount2D, PlanarFix, PlanarLocalizer, PlanarParams, _with_yaw
+from companion.nav.wall_hypotheses import MapWalls
 from drivers.lidar_models import UTM_30LX
 from companion.messages import Scan
 from sitl.raycast import WorldGeometry
@@ -824,7 +825,8 @@ RECESSED_CORRIDOR = [(-10.0, 0.0, 20.0, 0.0), (-10.0, 2.4, 4.0, 2.4), (4.0, 2.4,
 
 
 def test_a_map_corners_rays_run_along_the_walls_ending_at_it_and_both_ways_along_one_passing_through() -> None:
-    walls = np.array(RECESSED_CORRIDOR + [(4.5, 2.6, 4.5, 3.6)])  # a wall leaving the recess's back: a T
+    leaving = (4.5, 2.6, 4.5, 3.6)  # a wall leaving the recess's back: a T
+    walls = MapWalls.from_segments(np.array(RECESSED_CORRIDOR + [leaving]), math.pi / 2, 0.0)
     rays = map_corner_rays(np.array([[4.0, 2.4], [4.5, 2.6], [30.0, 0.0]]), walls, 0.1)
     def directions(m: int) -> set[tuple[int, int]]:
         return {(round(float(x)), round(float(y))) for x, y in rays[m] if not math.isnan(x)}
@@ -834,7 +836,8 @@ def test_a_map_corners_rays_run_along_the_walls_ending_at_it_and_both_ways_along
 
 
 def test_only_a_ray_of_a_long_enough_line_can_veto_a_pair() -> None:
-    mouth = map_corner_rays(np.array([[4.0, 2.4]]), np.array(RECESSED_CORRIDOR), 0.1)  # rays (-1, 0), (0, 1)
+    walls = MapWalls.from_segments(np.array(RECESSED_CORRIDOR), math.pi / 2, 0.0)
+    mouth = map_corner_rays(np.array([[4.0, 2.4]]), walls, 0.1)  # rays (-1, 0), (0, 1)
     back = np.array([[[1.0, 0.0], [0.0, -1.0]]])  # a recess's back corner: along the back wall, out of the recess
     mouth_seen = np.array([[[-0.97, 0.24], [0.0, 1.0]]])  # the mouth, one line 14 deg off
     assert not shapes_agree(back, mouth, 20.0)[0] and shapes_agree(mouth_seen, mouth, 20.0)[0]

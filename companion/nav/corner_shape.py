@@ -27,6 +27,7 @@ import numpy as np
 
 from companion.nav.corners import Corners
 from companion.nav.lines import LineSet
+from companion.nav.wall_hypotheses import MapWalls
 
 BLOCK = 256  # map corners compared with every wall at once
 
@@ -40,14 +41,12 @@ def observed_rays(lines: LineSet, corners: Corners, min_length_m: float) -> np.n
     return rays
 
 
-def map_corner_rays(corners: np.ndarray, walls: np.ndarray, near_m: float) -> np.ndarray:
-    """(M, R, 2): the rays of each map corner of ``corners`` (M, 2) along the wall segments ``walls``
-    (S, 4) [x0, y0, x1, y1] passing within ``near_m`` of it (metres): towards each end of such a
-    wall further than ``near_m`` from the corner. Rows with fewer than R rays repeat their first;
-    a corner no wall reaches has none (NaN)."""
-    start, end = walls[:, 0:2], walls[:, 2:4]
-    length = np.linalg.norm(end - start, axis=1)
-    unit = (end - start) / np.maximum(length, 1e-12)[:, None]
+def map_corner_rays(corners: np.ndarray, walls: MapWalls, near_m: float) -> np.ndarray:
+    """(M, R, 2): the rays of each map corner of ``corners`` (M, 2) along the map's ``walls``
+    passing within ``near_m`` of it (metres): towards each end of such a wall further than
+    ``near_m`` from the corner. Rows with fewer than R rays repeat their first; a corner no wall
+    reaches has none (NaN)."""
+    start, unit, length = walls.segments[:, 0:2], walls.direction, walls.length
     found: list[np.ndarray] = []
     for first in range(0, corners.shape[0], BLOCK):  # in blocks: a large map's corners x walls would not fit at once
         rel = corners[first:first + BLOCK, None, :] - start[None, :, :]  # (B, S, 2)

@@ -286,7 +286,8 @@ class PlanarLocalizer:
             self._wall_end_is_corner = np.column_stack([
                 _near_any(self.walls[:, c:c + 2], self.map, params.edge_corner_m) for c in (0, 2)])
         # (M, R, 2): the directions of the walls meeting at each map corner (corner_shape.py)
-        self._corner_rays = None if self.walls is None else map_corner_rays(self.map, self.walls, params.edge_corner_m)
+        self._corner_rays = None if self.walls is None else map_corner_rays(self.map, self._map_walls,
+                                                                             params.edge_corner_m)
         self.params = params
         self._pose: tuple[float, float, float] | None = None
         self.last_lines: LineSet | None = None  # what update() extracted from its last scan (never mutated)
