@@ -38,9 +38,11 @@ def _config_with_logging(args: argparse.Namespace) -> Config | None:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from companion.scheduling import apply_realtime_priority, single_threaded_blas
+
+    single_threaded_blas()  # before the imports below bring numpy in
     from companion.clock import LockstepEventLoop, realtime_event_loop
     from companion.daemon import GIL_SWITCH_INTERVAL_S, Daemon
-    from companion.scheduling import apply_realtime_priority
 
     cfg = _config_with_logging(args)
     if cfg is None:

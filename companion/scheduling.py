@@ -11,6 +11,13 @@ of four alternating pairs.
 thread before any other thread exists, so every thread the daemon starts later (telemetry,
 recorder, zenoh's) inherits the policy; child processes do not (``SCHED_RESET_ON_FORK``).
 
+:func:`single_threaded_blas` is called before that, before numpy is imported: numpy's OpenBLAS
+would otherwise start a worker thread per core at import. The daemon's algebra is 2x2 to 6x6
+matrices and thousand-point vectors, which OpenBLAS runs on the calling thread anyway; its
+workers only cost CPU time at start-up (0.2 s of the real-driver hover's 0.6 s on the 2-core
+test machine) and, inheriting ``SCHED_FIFO``, would spin at realtime priority whenever an
+operation did hand them work.
+
 Guards against a runaway loop starving the board: a low priority (below the kernel's threaded
 interrupts and ArduPilot's own threads on a Linux autopilot), never on a single-CPU machine,
 and the kernel's realtime throttling (``/proc/sys/kernel/sched_rt_runtime_us``: by default 5 %
@@ -23,8 +30,22 @@ from __future__ import annotations
 import logging
 import os
 import resource
+import sys
 
 log = logging.getLogger("companion.scheduling")
+
+
+BLAS_THREADS_VARIABLE = "OPENBLAS_NUM_THREADS"
+
+
+def single_threaded_blas() -> None:
+    """Have numpy's OpenBLAS run on the calling thread only (``OPENBLAS_NUM_THREADS=1``), unless
+    the environment already sets the variable (an explicit choice is kept). Effective only before
+    numpy is first imported: called later, it logs a warning and changes nothing."""
+    if "numpy" in sys.modules:
+        log.warning("numpy is already imported: its BLAS keeps the threads it started")
+        return
+    os.environ.setdefault(BLAS_THREADS_VARIABLE, "1")
 
 
 def apply_realtime_priority(priority: int) -> None:

@@ -54,3 +54,32 @@ def test_a_refused_priority_is_a_warning_and_the_daemon_runs_on_at_normal_priori
     proc = _probe(5, "unprivileged")
     assert proc.stdout.split() == [str(os.SCHED_OTHER), "0"]
     assert "WARNING" in proc.stderr and "refused" in proc.stderr and "RLIMIT_RTPRIO 0" in proc.stderr
+
+
+BLAS_PROBE = (
+    "import logging, os, sys\n"
+    "logging.basicConfig(level=logging.INFO, stream=sys.stderr)\n"
+    "from companion.scheduling import single_threaded_blas\n"
+    "if sys.argv[1] == 'late':\n"
+    "    import numpy\n"
+    "single_threaded_blas()\n"
+    "import numpy\n"
+    "print(len(os.listdir('/proc/self/task')))\n"
+)
+
+
+def _threads_after_numpy(when: str, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    clean = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    return subprocess.run([sys.executable, "-c", BLAS_PROBE, when], cwd=REPO, env={**clean, **env},
+                          capture_output=True, text=True, timeout=30, check=True)
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2 or not Path("/proc/self/task").is_dir(),
+                    reason="needs Linux and 2 CPUs: OpenBLAS starts no worker on one")
+def test_numpy_starts_no_blas_worker_threads_when_made_single_threaded_before_its_import() -> None:
+    assert _threads_after_numpy("early", {}).stdout.split() == ["1"]
+    # The probe can tell: with the user's own setting kept, or called too late, the workers are there.
+    assert int(_threads_after_numpy("early", {"OPENBLAS_NUM_THREADS": "2"}).stdout) == 2
+    late = _threads_after_numpy("late", {})
+    assert int(late.stdout) > 1
+    assert "numpy is already imported" in late.stderr
