@@ -835,15 +835,21 @@ def test_a_map_corners_rays_run_along_the_walls_ending_at_it_and_both_ways_along
     assert directions(2) == set()  # no wall reaches it: any observed corner agrees
 
 
-def test_only_a_ray_of_a_long_enough_line_can_veto_a_pair() -> None:
+def test_a_ray_along_a_short_line_vetoes_a_pair_only_when_it_runs_the_wrong_way() -> None:
     walls = MapWalls.from_segments(np.array(RECESSED_CORRIDOR), math.pi / 2, 0.0)
     mouth = map_corner_rays(np.array([[4.0, 2.4]]), walls, 0.1)  # rays (-1, 0), (0, 1)
+    long_lines = np.full((1, 2), math.cos(math.radians(20.0)))
+    short_first = np.array([[math.cos(math.radians(70.0)), math.cos(math.radians(20.0))]])
     back = np.array([[[1.0, 0.0], [0.0, -1.0]]])  # a recess's back corner: along the back wall, out of the recess
     mouth_seen = np.array([[[-0.97, 0.24], [0.0, 1.0]]])  # the mouth, one line 14 deg off
-    assert not shapes_agree(back, mouth, 20.0)[0] and shapes_agree(mouth_seen, mouth, 20.0)[0]
-    assert shapes_agree(np.array([[[np.nan, np.nan], [0.0, 1.0]]]), mouth, 20.0)[0]  # the back wall too short to tell
-    assert not shapes_agree(np.array([[[np.nan, np.nan], [0.0, -1.0]]]), mouth, 20.0)[0]
-    assert shapes_agree(back, np.full((1, 1, 2), np.nan), 20.0)[0]  # a map corner no wall reaches: any shape
+    assert not shapes_agree(back, long_lines, mouth)[0] and shapes_agree(mouth_seen, long_lines, mouth)[0]
+    slanted = np.array([[[-0.6, 0.8], [0.0, 1.0]]])  # the mouth, its first line 53 deg off
+    assert not shapes_agree(slanted, long_lines, mouth)[0]
+    assert shapes_agree(slanted, short_first, mouth)[0]  # a short line's direction is that poor
+    assert not shapes_agree(back, short_first, mouth)[0]  # but not the wrong way
+    both_short = np.full((1, 2), math.cos(math.radians(70.0)))
+    assert not shapes_agree(back, both_short, mouth)[0]  # the recess's back seen from across the corridor
+    assert shapes_agree(back, long_lines, np.full((1, 1, 2), np.nan))[0]  # a map corner no wall reaches: any shape
 
 
 def test_a_corner_pairs_only_with_a_map_corner_whose_walls_run_the_same_ways() -> None:
@@ -860,7 +866,7 @@ def test_a_corner_pairs_only_with_a_map_corner_whose_walls_run_the_same_ways() -
     for x in (1.0, 1.5, 2.0):
         scan = scan_at(geometry, x, 1.2, 0.0, rng)
         for tolerance, off in ((20.0, False), (180.0, True)):  # 180 deg: any shape agrees, by distance alone
-            params = PlanarParams(corner_shape_tolerance_deg=tolerance)
+            params = PlanarParams(corner_shape_tolerance_deg=tolerance, corner_shape_short_tolerance_deg=max(tolerance, 70.0))
             loc = PlanarLocalizer(corners, 90, mount=MOUNT, walls=mapped.segments_at(HEIGHT_M - MOUNT.z_m),
                                   params=params)
             fix = loc.update(scan, (x, 1.0, 0.0))

@@ -60,7 +60,7 @@ def scan_payloads(record: ProcessedScan, localizer: PlanarLocalizer) -> dict[str
 
 
 def matched_corners(observed_m: np.ndarray, pose: tuple[float, float, float], known_ned_m: np.ndarray,
-                    gate_m: float, shapes: tuple[np.ndarray, np.ndarray, float] | None = None) -> list[dict[str, Any]]:
+                    gate_m: float, shapes: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> list[dict[str, Any]]:
     """The observed corners (levelled body frame, metres) that the localizer's association
     (mutual nearest neighbours within ``gate_m`` among the corners of the same ``shapes``) pairs
     with a known map corner when placed in the world with ``pose``: {observed index, that corner}."""

@@ -108,7 +108,7 @@ import numpy as np
 
 from companion.frames import planar_moved, planar_rotation, rotation_from_euler, wrap_pi
 from companion.nav.corner_fix import corner_fix_covariance
-from companion.nav.corner_shape import map_corner_rays, observed_rays, shapes_agree
+from companion.nav.corner_shape import map_corner_rays, observed_rays, ray_limits, shapes_agree
 from companion.nav.corners import CornerParams, Corners, find_corners
 from companion.nav.edges import EdgeParams, Edges, occluding_ends
 from companion.nav.heading import (UNMEASURED_VARIANCE_RAD2, HeadingParams, HeadingResult,
@@ -147,6 +147,7 @@ class PlanarParams:
     gate_m: float = 0.5  # association gate around a predicted corner, metres
     # With map walls, a pair needs each wall at the observed corner within this of one at the map's, degrees
     corner_shape_tolerance_deg: float = 20.0
+    corner_shape_short_tolerance_deg: float = 70.0  # ... this for a wall seen shorter than heading.min_length_m
     outlier_k: float = 3.0  # drop a match beyond this many median residuals ...
     outlier_floor_m: float = 0.05  # ... and beyond this, metres
     min_matches: int = 2  # fewer matched corners: degraded
@@ -449,14 +450,18 @@ class PlanarLocalizer:
         return Match(xy + delta, full, int(w.size), rms)
 
     def corner_shapes(self, lines: LineSet, corners: Corners,
-                      yaw: float) -> tuple[np.ndarray, np.ndarray, float] | None:
+                      yaw: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
         """What :func:`associate` needs to pair only corners of the same shape (corner_shape.py):
         (the rays of ``corners`` (found in ``lines``, levelled body frame) turned to the world by
-        ``yaw`` rad, the map corners' rays, the tolerance in degrees), or None without map walls."""
+        ``yaw`` rad, the cosines of their largest angles, the map corners' rays), or None without
+        map walls."""
         if self._corner_rays is None or corners.count == 0:
             return None
-        rays = observed_rays(lines, corners, self.params.heading.min_length_m) @ planar_rotation(yaw).T
-        return rays, self._corner_rays, self.params.corner_shape_tolerance_deg
+        p = self.params
+        rays = observed_rays(lines, corners) @ planar_rotation(yaw).T
+        limits = ray_limits(lines, corners, p.heading.min_length_m, p.corner_shape_tolerance_deg,
+                            p.corner_shape_short_tolerance_deg)
+        return rays, limits, self._corner_rays
 
     # -- internals ----------------------------------------------------------------------------
 
@@ -837,7 +842,7 @@ def _with_yaw(heading: HeadingResult, yaw: float) -> HeadingResult:
 
 
 def associate(predicted: np.ndarray, landmarks: np.ndarray, gate: float,
-              shapes: tuple[np.ndarray, np.ndarray, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+              shapes: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(observed indices, map indices) of mutual nearest neighbours closer than ``gate`` (the
     localizer's association; telemetry shows the same). ``shapes`` (:meth:`PlanarLocalizer.corner_shapes`):
     only pairs whose walls run the same ways are candidates (corner_shape.py)."""
@@ -855,7 +860,8 @@ def associate(predicted: np.ndarray, landmarks: np.ndarray, gate: float,
     dist = np.hypot(diff[..., 0], diff[..., 1])
     if shapes is not None:  # only pairs inside the gate can be matched or block a match: test those
         obs, known = np.nonzero(dist <= gate)
-        differ = ~shapes_agree(shapes[0][obs], shapes[1][inside[known]], shapes[2])
+        rays, limits, map_rays = shapes
+        differ = ~shapes_agree(rays[obs], limits[obs], map_rays[inside[known]])
         dist[obs[differ], known[differ]] = np.inf
     nearest = dist.argmin(axis=1)
     mutual = dist.argmin(axis=0)[nearest] == np.arange(predicted.shape[0])
