@@ -865,8 +865,8 @@ def test_a_corner_pairs_only_with_a_map_corner_whose_walls_run_the_same_ways() -
     rng = np.random.default_rng(31)
     for x in (1.0, 1.5, 2.0):
         scan = scan_at(geometry, x, 1.2, 0.0, rng)
-        for tolerance, off in ((20.0, False), (180.0, True)):  # 180 deg: any shape agrees, by distance alone
-            params = PlanarParams(corner_shape_tolerance_deg=tolerance, corner_shape_short_tolerance_deg=max(tolerance, 70.0))
+        for tolerance, short, off in ((20.0, 70.0, False), (180.0, 180.0, True)):  # 180 deg: by distance alone
+            params = PlanarParams(corner_shape_tolerance_deg=tolerance, corner_shape_short_tolerance_deg=short)
             loc = PlanarLocalizer(corners, 90, mount=MOUNT, walls=mapped.segments_at(HEIGHT_M - MOUNT.z_m),
                                   params=params)
             fix = loc.update(scan, (x, 1.0, 0.0))
