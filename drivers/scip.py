@@ -22,6 +22,7 @@ the sensor frame of :mod:`companion.messages` is :meth:`SensorParams.angle_rad`.
 from __future__ import annotations
 
 import math
+from functools import lru_cache
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
@@ -190,19 +191,32 @@ def decode_data_lines(lines: Sequence[bytes], width: int) -> np.ndarray:
     """
     if not lines:
         return decode_array(b"", width)
-    lengths = np.fromiter(map(len, lines), dtype=np.intp, count=len(lines))
-    if lengths.min() < 2:
+    lengths = tuple(map(len, lines))
+    if min(lengths) < 2:
         raise TruncatedReply("empty data line")
+    starts, sum_bytes, payload = _line_layout(lengths)
     joined = np.frombuffer(b"".join(lines), dtype=np.uint8)
-    ends = np.cumsum(lengths)  # one past each line's sum byte
-    totals = np.add.reduceat(joined.astype(np.int64), ends - lengths)  # payload + sum byte
-    got = joined[ends - 1]
+    totals = np.add.reduceat(joined, starts, dtype=np.int64)  # payload + sum byte
+    got = joined[sum_bytes]
     bad = np.flatnonzero(((totals - got) & 0x3F) + 0x30 != got)
     if bad.size:
         raise ChecksumError(f"bad sum byte in data line {int(bad[0]) + 1} of {len(lines)}")
-    payload = np.ones(joined.size, dtype=bool)
-    payload[ends - 1] = False  # the sum bytes
     return decode_array(joined[payload], width)
+
+
+@lru_cache(maxsize=16)
+def _line_layout(lengths: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where lines of these ``lengths`` (bytes, sum byte included) lie once joined: index arrays
+    of every line's first byte, of its sum byte, and of the payload bytes. Cached: the replies of
+    one stream all share a layout, and building it is most of the work of a parse."""
+    ends = np.cumsum(lengths)  # one past each line's sum byte
+    sum_bytes = ends - 1
+    payload = np.ones(int(ends[-1]), dtype=bool)
+    payload[sum_bytes] = False
+    layout = (ends - np.asarray(lengths), sum_bytes, np.flatnonzero(payload))
+    for array in layout:
+        array.setflags(write=False)
+    return layout
 
 
 # --- requests ---------------------------------------------------------------------------
