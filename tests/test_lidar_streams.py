@@ -6,6 +6,7 @@ planar localizer as the lidar pipeline does it; zenoh is a pair of real peers on
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import queue
 import socket
@@ -18,7 +19,7 @@ from companion.dashboard.bench import arena_scan
 from companion.config import MountConfig
 from companion.health import Health
 from companion.nav.lidar_pipeline import LidarPipeline, LidarPipelineConfig
-from companion.nav.lidar_streams import ProcessedScan, map_payload, matched_corners, scan_payloads
+from companion.nav.lidar_streams import ProcessedScan, map_payload, scan_payloads
 from companion.telemetry.publisher import TelemetryPublisher
 from companion.telemetry.scan_codec import SCAN_ENCODING, decode_scan, encode_scan
 from companion.telemetry.session import open_session
@@ -105,19 +106,15 @@ def test_pipeline_streams_each_scan_once_and_the_map_only_when_due() -> None:
     assert set(offered) == set(pipeline.telemetry_streams)
 
 
-def test_matched_corners_need_a_map_corner_within_the_gate() -> None:
-    known = np.array([[5.0, 0.0], [5.0, 5.0]])
-    observed = np.array([[3.0, -2.0], [3.0, 3.3], [1.0, 1.0]])  # body frame, vehicle at (2, 2), yaw 0
-    assert matched_corners(observed, (2.0, 2.0, 0.0), known, 0.5) == [
-        {"observed": 0, "map_ned_m": [5.0, 0.0]}, {"observed": 1, "map_ned_m": [5.0, 5.0]}]
-    assert matched_corners(observed, (2.0, 2.0, math.pi), known, 0.5) == []
-    assert matched_corners(np.zeros((0, 2)), (2.0, 2.0, 0.0), known, 0.5) == []
-
-
-def test_two_observed_corners_never_match_the_same_map_corner_as_in_the_localizer() -> None:
-    known = np.array([[5.0, 0.0]])
-    observed = np.array([[3.0, -2.0], [3.1, -2.0]])  # both within the gate of the one map corner
-    assert matched_corners(observed, (2.0, 2.0, 0.0), known, 0.5) == [{"observed": 0, "map_ned_m": [5.0, 0.0]}]
+def test_the_corners_stream_lists_the_pairs_the_fix_used_without_associating_again() -> None:
+    record, localizer = arena_scan(POSE)
+    assert record.fix is not None and len(record.fix.corner_pairs) >= 3
+    one_pair = dataclasses.replace(record, fix=dataclasses.replace(record.fix, corner_pairs=((1, 4),), matched=1))
+    assert scan_payloads(one_pair, localizer)["corners"]["matched"] == [
+        {"observed": 1, "map_ned_m": localizer.map[4].tolist()}]
+    walls_only = dataclasses.replace(record, fix=dataclasses.replace(record.fix, corner_pairs=(), matched=0))
+    assert scan_payloads(walls_only, localizer)["corners"]["matched"] == []
+    assert scan_payloads(dataclasses.replace(record, fix=None), localizer)["corners"]["matched"] == []
 
 
 def test_scan_travels_binary_with_its_zenoh_encoding() -> None:

@@ -872,3 +872,25 @@ def test_a_corner_pairs_only_with_a_map_corner_whose_walls_run_the_same_ways() -
             fix = loc.update(scan, (x, 1.0, 0.0))
             assert fix is not None and fix.measured
             assert (abs(fix.y - 1.2) > 0.1) is off, (tolerance, fix)
+
+
+def test_a_fix_names_the_corner_pairs_it_used_and_not_the_one_its_outlier_test_dropped(
+        arena: World, geometry: WorldGeometry) -> None:
+    rng = np.random.default_rng(5)
+    pose = (2.0, 2.0, math.radians(30.0))
+    truth = localizer(arena, geometry, pose).update(scan_at(geometry, *pose, rng))
+    assert truth is not None and truth.matched >= 4
+    moved = truth.corner_pairs[0][1]  # a map corner this view pairs with, surveyed 10 cm off:
+    shifted = arena.corner_array().copy()
+    shifted[moved] += (0.1, 0.0)  # within the gate and the shape test, beyond the outlier test
+    loc = PlanarLocalizer(shifted, arena.wall_angle_deg, mount=MOUNT, walls=arena.segments_at(HEIGHT_M - MOUNT.z_m),
+                          initial_pose=pose, ceiling_m=-geometry.ceiling_z)
+    fix = loc.update(scan_at(geometry, *pose, rng))
+    assert fix is not None and fix.state == "tracking"
+    assert len(fix.corner_pairs) == fix.matched == truth.matched - 1
+    assert moved not in {known for _, known in fix.corner_pairs}
+    observed = loc.last_corners.xy
+    c, s = math.cos(fix.yaw), math.sin(fix.yaw)
+    for i, known in fix.corner_pairs:  # each observed corner placed with the fix lands on its map corner
+        q = observed[i]
+        assert math.dist((fix.x + c * q[0] - s * q[1], fix.y + s * q[0] + c * q[1]), shifted[known]) < 0.05

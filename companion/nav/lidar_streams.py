@@ -3,7 +3,7 @@ from it, the map.
 
 What an operator needs to see whether the localization is right: the scan placed on the map
 with the pose the localizer fixed for it, the walls it found, which corners it saw and which
-known corners they matched. Built from the pipeline's newest processed scan (which keeps the
+known corners the localizer paired them with. Built from the pipeline's newest processed scan (which keeps the
 lines and corners the localizer found in it) outside the nav cycle, at ``telemetry.scan_hz``:
 nothing is extracted again here. Payloads: docs/telemetry.md.
 
@@ -20,10 +20,9 @@ from typing import Any
 
 import numpy as np
 
-from companion.frames import planar_rotation
 from companion.nav.corners import Corners
 from companion.nav.lines import LineSet
-from companion.nav.planar import PlanarFix, PlanarLocalizer, associate
+from companion.nav.planar import PlanarFix, PlanarLocalizer
 from companion.messages import Scan
 
 STREAMS = ("scan", "lines", "corners", "map")
@@ -48,8 +47,8 @@ def scan_payloads(record: ProcessedScan, localizer: PlanarLocalizer) -> dict[str
     head = {"sensor": scan.sensor_id, "t_capture": scan.t_capture, "sequence": scan.sequence, "pose": pose}
     mount = localizer.mount
     lines, corners = record.lines, record.corners
-    matched = [] if pose is None else matched_corners(corners.xy, pose, localizer.map, localizer.params.gate_m,
-                                                        localizer.corner_shapes(lines, corners, pose[2]))
+    matched = [] if fix is None else [{"observed": i, "map_ned_m": localizer.map[j].tolist()}
+                                      for i, j in fix.corner_pairs]
     return {
         "scan": {**head, "sweep_s": scan.sweep_s, "angles_rad": scan.angles_rad, "ranges_m": scan.ranges_m,
                  "valid": scan.valid, "mount": (mount.x_m, mount.y_m, mount.yaw_rad)},
@@ -57,16 +56,6 @@ def scan_payloads(record: ProcessedScan, localizer: PlanarLocalizer) -> dict[str
         "corners": {**head, "observed_m": corners.xy, "matched": matched,
                     "state": None if fix is None else fix.state, "fix_matched": 0 if fix is None else fix.matched},
     }
-
-
-def matched_corners(observed_m: np.ndarray, pose: tuple[float, float, float], known_ned_m: np.ndarray,
-                    gate_m: float, shapes: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> list[dict[str, Any]]:
-    """The observed corners (levelled body frame, metres) that the localizer's association
-    (mutual nearest neighbours within ``gate_m`` among the corners of the same ``shapes``) pairs
-    with a known map corner when placed in the world with ``pose``: {observed index, that corner}."""
-    world = np.array(pose[:2]) + np.asarray(observed_m).reshape(-1, 2) @ planar_rotation(pose[2]).T
-    observed, known = associate(world, known_ned_m, gate_m, shapes)
-    return [{"observed": int(i), "map_ned_m": known_ned_m[j].tolist()} for i, j in zip(observed, known)]
 
 
 def map_payload(localizer: PlanarLocalizer) -> dict[str, Any]:

@@ -205,6 +205,9 @@ class PlanarFix:
     # scan to scan while the vehicle moves less than a beam spacing, so averaging fixes does not
     # shrink it; the fix's variance along it is the least the estimate can claim there.
     ends_only: tuple[float, float] | None = None
+    # The corners the fix used (after the outlier test): (index into the scan's corners, index into
+    # the map's corners) per pair; empty for a fix from walls alone, a coasted or a lost report.
+    corner_pairs: tuple[tuple[int, int], ...] = ()
 
     @property
     def measured(self) -> bool:
@@ -222,6 +225,7 @@ class Match:
     covariance: np.ndarray  # (3, 3) x, y, yaw
     matched: int
     rms_m: float  # RMS residual of the matched corners after the update
+    pairs: tuple[tuple[int, int], ...] = ()  # (observed corner, map corner) indices of the ``matched``
 
 
 @dataclass(frozen=True)
@@ -447,7 +451,8 @@ class PlanarLocalizer:
         scale = _chi2_scale(resid, cov) * (self.params.single_corner_inflation if w.size == 1 else 1.0)
         full = corner_fix_covariance(lines, corners.subset(obs[keep]), w, rot, heading, scale)
         rms = math.sqrt(float(np.dot(resid.ravel(), resid.ravel())) / w.size)
-        return Match(xy + delta, full, int(w.size), rms)
+        pairs = tuple(zip(obs[keep].tolist(), idx[keep].tolist()))
+        return Match(xy + delta, full, int(w.size), rms, pairs)
 
     def corner_shapes(self, lines: LineSet, corners: Corners,
                       yaw: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
@@ -645,7 +650,7 @@ class PlanarLocalizer:
             reason = (f"{reason}; " if reason else "") + "heading alias resolved by the corners"
         timing["total"] = (time.perf_counter() - t0) * 1e3
         return PlanarFix(self._pose[0], self._pose[1], yaw, m.covariance.copy(), m.matched, state, reason,
-                         relocalized, heading.status, timing)
+                         relocalized, heading.status, timing, corner_pairs=m.pairs)
 
     def _miss(self, heading: HeadingResult, reason: str, lost_now: bool, lines: LineSet, corners: Corners,
               points: np.ndarray, timing: dict[str, float], t0: float, edges: Edges | None = None) -> PlanarFix | None:
