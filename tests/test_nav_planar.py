@@ -582,6 +582,20 @@ def test_pose_hypotheses_score_as_the_all_pairs_comparison_does() -> None:
                                           _brute_force_hypotheses(observed, landmarks, yaws, tolerance, min_score))
 
 
+def test_a_corner_proposes_no_pose_on_a_map_corner_of_another_shape() -> None:
+    """Map corners 2 and 3 lie as 0 and 1 do, 3 m further north, but their walls run south where
+    0's and 1's run north (the back of a recess and its mouth): only the shapes tell them apart."""
+    north, east, south, west = (1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0)
+    landmarks = np.array([[5.0, 5.0], [5.0, 7.0], [8.0, 5.0], [8.0, 7.0]])
+    map_rays = np.array([[north, east], [north, west], [south, east], [south, west]])
+    observed = np.array([[3.0, 3.0], [3.0, 5.0]])  # from (2, 2) at yaw 0: map corners 0 and 1
+    shapes = (np.array([[north, east], [north, west]]), np.full((2, 2), math.cos(math.radians(20.0))), map_rays)
+    blind = pose_hypotheses(observed, landmarks, np.array([0.0]), 0.3, 2)
+    assert sorted(map(tuple, blind[:, 2:4].tolist())) == [(2.0, 2.0), (2.0, 2.0), (5.0, 2.0), (5.0, 2.0)]
+    shaped = pose_hypotheses(observed, landmarks, np.array([0.0]), 0.3, 2, shapes)
+    assert shaped[:, 2:4].tolist() == [[2.0, 2.0], [2.0, 2.0]] and shaped[:, 0].tolist() == [2.0, 2.0]
+
+
 def test_relocalization_on_a_1500_corner_map_stays_small(arena: World, geometry: WorldGeometry) -> None:
     """The arena tiled 10 x 10: 100 look-alike rooms. No clear winner (honestly), in little memory."""
     corners, walls = tiled_map(arena, 10, HEIGHT_M - MOUNT.z_m)

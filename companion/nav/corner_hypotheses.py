@@ -14,10 +14,11 @@ import math
 import numpy as np
 
 from companion.frames import planar_rotation
+from companion.nav.corner_shape import shapes_agree
 
 
 def pose_hypotheses(observed: np.ndarray, landmarks: np.ndarray, yaws: np.ndarray, tolerance: float,
-                     min_score: int) -> np.ndarray:
+                     min_score: int, shapes: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Rows (score, yaw, x, y): every (heading, observed corner i -> map corner a) hypothesis
     scoring at least ``min_score``, best first. The score counts the observed corners j that
     have a map corner b with (b - R q_j) within ``tolerance`` of the hypothesis translation.
@@ -26,13 +27,28 @@ def pose_hypotheses(observed: np.ndarray, landmarks: np.ndarray, yaws: np.ndarra
     observed corners among the proposals within ``tolerance`` of the hypothesis' own. Proposals
     are bucketed in a grid of ``2 tolerance`` cells, so only neighbouring cells are compared, and
     only for proposals with ``min_score`` of them nearby: time and memory grow with k * m
-    (observed times map corners), not (k * m)^2."""
+    (observed times map corners), not (k * m)^2.
+
+    ``shapes`` (rays (k, 2, 2) of the observed corners in their own frame, the cosines of their
+    largest angles (k, 2), the map corners' rays (m, R, 2): corner_shape.py): a pair proposes
+    nothing unless the corners' walls run the same ways at that heading, as the localizer's
+    association requires, so a corner cannot vote for a pose that puts it on a corner of another
+    shape (the back of a door recess on its mouth)."""
     k, m = observed.shape[0], landmarks.shape[0]
     owner = np.repeat(np.arange(k), m)  # the observed corner of each proposal, row i * m + a
+    if shapes is not None:  # a map has few distinct shapes (a building's corners repeat them): compare those
+        rays, limits, map_rays = shapes
+        kinds, kind = np.unique(map_rays.reshape(m, 2 * map_rays.shape[1]), axis=0, return_inverse=True)
+        kinds, kind = kinds.reshape(-1, *map_rays.shape[1:]), kind.reshape(-1)
     rows = []
     for yaw in yaws:
-        trans = (landmarks[None, :, :] - (observed @ planar_rotation(float(yaw)).T)[:, None, :]).reshape(-1, 2)
-        score = _owners_within(trans, owner, k, tolerance, min_score)
+        rotation = planar_rotation(float(yaw))
+        trans = (landmarks[None, :, :] - (observed @ rotation.T)[:, None, :]).reshape(-1, 2)
+        owners = owner
+        if shapes is not None:
+            alike = shapes_agree((rays @ rotation.T)[:, None], limits[:, None], kinds[None])[:, kind]
+            trans, owners = trans[alike.ravel()], owner[alike.ravel()]
+        score = _owners_within(trans, owners, k, tolerance, min_score)
         good = score >= min_score
         rows.append(np.column_stack((score[good], np.full(good.sum(), yaw), trans[good])))
     out = np.concatenate(rows) if rows else np.zeros((0, 4))

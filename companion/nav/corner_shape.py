@@ -83,7 +83,8 @@ def shapes_agree(observed: np.ndarray, limits: np.ndarray, known: np.ndarray) ->
     """(N,) bool: whether each ray of the observed corners ``observed`` (N, 2, 2) lies within its
     angle (``limits`` (N, 2): the cosines of :func:`ray_limits`) of a ray of the map corner paired
     with it in ``known`` (N, R, 2) (both in the same frame); a map corner without rays (NaN) agrees
-    with anything."""
+    with anything. The leading dimension broadcasts like numpy's: (K, 1, 2, 2), (K, 1, 2) and
+    (1, M, R, 2) compare every observed corner with every map corner, (K, M)."""
     # NaN dots (a map corner without rays) are never "far": they veto nothing
-    far = np.einsum("nik,nrk->nir", observed, known).max(axis=2) < limits
-    return ~far.any(axis=1)
+    far = np.einsum("...ik,...rk->...ir", observed, known).max(axis=-1) < limits
+    return ~far.any(axis=-1)

@@ -65,35 +65,36 @@ corners, and only if no other position within the drift since the last fix (3 si
 ``coast_growth_m2`` per scan, plus the gate) matches as many, or by relocalization, by corners or
 by walls). A fix that is not ``measured`` must not be sent to the autopilot.
 
-Relocalization (beyond the paper), tried when lost or when no pose is known: the wall
-directions fix the heading modulo the wall angle, so the candidate headings are a small
-discrete set (360 / A of them). For each, every correspondence (observed corner i, map corner
-a) proposes a translation (corner_hypotheses.py); its score is the number of observed corners
-that then land within ``reloc_tolerance_m`` of a map corner (a score of 2 or more means an
-observed pair matches a map pair in distance AND direction). The best distinct poses are refined by the normal
-association and update; if the walls are known, the fraction of scan points lying on a wall
-breaks ties (it sees, for instance, which room's doors the beams go through). Only a clear
+Relocalization (beyond the paper), tried when lost or when no pose is known: the wall directions
+fix the heading modulo the wall angle, so the candidate headings are a small discrete set (360 /
+A of them). For each, every correspondence (observed corner i, map corner a) of the same shape
+(their walls running the same ways at that heading, corner_shape.py) proposes a translation
+(corner_hypotheses.py); its score is the number of observed corners that then land within
+``reloc_tolerance_m`` of a map corner of their shape (a score of 2 or more means an observed
+pair matches a map pair in distance AND direction). The best distinct poses are refined by the
+normal association and update; if the walls are known, the fraction of scan points lying on a
+wall breaks ties (it sees, for instance, which room's doors the beams go through). Only a clear
 winner is accepted (more corners than every other distinct pose, or as many but a wall fraction
 ``reloc_wall_margin`` higher). With a pose held (lost after coasting), the hypotheses within
-``reloc_local_m`` of it (or that drift, if more) and at the heading nearest its yaw are tried first and the whole map only
-when they have no clear winner: a map has look-alike places, and the held pose says which one
-the vehicle is more likely in. With a pose held, the heading measured and no corner winner, the
-walls are searched near the held pose (within ``reloc_local_m`` or the drift): every position
-at which an observed line of each of two wall directions lies on a map wall
-(wall_hypotheses.py), scored by the fraction of scan points then on walls; a clear winner (every
-position more than ``reloc_distinct_m`` away at least ``reloc_wall_margin`` behind) whose walls
-fix the position in both directions is a candidate like a corner one (a real building's rooms
-hold too few corners for a 1-deg scanner to see three, and most of its scans see walls of two
-directions). A winner within ``jump_m`` / ``jump_rad`` of the held pose resumes tracking at
-once. A jump (or a first pose) is only a candidate (:attr:`PlanarLocalizer.candidate`) until
-``reloc_confirm_frames`` scans found it, each within ``reloc_confirm_gate_m`` of the previous one
-moved by the motion given with the scans (``moved_m``: odometry or the fused IMU; at 40 scans/s
-without it the gate allows 12 m/s) and turned by the gyro's yaw change within
-``reloc_confirm_gate_rad``. A scan that can test nothing (too few corners, no clear winner)
-carries the candidate along with that motion, up to ``reloc_confirm_frames`` such scans in a row;
-a scan finding another pose starts over. Meanwhile the fix stays lost (None without a pose),
-never a confident wrong pose. The confirming fix has ``relocalized`` True, so the daemon increments
-``reset_counter``.
+``reloc_local_m`` of it (or that drift, if more) and at the heading nearest its yaw are tried
+first and the whole map only when they have no clear winner: a map has look-alike places, and
+the held pose says which one the vehicle is more likely in. With a pose held, the heading
+measured and no corner winner, the walls are searched near the held pose (within
+``reloc_local_m`` or the drift): every position at which an observed line of each of two wall
+directions lies on a map wall (wall_hypotheses.py), scored by the fraction of scan points then
+on walls; a clear winner (every position more than ``reloc_distinct_m`` away at least
+``reloc_wall_margin`` behind) whose walls fix the position in both directions is a candidate
+like a corner one (a real building's rooms hold too few corners for a 1-deg scanner to see
+three, and most of its scans see walls of two directions). A winner within ``jump_m`` /
+``jump_rad`` of the held pose resumes tracking at once. A jump (or a first pose) is only a
+candidate (:attr:`PlanarLocalizer.candidate`) until ``reloc_confirm_frames`` scans found it,
+each within ``reloc_confirm_gate_m`` of the previous one moved by the motion given with the
+scans (``moved_m``: odometry or the fused IMU; at 40 scans/s without it the gate allows 12 m/s)
+and turned by the gyro's yaw change within ``reloc_confirm_gate_rad``. A scan that can test
+nothing (too few corners, no clear winner) carries the candidate along with that motion, up to
+``reloc_confirm_frames`` such scans in a row; a scan finding another pose starts over. Meanwhile
+the fix stays lost (None without a pose), never a confident wrong pose. The confirming fix has
+``relocalized`` True, so the daemon increments ``reset_counter``.
 """
 
 from __future__ import annotations
@@ -373,7 +374,7 @@ class PlanarLocalizer:
                     return walls
             return self._miss(heading, why, False, lines, corners, points[ok], timing, t0, edges)
         if self._misses >= self.params.lost_after_frames:
-            rival = self._rival_resume(corners, best, yaw_used)
+            rival = self._rival_resume(lines, corners, best, yaw_used)
             if rival is not None:
                 why = (f"{best.matched} corners match near the dead-reckoned pose, and as many "
                        f"{math.dist(rival, best.xy):.1f} m away within its uncertainty")
@@ -385,14 +386,15 @@ class PlanarLocalizer:
         measurement: 3 sigma of the coasting drift (``coast_growth_m2`` per scan) plus the gate."""
         return 3.0 * math.sqrt(self._misses * self.params.coast_growth_m2) + self.params.gate_m
 
-    def _rival_resume(self, corners: Corners, best: Match, yaw: float) -> np.ndarray | None:
+    def _rival_resume(self, lines: LineSet, corners: Corners, best: Match, yaw: float) -> np.ndarray | None:
         """After a loss (the held position dead-reckoned for ``_misses`` scans), another position
         (north, east m) within that drift's 3 sigma (``coast_growth_m2`` per scan) of the held one
-        where the corners also match as many map corners as ``best`` does, if any: resuming there
-        or at ``best`` would be a guess (look-alike corners)."""
+        where the corners (found in ``lines``) also match as many map corners of their shapes as
+        ``best`` does, if any: resuming there or at ``best`` would be a guess (look-alike corners)."""
         assert self._pose is not None
         p = self.params
-        poses = pose_hypotheses(corners.xy, self.map, np.array([yaw]), p.gate_m, best.matched)
+        poses = pose_hypotheses(corners.xy, self.map, np.array([yaw]), p.gate_m, best.matched,
+                                self.corner_shapes(lines, corners, 0.0))
         held = np.array(self._pose[:2])
         near = np.hypot(*(poses[:, 2:4] - held).T) <= self._drift_radius()
         apart = np.hypot(*(poses[:, 2:4] - best.xy).T) > p.reloc_distinct_m
@@ -792,7 +794,8 @@ class PlanarLocalizer:
             return None, f"{corners.count} corners visible, at least {p.reloc_min_inliers} needed"
         spread = corners.cov[:, 0, 0] + corners.cov[:, 1, 1]
         corners = corners.subset(np.argsort(spread)[:p.reloc_max_corners])
-        poses = pose_hypotheses(corners.xy, self.map, yaws, p.reloc_tolerance_m, p.reloc_min_inliers)
+        poses = pose_hypotheses(corners.xy, self.map, yaws, p.reloc_tolerance_m, p.reloc_min_inliers,
+                                self.corner_shapes(lines, corners, 0.0))
         if self._pose is not None:
             hx, hy, hyaw = self._pose
             near = ((np.hypot(poses[:, 2] - hx, poses[:, 3] - hy) <= max(p.reloc_local_m, self._drift_radius()))
