@@ -116,7 +116,8 @@ from companion.nav.heading import (UNMEASURED_VARIANCE_RAD2, HeadingParams, Head
                                    heading_hypotheses, track_heading)
 from companion.nav.lines import LineParams, LineSet, extract_lines
 from companion.nav.corner_hypotheses import distinct_poses, pose_hypotheses
-from companion.nav.wall_hypotheses import MapWalls, lines_on_walls, wall_hypotheses
+from companion.nav.wall_fix import WallMap, wall_fix
+from companion.nav.wall_hypotheses import MapWalls, wall_hypotheses
 from companion.nav.wall_grid import WallGrid
 from companion.messages import Scan
 
@@ -283,17 +284,17 @@ class PlanarLocalizer:
         self.wall_angle = math.radians(wall_angle_deg)
         self.mount = mount
         self.walls = None if walls is None else np.asarray(walls, dtype=float).reshape(-1, 4)
+        self._wall_map: WallMap | None = None
+        self._corner_rays: np.ndarray | None = None
         if self.walls is not None:
             self._wall_grid = WallGrid(self.walls, params.reloc_wall_tolerance_m)  # relocalization's wall check
-            self._map_walls = MapWalls.from_segments(self.walls, self.wall_angle, self.wall_offset)
-            # (S, 2): whether the wall's start / end is a listed corner. Only there does the map
-            # vouch that the wall really ends; a map built from a log also ends walls where the
-            # walk saw no more of them.
-            self._wall_end_is_corner = np.column_stack([
-                _near_any(self.walls[:, c:c + 2], self.map, params.edge_corner_m) for c in (0, 2)])
-        # (M, R, 2): the directions of the walls meeting at each map corner (corner_shape.py)
-        self._corner_rays = None if self.walls is None else map_corner_rays(self.map, self._map_walls,
-                                                                             params.edge_corner_m)
+            map_walls = MapWalls.from_segments(self.walls, self.wall_angle, self.wall_offset)
+            # Whether each wall's start / end is a listed corner. Only there does the map vouch that
+            # the wall really ends; a map built from a log also ends walls where the walk saw no more.
+            self._wall_map = WallMap(map_walls, np.column_stack([
+                _near_any(self.walls[:, c:c + 2], self.map, params.edge_corner_m) for c in (0, 2)]))
+            # (M, R, 2): the directions of the walls meeting at each map corner (corner_shape.py)
+            self._corner_rays = map_corner_rays(self.map, map_walls, params.edge_corner_m)
         self.params = params
         self._pose: tuple[float, float, float] | None = None
         self.last_lines: LineSet | None = None  # what update() extracted from its last scan (never mutated)
@@ -534,105 +535,17 @@ class PlanarLocalizer:
 
     def _wall_solution(self, lines: LineSet, edges: Edges | None, xy: np.ndarray, heading: HeadingResult, why: str,
                        timing: dict[str, float], t0: float) -> PlanarFix | None:
-        """Position from observed lines lying on map walls (point-to-line) near the position ``xy``
-        (m) when no corner matched, None if no wall matched; the pose held is not changed. Each
-        matched line measures the position along its normal, and
-        each of its occluding ends (``edges``) lying within ``edge_gate_m`` of an end of its map
-        wall measures it along the wall; walls of one direction without such an end (a corridor)
-        measure the cross-track direction only, and the fix reports the along-track direction as
-        unmeasured (``lost_variance_m2``) instead of going lost."""
-        p = self.params
-        if self.walls is None or edges is None:
+        """The wall fix (wall_fix.py) near the position ``xy`` (m) when no corner matched, None if no
+        wall matched; the pose held is not changed."""
+        if self._wall_map is None or edges is None:
             return None
-        use = np.flatnonzero(lines.length >= p.heading.min_length_m)
-        if use.size == 0:
+        found = wall_fix(lines, edges, xy, heading, self._wall_map, self.params, why)
+        if found is None:
             return None
-        rot = planar_rotation(heading.yaw)
-        mid, resid, candidate = lines_on_walls(lines, use, xy, heading.yaw, self._map_walls, p.wall_angle_tolerance_deg,
-                                               p.wall_gate_m, p.wall_overlap_margin_m)
-        has = candidate.any(axis=1)
-        if not has.any():
-            return None
-        nearest = np.argmin(np.where(candidate, np.abs(resid), np.inf), axis=1)[has]
-        # Along the map wall's normal, not the observed line's: a corridor's parallel walls then
-        # leave the along-track direction exactly unmeasured.
-        n, r = self._map_walls.normal[nearest], resid[has, nearest]
-        k = use[has]
-        # The offset is measured at the foot of the normal.
-        var = lines.normal_error_at(k, np.zeros((k.size, 2)))[1] + p.map_error_m ** 2
-        w = 1.0 / var
-        info = (w[:, None, None] * n[:, :, None] * n[:, None, :]).sum(axis=0)
-        b = (w * r) @ n
-        # d(residual)/d(yaw): turning the scan about the scanner moves each line's middle sideways.
-        arm = mid[has] - xy
-        db_dyaw = (w * (n[:, 0] * arm[:, 1] - n[:, 1] * arm[:, 0])) @ n
-        ends = self._wall_ends(edges, k, nearest, xy, rot)
-        ends_only = None
-        walls_rank = 2  # directions the walls alone measure
-        if ends is not None:
-            walls_val, walls_vec = np.linalg.eigh(info)
-            if walls_val[0] * p.wall_gate_m ** 2 < 1.0:  # a direction they leave to the ends
-                ends_only = (float(walls_vec[0, 0]), float(walls_vec[1, 0]))
-                walls_rank = 1
-            direction, along, along_var, dalong_dyaw = ends
-            w_end = 1.0 / (along_var + p.map_error_m ** 2)
-            info = info + (w_end[:, None, None] * direction[:, :, None] * direction[:, None, :]).sum(axis=0)
-            b = b + (w_end * along) @ direction
-            db_dyaw = db_dyaw + (w_end * dalong_dyaw) @ direction
-        eigval, eigvec = np.linalg.eigh(info)
-        if eigval[1] <= 0.0:
-            return None
-        ended = "" if ends is None else f" and {ends[1].size} of their ends"
-        if eigval[0] * p.wall_gate_m ** 2 < 1.0:  # a direction measured worse than the gate: a corridor's axis
-            u = eigvec[:, 1]
-            delta = (u @ b) / eigval[1] * u
-            dp_dyaw = (u @ db_dyaw) / eigval[1] * u
-            cov2 = (np.outer(u, u) / eigval[1] * _wall_chi2_scale(n, r, w, delta, walls_rank=1)
-                    + p.lost_variance_m2 * np.outer(eigvec[:, 0], eigvec[:, 0]))
-            reason = f"{why}: {k.size} walls{ended} constrain the cross-track position only"
-            unmeasured: tuple[float, float] | None = (float(eigvec[0, 0]), float(eigvec[1, 0]))
-        else:
-            cov2 = np.linalg.inv(info)
-            delta = cov2 @ b
-            dp_dyaw = cov2 @ db_dyaw
-            cov2 = cov2 * _wall_chi2_scale(n, r, w, delta, walls_rank)
-            reason = f"{why}: {k.size} walls{ended} constrain the position"
-            unmeasured = None
-        # The heading's uncertainty moves the position through dp_dyaw, as for corners (match()).
-        cov = np.empty((3, 3))
-        cov[:2, :2] = cov2 + heading.variance * np.outer(dp_dyaw, dp_dyaw)
-        cov[:2, 2] = cov[2, :2] = heading.variance * dp_dyaw
-        cov[2, 2] = heading.variance
         timing["total"] = (time.perf_counter() - t0) * 1e3
-        return PlanarFix(float(xy[0] + delta[0]), float(xy[1] + delta[1]), heading.yaw, cov, 0, "degraded", reason,
-                         False, heading.status, timing, walls_matched=int(k.size), unmeasured=unmeasured,
-                         ends_only=None if unmeasured is not None else ends_only)
-
-    def _wall_ends(self, edges: Edges, k: np.ndarray, wall: np.ndarray, xy: np.ndarray,
-                   rot: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-        """The occluding ends of the lines ``k`` (matched to the map walls ``wall``) that lie
-        within ``edge_gate_m`` of an end of their wall: (wall directions (E, 2), how far to move
-        the position along them to put each observed end on the map's (E,), m; their variances
-        (E,), m^2; the derivatives of those distances with the yaw (E,), m/rad), or None if
-        there are none."""
-        if edges.count == 0:
-            return None
-        of_line = {int(line): j for line, j in zip(k, wall)}
-        pick = np.array([int(line) in of_line for line in edges.line])
-        if not pick.any():
-            return None
-        j = np.array([of_line[int(line)] for line in edges.line[pick]])
-        arm = edges.xy[pick] @ rot.T  # scanner to end, world frame
-        world = xy + arm
-        direction, length = self._map_walls.direction[j], self._map_walls.length[j]
-        u = np.einsum("ij,ij->i", world - self.walls[j, 0:2], direction)  # along the wall from its start
-        at_end = u >= 0.5 * length  # the nearer end: the wall's end (True) or start
-        along = np.where(at_end, length, 0.0) - u
-        near = (np.abs(along) <= self.params.edge_gate_m) & self._wall_end_is_corner[j, at_end.astype(int)]
-        if not near.any():
-            return None
-        dalong_dyaw = direction[:, 0] * arm[:, 1] - direction[:, 1] * arm[:, 0]  # -direction . d(arm)/d(yaw)
-        return direction[near], along[near], edges.along_var[pick][near], dalong_dyaw[near]
+        return PlanarFix(float(found.xy[0]), float(found.xy[1]), heading.yaw, found.covariance, 0, "degraded",
+                         found.reason, False, heading.status, timing, walls_matched=found.walls_matched,
+                         unmeasured=found.unmeasured, ends_only=found.ends_only)
 
     def _accept(self, m: Match, yaw: float, heading: HeadingResult, relocalized: bool,
                 timing: dict[str, float], t0: float) -> PlanarFix:
@@ -728,10 +641,10 @@ class PlanarLocalizer:
         least ``reloc_wall_margin`` behind) whose walls fix the position in both directions. Returns that
         fix (the pose held is not changed) or None and why not."""
         p = self.params
-        assert self._pose is not None and self.walls is not None
+        assert self._pose is not None and self._wall_map is not None
         held = np.array(self._pose[:2])
         use = np.flatnonzero(lines.length >= p.heading.min_length_m)
-        poses = wall_hypotheses(lines, use, held, heading.yaw, self._map_walls,
+        poses = wall_hypotheses(lines, use, held, heading.yaw, self._wall_map.walls,
                                 max(p.reloc_local_m, self._drift_radius()), p.wall_angle_tolerance_deg,
                                 p.reloc_wall_tolerance_m)
         if poses.shape[0] == 0:
@@ -886,17 +799,3 @@ def _chi2_scale(resid: np.ndarray, cov: np.ndarray) -> float:
     a, b, d = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
     chi2 = float(np.sum((d * x * x - 2.0 * b * x * y + a * y * y) / (a * d - b * b)))  # r^T C^-1 r, 2x2 closed form
     return max(1.0, chi2 / (2 * (n - 1)))
-
-
-def _wall_chi2_scale(normal: np.ndarray, resid: np.ndarray, weight: np.ndarray, delta: np.ndarray,
-                     walls_rank: int) -> float:
-    """max(1, chi-square per degree of freedom) of the point-to-line measurements after the
-    position moved by ``delta`` (m): each wall line's ``resid`` (m) along its unit ``normal`` with
-    ``weight`` (1 / variance, m^-2); ``walls_rank`` directions were estimated from them. The wall
-    ends are left out: along a corridor they are the only measurement, and two ends a few beams
-    apart would otherwise widen the well-measured cross-track direction with the along-track one."""
-    dof = resid.shape[0] - walls_rank
-    if dof < 1:
-        return 1.0
-    left = resid - normal @ delta
-    return max(1.0, float(weight @ (left * left)) / dof)
