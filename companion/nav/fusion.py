@@ -496,8 +496,10 @@ class FusionFilter:
         return ((fx - px) * dt) ** 2, ((fy - py) * dt) ** 2, ((fz - pz) * dt) ** 2
 
     def _advance(self, t0: float, t1: float, fx: float, fy: float, fz: float, roll: float, pitch: float,
-                 yaw_rate: float, hold_var: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> bool:
+                 yaw_rate: float, hold_var: tuple[float, float, float]) -> bool:
         """Propagate the working state over (t0, t1], applying logged fixes captured in it.
+        ``hold_var``: the velocity variances, (m/s)^2 along each body axis (FRD), of the IMU sample
+        held over the step (:meth:`_hold_variance`).
 
         Returns False if a fix was rejected by the gate (it is removed from the log).
         """
