@@ -4,7 +4,8 @@ Hovering between two door recesses of config/worlds/corridor.yaml, the position 
 corridor is measured only by where the walls end (companion/nav/edges.py). Where between two
 beams a wall ends is the same error in every scan while the vehicle stays put, so the fusion's
 average of 40 fixes a second is no better than one of them: the estimate sent must not claim less
-variance along the corridor than one fix has.
+variance along the corridor than one fix has, also after fixes that measure that direction no
+better than the ends did.
 """
 
 from __future__ import annotations
@@ -13,12 +14,13 @@ import dataclasses
 import math
 
 import numpy as np
+import pytest
 
 from companion.config import MountConfig
 from companion.health import Health
 from companion.messages import ImuSample, PoseEstimate
 from companion.nav.bench_stages import make_mount, synthetic_scan
-from companion.nav.lidar_pipeline import LidarPipeline, LidarPipelineConfig
+from companion.nav.lidar_pipeline import LidarPipeline, LidarPipelineConfig, wall_ends_floor
 from companion.world import load_world
 from drivers.lidar_models import URG_04LX, UTM_30LX
 from sitl.raycast import WorldGeometry
@@ -66,3 +68,21 @@ def test_hovering_where_only_wall_ends_measure_the_corridors_axis_the_estimate_c
     assert filtered < 0.5 * one_fix  # the filter averaged the fixes as if independent ...
     assert estimate.pose_covariance[0, 0] >= one_fix  # ... the estimate sent does not claim it
     assert abs(estimate.position_ned[0] - HOVER[0]) < 3.0 * math.sqrt(estimate.pose_covariance[0, 0])
+
+
+def test_the_wall_ends_floor_outlives_fixes_that_measure_the_corridors_axis_no_better() -> None:
+    pipeline, _ = _hover(1.0)
+    ends = pipeline.last_horizontal.fix if pipeline.last_horizontal is not None else None
+    assert ends is not None and ends.ends_only is not None
+    floor = wall_ends_floor(ends, None)
+    assert floor is not None and floor[1] == pytest.approx(ends.covariance[0, 0])
+    walls_only = dataclasses.replace(ends, ends_only=None, unmeasured=(1.0, 0.0),
+                                     covariance=np.diag([100.0, 1e-4, 1e-5]))  # the corridor's axis unmeasured
+    one_corner = dataclasses.replace(ends, ends_only=None, matched=1, walls_matched=0,
+                                     covariance=np.diag([4.0 * floor[1], 4.0 * floor[1], 1e-5]))
+    corners = dataclasses.replace(ends, ends_only=None, matched=3, walls_matched=0,
+                                  covariance=np.diag([0.25 * floor[1], 0.25 * floor[1], 1e-5]))
+    assert wall_ends_floor(walls_only, floor) is floor
+    assert wall_ends_floor(one_corner, floor) is floor
+    assert wall_ends_floor(corners, floor) is None
+    assert wall_ends_floor(walls_only, None) is None
