@@ -22,9 +22,9 @@ the sensor frame of :mod:`companion.messages` is :meth:`SensorParams.angle_rad`.
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -208,7 +208,7 @@ def decode_data_lines(lines: Sequence[bytes], width: int) -> np.ndarray:
 def _line_layout(lengths: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where lines of these ``lengths`` (bytes, sum byte included) lie once joined: index arrays
     of every line's first byte, of its sum byte, and of the payload bytes. Cached: the replies of
-    one stream all share a layout, and building it is most of the work of a parse."""
+    one stream all share a layout (building it was about a sixth of a parse)."""
     ends = np.cumsum(lengths)  # one past each line's sum byte
     sum_bytes = ends - 1
     payload = np.ones(int(ends[-1]), dtype=bool)

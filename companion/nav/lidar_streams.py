@@ -3,9 +3,9 @@ from it, the map.
 
 What an operator needs to see whether the localization is right: the scan placed on the map
 with the pose the localizer fixed for it, the walls it found, which corners it saw and which
-known corners the localizer paired them with. Built from the pipeline's newest processed scan (which keeps the
-lines and corners the localizer found in it) outside the nav cycle, at ``telemetry.scan_hz``:
-nothing is extracted again here. Payloads: docs/telemetry.md.
+known corners its fix paired them with. Built from the pipeline's newest processed scan (which
+keeps the lines, corners and fix the localizer made of it) outside the nav cycle, at
+``telemetry.scan_hz``: nothing is extracted or associated again here. Payloads: docs/telemetry.md.
 
 Frames: ``*_m`` vectors of ``lines`` and ``corners`` are in the levelled body frame (x forward,
 y right, metres, rotated from the world by the yaw only); ``pose`` [x north m, y east m, yaw
