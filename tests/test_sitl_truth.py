@@ -125,3 +125,25 @@ def test_arducopter_sitls_10_hz_barometer_gives_the_altitude_of_a_climb_without_
     assert max(abs(e) for e in errors) < 0.01
     assert min(held) < -0.1  # what the held reading was
     assert baro.at(1000.0) == baro.at(4.0 + BARO_EXTRAPOLATE_S)  # no reading for long: held, not extrapolated on
+
+
+def test_arducopter_sitls_barometer_altitude_stops_where_the_vehicle_landed() -> None:
+    """Descending at 0.5 m/s onto the floor at 100 m and stopping dead there: once the readings
+    repeat, the altitude is the floor's, not the last descent's slope followed on below it."""
+    floor, descent_mps, touchdown = 100.0, 0.5, 2.0
+
+    def altitude(t: float) -> float:
+        return floor + descent_mps * max(touchdown - t, 0.0)
+
+    baro = BaroAltitude()
+    reading = altitude(0.0)
+    below = []
+    for k in range(250):  # 5 s at 50 Hz
+        t = 0.02 * k
+        if k % 5 == 0:  # the mean altitude over the 0.1 s before the reading
+            reading = sum(altitude(t - 0.1 + 0.01 * i) for i in range(10)) / 10
+        baro.add(t + 0.003, reading)
+        now = t + 0.004
+        if now > touchdown + 0.3:
+            below.append(floor - baro.at(now))
+    assert max(below) < 0.002
