@@ -16,8 +16,8 @@ The one documented truth interface is MAVLink on the autopilot link:
   ArduPilot's standard atmosphere when its error sources are off (SIM_BARO_RND, SIM_BARO_DRIFT,
   SIM_BARO_GLITCH, SIM_BARO_DELAY, SIM_TEMP_BFACTOR all 0: ``companion sitl --ardupilot`` sets
   them; the EKF does not use that barometer, it takes height from the external navigation).
-  ArduCopter reads it at 10 Hz, so its altitude is followed between readings
-  (:class:`BaroAltitude`) rather than held.
+  ArduCopter reads it at 10 Hz, so between readings the altitude is carried by SIMSTATE's true
+  acceleration (:class:`BaroAltitude`) rather than held.
   Never the autopilot's own estimate (LOCAL_POSITION_NED, AHRS2): that is not truth.
 
 Samples are stamped with the daemon clock on arrival (in lockstep that is exactly the
@@ -40,7 +40,7 @@ import numpy as np
 
 from companion import clock
 from companion.config import OriginConfig
-from companion.frames import euler_from_quat, ned_from_geodetic, quat_from_euler
+from companion.frames import GRAVITY_MPS2, euler_from_quat, ned_from_geodetic, quat_from_euler, rotation_from_euler
 from companion.mavlink.link import MavlinkLink, mavlink
 
 HISTORY_S = 2.0
@@ -49,12 +49,15 @@ SIMSTATE_VELOCITY_MIN_SPAN_S = 0.2  # ... once they span at least this (else zer
 SIM_STATE_PREFERRED_S = 1.0  # a SIM_STATE this recent makes SIMSTATE redundant
 MOCAP_AGREEMENT_M = 0.05  # an ATT_POS_MOCAP position this close to SIM_STATE's geodetic one refines it
 MOCAP_PAIR_S = 0.005  # ... and received at most this long before it (the vehicle sends them back to back)
-# ArduCopter reads its barometer at 10 Hz (the scheduler's update_altitude), each reading the mean of
-# the samples since the one before, and SCALED_PRESSURE repeats the latest reading at whatever rate it
-# is streamed: a reading is the altitude about half a reading period before it first arrives.
+# ArduCopter reads its barometer at 10 Hz (the scheduler's update_altitude), each reading the SITL
+# barometer's newest sample (AP_Baro_SITL keeps the latest, it does not average), and SCALED_PRESSURE
+# repeats the newest reading at whatever rate it is streamed. Fitted on two recorded ArduCopter 4.0
+# hovers against SIMSTATE's true acceleration, a reading is the altitude 0-15 ms before it first
+# arrives (a mean over the reading period, 50 ms before, fitted worse and lagged the climb).
 BARO_READING_S = 0.1
-BARO_READING_LAG_S = 0.5 * BARO_READING_S
-BARO_EXTRAPOLATE_S = 2.0 * BARO_READING_S  # past the newest reading its slope is followed this long, then held
+BARO_READING_LAG_S = 0.01
+BARO_EXTRAPOLATE_S = 2.0 * BARO_READING_S  # past the newest reading it is carried on this long, then held
+BARO_INTERVAL_GAIN = 0.1  # weight of each new gap between SCALED_PRESSUREs in their running mean
 
 # ArduPilot's AP_Baro::SimpleAtmosphere (troposphere), as its SITL barometer uses it.
 SSL_AIR_PRESSURE_PA = 101325.01576
@@ -146,51 +149,115 @@ def sim_state_position(msg: mavlink.MAVLink_message, origin: tuple[float, float,
     return ned_from_geodetic(lat, lon, msg.alt, origin)
 
 
+def simstate_upward_acceleration(msg: mavlink.MAVLink_message) -> float:
+    """The vehicle's upward acceleration (m/s^2) from a SIMSTATE: its ``xacc``/``yacc``/``zacc`` are
+    the simulated airframe's true specific force (body FRD, m/s^2, what a perfect accelerometer
+    reads: -9.81 on ``zacc`` standing level), turned to NED by its true attitude, gravity added."""
+    force_ned = rotation_from_euler(msg.roll, msg.pitch, msg.yaw) @ np.array([msg.xacc, msg.yacc, msg.zacc])
+    return -(float(force_ned[2]) + GRAVITY_MPS2)
+
+
+class _Climb:
+    """The double integral of the true upward acceleration (m, from 0 at rest before the first
+    sample): each sample held until the next, :data:`HISTORY_S` kept; before the oldest kept
+    sample it runs on back at that sample's velocity."""
+
+    def __init__(self) -> None:
+        self._knots: deque[tuple[float, float, float, float]] = deque()  # (t s, height m, velocity m/s, accel m/s^2)
+
+    def add(self, t: float, up_mps2: float) -> None:
+        if not self._knots:
+            self._knots.append((t, 0.0, 0.0, up_mps2))
+            return
+        t0, h0, v0, a0 = self._knots[-1]
+        if t < t0:
+            return
+        dt = t - t0
+        self._knots.append((t, h0 + v0 * dt + 0.5 * a0 * dt * dt, v0 + a0 * dt, up_mps2))
+        while len(self._knots) > 2 and t - self._knots[1][0] > HISTORY_S:
+            self._knots.popleft()
+
+    def at(self, t: float) -> tuple[float, float]:
+        """(height m, velocity m/s) at daemon time ``t``."""
+        if not self._knots:
+            return 0.0, 0.0
+        t0, h0, v0, a0 = self._knots[self._segment(t)]
+        if t < t0:  # before the oldest sample: at its velocity
+            return h0 + v0 * (t - t0), v0
+        dt = t - t0
+        return h0 + v0 * dt + 0.5 * a0 * dt * dt, v0 + a0 * dt
+
+    def _segment(self, t: float) -> int:
+        """Index of the sample holding at ``t`` (0 before the oldest)."""
+        for i in range(len(self._knots) - 1, -1, -1):
+            if self._knots[i][0] <= t:
+                return i
+        return 0
+
+
 class BaroAltitude:
     """ArduPilot SITL's barometer altitude (m AMSL) as a function of daemon time (s), from the
-    SCALED_PRESSURE messages: each new reading stamped when it first arrived, less
-    :data:`BARO_READING_LAG_S`; between the two newest readings linear, past the newest one along
-    their slope for up to :data:`BARO_EXTRAPOLATE_S`, then held. Taking the reading held at each
-    arrival instead put the simulated scans up to 0.1 s behind the autopilot's IMU in altitude: at
-    takeoff (1 m/s) the height fixes fell 10-13 cm below the IMU-carried height, were refused, and
-    the estimate sent lagged the climb by 24 cm with a 3 cm sigma until its relock (ArduCopter 4.0
-    SITL, the hover of tests/test_ardupilot_sitl.py).
+    SCALED_PRESSURE messages, carried between readings by SIMSTATE's true acceleration.
+
+    A new reading is stamped where it first arrived less :data:`BARO_READING_LAG_S`. The altitude
+    is the true acceleration's double integral (:meth:`add_acceleration`) plus the line through the
+    two newest readings less that integral (exact for any acceleration, if the stamps are), up to
+    :data:`BARO_EXTRAPOLATE_S` past the newest reading, then held. Taking the reading held at each
+    arrival put the simulated scans up to 0.1 s behind the autopilot's IMU (at takeoff, 1 m/s, the
+    height fixes fell 10-13 cm below the IMU-carried height and were refused); the two readings'
+    slope alone, stamped 50 ms before arrival as if each were a mean over its period, missed the
+    next reading of a recorded ArduCopter hover by up to 4.3 cm, and lagged the climb by 4 cm.
 
     A reading equal to the one before is only seen as the same value still arriving: once it still
-    arrives a reading period plus two message intervals after it was first seen, a newer reading
-    must have equalled it (the vehicle stopped dead, e.g. landed) and the altitude is held there
-    instead of followed on along the slope. The slope's time base stays the first arrival: a repeat
-    is only known late, by up to a message interval, and taking its late time as a reading's halved
-    the time base of the next slope (a patrol's tracking went from 0.15 to 0.65 m RMS that way)."""
+    arrives a reading period plus two message intervals (their running mean: the link delivers
+    them in bursts) after it was first seen, a newer reading equalled it. The vehicle stood still
+    (landed, or hovering within the barometer's resolution of about 1 cm) until at least that
+    much before the repeat, and from then the altitude is that reading plus what the acceleration
+    adds from rest. The line's time base stays the first arrivals: a repeat is only known late,
+    and taking its late time as a reading's halved the next slope's time base (a patrol's tracking
+    went from 0.15 to 0.65 m RMS that way)."""
 
     def __init__(self) -> None:
         self._readings: deque[tuple[float, float]] = deque(maxlen=2)  # (daemon time, altitude m AMSL)
         self._first_seen = -math.inf  # daemon time the newest reading first arrived (s)
         self._last_arrival = -math.inf  # daemon time of the newest message (s)
-        self._interval = BARO_READING_S  # time between the two newest messages (s)
-        self._stopped = False  # a newer reading equalled the newest: the altitude is held there
+        self._interval = BARO_READING_S  # mean time between messages (s), a running average
+        self._still_since: float | None = None  # once a newer reading equalled the newest: at rest until then
+        self._climb = _Climb()
 
     def add(self, t_arrival: float, altitude_m: float) -> None:
         """A SCALED_PRESSURE's altitude, received at ``t_arrival``."""
         if self._last_arrival < t_arrival:
-            self._interval = t_arrival - self._last_arrival
+            gap = min(t_arrival - self._last_arrival, BARO_READING_S)
+            self._interval += BARO_INTERVAL_GAIN * (gap - self._interval)
         self._last_arrival = t_arrival
         if not self._readings or altitude_m != self._readings[-1][1]:
             self._readings.append((t_arrival - BARO_READING_LAG_S, altitude_m))
-            self._first_seen, self._stopped = t_arrival, False
+            self._first_seen, self._still_since = t_arrival, None
         elif t_arrival > self._first_seen + BARO_READING_S + 2.0 * self._interval:
-            self._stopped = True
+            self._still_since = t_arrival - BARO_READING_S - 2.0 * self._interval
+
+    def add_acceleration(self, t: float, up_mps2: float) -> None:
+        """The vehicle's true upward acceleration (m/s^2, gravity removed) from daemon time ``t``
+        until the next sample."""
+        self._climb.add(t, up_mps2)
 
     def at(self, t: float) -> float | None:
         """The altitude at daemon time ``t`` (m AMSL), None before the first reading."""
         if not self._readings:
             return None
         t1, a1 = self._readings[-1]
-        if len(self._readings) == 1 or (self._stopped and t >= t1):
+        if self._still_since is not None and t >= self._still_since:
+            start = self._still_since
+            t = min(t, start + BARO_EXTRAPOLATE_S)
+            (h0, v0), (h, _) = self._climb.at(start), self._climb.at(t)
+            return a1 + h - h0 - v0 * (t - start)
+        if len(self._readings) == 1:
             return a1
         t0, a0 = self._readings[0]
-        slope = (a1 - a0) / max(t1 - t0, 1e-6)
-        return a1 + slope * max(min(t - t1, BARO_EXTRAPOLATE_S), t0 - t1)
+        t = min(max(t, t0), t1 + BARO_EXTRAPOLATE_S)
+        c0, c1 = a0 - self._climb.at(t0)[0], a1 - self._climb.at(t1)[0]
+        return self._climb.at(t)[0] + c1 + (c1 - c0) / max(t1 - t0, 1e-6) * (t - t1)
 
 
 class TruthSource:
@@ -257,8 +324,11 @@ class TruthSource:
 
     def _on_simstate(self, msg: mavlink.MAVLink_message) -> None:
         now = clock.now()
+        if not all(math.isfinite(v) for v in (msg.roll, msg.pitch, msg.yaw, msg.xacc, msg.yacc, msg.zacc)):
+            return
+        self._baro.add_acceleration(now, simstate_upward_acceleration(msg))
         altitude = self._baro.at(now)
-        if altitude is None or not all(math.isfinite(v) for v in (msg.roll, msg.pitch, msg.yaw)):
+        if altitude is None:
             return
         if self._sim_state_t is not None and now - self._sim_state_t < SIM_STATE_PREFERRED_S:
             return
