@@ -312,9 +312,11 @@ class LidarPipeline:
 
     def _process_vertical(self, scan: Scan) -> float:
         roll, pitch, _ = self._attitude()
-        state = self.fusion.state(scan.t_capture)  # the IMU-carried height: a table top is not the floor
-        expected = ((-float(state.position_ned[2]), math.sqrt(float(state.position_covariance[2, 2])))
-                    if state.healthy else None)
+        # The IMU-carried height, also once the fusion reports it lost: a floor hidden for a second (a
+        # table top alone in view) is when a table top must still not become the floor, or the fusion
+        # re-seeds its height to it. Not initialised, its variance (1e6 m^2) rules nothing out.
+        state = self.fusion.state(scan.t_capture)
+        expected = (-float(state.position_ned[2]), math.sqrt(float(state.position_covariance[2, 2])))
         started = time.perf_counter()
         fix = self.height.update(scan, roll, pitch, expected=expected)
         elapsed = (time.perf_counter() - started) * 1e3
