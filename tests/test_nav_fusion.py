@@ -506,3 +506,46 @@ def test_a_touchdown_between_imu_samples_is_corrected_by_the_next_height_fixes_n
     assert f.stats.fixes_gated["height"] == 0 and f.stats.relocks == 0
     assert worst < 0.05
     assert worst < 3.0 * sigma  # and the filter says how uncertain it is meanwhile
+
+
+
+def _climb_with_jittered_fix_stamps(config: FusionConfig, seed: int) -> tuple[FusionFilter, float, float]:
+    """Hovering at 1 m, then 5 m/s^2 up for 0.2 s and 2.8 s at 1 m/s, exact IMU; each 10 Hz
+    height fix (5 mm) is the height at its stamp plus a random 10 ms (1 sigma): the clock
+    mappings' error between a scanner's stamps and the autopilot's IMU. Returns the filter, the
+    largest |height error| after the lift-off (m) and the mean NEES of the height (1 if honest)."""
+    rng = np.random.default_rng(seed)
+    f = FusionFilter(config)
+
+    def height(t: float) -> float:
+        s = min(max(t - 1.0, 0.0), 0.2)
+        return 1.0 + 2.5 * s * s + max(t - 1.2, 0.0)
+
+    worst, nees = 0.0, []
+    for k in range(1, 201):
+        t = k * IMU_DT
+        _imu(f, t, (0.0, 0.0, -GRAVITY_MPS2 - (5.0 if 1.0 < t <= 1.2 + 1e-9 else 0.0)))
+        if k % 5 == 0:
+            captured = t - 0.01
+            f.correct_position(captured, [0.0, 0.0], np.eye(2) * 1e-4)
+            f.correct_height(captured, height(captured + rng.normal(0.0, 0.01)), 0.005 ** 2)
+            f.correct_yaw(captured, 0.0, 1e-4)
+        if t > 1.0:
+            state = f.state(t)
+            error = -float(state.position_ned[2]) - height(t)
+            worst = max(worst, abs(error))
+            nees.append(error * error / state.position_covariance[2, 2])
+    return f, worst, float(np.mean(nees))
+
+
+def test_height_fixes_with_stamps_off_by_the_clock_mappings_error_are_used_not_gated_in_a_fast_climb() -> None:
+    """At 1 m/s a fix stamped 10 ms off is 1 cm off, two of its 5 mm sigmas. Taken as exactly
+    timed, such fixes fail the gate and the filter claims more than it knows (NEES above 1);
+    with the capture time's uncertainty (``fix_time_sd_s``, 10 ms) in their variance, every fix
+    is used and the claimed height sigma covers the error."""
+    exact = [_climb_with_jittered_fix_stamps(FusionConfig(fix_time_sd_s=0.0), seed) for seed in range(3)]
+    assert sum(f.stats.fixes_gated["height"] for f, _, _ in exact) >= 5
+    assert max(nees for _, _, nees in exact) > 2.0
+    for f, worst, nees in (_climb_with_jittered_fix_stamps(FusionConfig(), seed) for seed in range(3)):
+        assert f.stats.fixes_gated["height"] == 0 and f.stats.relocks == 0
+        assert worst < 0.03 and nees < 1.5

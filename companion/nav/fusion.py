@@ -30,7 +30,9 @@ Propagation (:meth:`FusionFilter.predict`)
 
 Corrections
     Position (x, y or x, y, z), height (NED z = -height) and yaw fixes, each with its capture
-    time. Chi-square innovation gate (99.9 % quantile), Joseph-form covariance update.
+    time. Chi-square innovation gate (99.9 % quantile), Joseph-form covariance update. A capture
+    time is known on the IMU's time line to ``fix_time_sd_s``: each fix's variance is widened by
+    the state's rate (velocity, yaw rate) times that when it is applied.
 
 Delay compensation
     A ring buffer of the last ``buffer_s`` seconds holds, per IMU step, the state, covariance,
@@ -117,6 +119,11 @@ class FusionConfig:
     # A fix failing the gate while its kind has had no accepted fix for this long re-seeds that
     # part of the state instead of being rejected, so a diverged filter cannot lock itself out.
     relock_after_s: float = 1.0
+    # A fix's capture time on the IMU's time line is known to about this (s, 1 sigma): the scanner's
+    # clock and the autopilot's are each mapped onto the daemon's, and the autopilot's accelerometer
+    # filter delays its samples. The state moves by its rate times that, so a fix's variance grows by
+    # (velocity x this)^2 along the velocity (yaw: yaw rate); fast flight trusts each fix less.
+    fix_time_sd_s: float = 0.01
 
 
 @dataclass
@@ -196,6 +203,7 @@ class FusionFilter:
         self._yaw = 0.0
         self._yaw_var = 0.0
         self._accel_ned = (0.0, 0.0, 0.0)  # of the newest step, for extrapolation
+        self._yaw_rate = 0.0  # rad/s of the working state's newest step
         self._F = np.eye(9)
         self._q_dt = -1.0  # the step length self._Q was made for (steps repeat: 1 / IMU rate)
         self._Q = np.zeros((9, 9))
@@ -553,6 +561,7 @@ class FusionFilter:
         P += self._Q
         self._cov = P
         self._yaw = wrap_pi(self._yaw + yaw_rate * dt)
+        self._yaw_rate = yaw_rate
         self._yaw_var += c.yaw_rate_noise_density ** 2 * dt
         self._accel_ned = (ax, ay, az)
 
@@ -568,11 +577,12 @@ class FusionFilter:
             self._apply_reset(fix)
             self._mark_accepted(_RESET, fix.t)
             return True
-        s_inv = None if fix.kind == _YAW else np.linalg.inv(self._cov[fix.rows, fix.rows] + fix.r)  # innovation
+        r = self._with_timing(fix)
+        s_inv = None if fix.kind == _YAW else np.linalg.inv(self._cov[fix.rows, fix.rows] + r)  # innovation
         if fix.gated:
             if fix.kind == _YAW:
                 y = wrap_pi(fix.z - self._yaw)
-                nis, dof = y * y / (self._yaw_var + fix.r), 1
+                nis, dof = y * y / (self._yaw_var + r), 1
             else:
                 y = fix.z - self._x[fix.rows]
                 nis, dof = float(y @ s_inv @ y), y.size
@@ -590,18 +600,18 @@ class FusionFilter:
                 self._mark_accepted(_HEIGHT, fix.t)
         if fix.kind == _YAW:
             if fix.reseed:
-                self._yaw, self._yaw_var = fix.z, fix.r
+                self._yaw, self._yaw_var = fix.z, r
             else:
-                s = self._yaw_var + fix.r
+                s = self._yaw_var + r
                 k = self._yaw_var / s
                 self._yaw = wrap_pi(self._yaw + k * wrap_pi(fix.z - self._yaw))
-                self._yaw_var = (1.0 - k) ** 2 * self._yaw_var + k * k * fix.r  # Joseph form
+                self._yaw_var = (1.0 - k) ** 2 * self._yaw_var + k * k * r  # Joseph form
         elif fix.reseed:
             rows = fix.rows
             self._x[rows] = fix.z
             self._cov[rows, :] = 0.0
             self._cov[:, rows] = 0.0
-            self._cov[rows, rows] = fix.r
+            self._cov[rows, rows] = r
         else:
             rows = fix.rows
             P = self._cov
@@ -609,9 +619,19 @@ class FusionFilter:
             self._x += K @ (fix.z - self._x[rows])
             A = _I9.copy()
             A[:, rows] -= K
-            P = A @ P @ A.T + K @ fix.r @ K.T  # Joseph form: stays symmetric positive definite
+            P = A @ P @ A.T + K @ r @ K.T  # Joseph form: stays symmetric positive definite
             self._cov = 0.5 * (P + P.T)
         return True
+
+    def _with_timing(self, fix: _Fix) -> np.ndarray | float:
+        """The fix's variance (m^2, or rad^2 for yaw) plus what its capture time's uncertainty
+        (``fix_time_sd_s``) adds at the working state's velocity (or yaw rate)."""
+        sd = self.config.fix_time_sd_s
+        if fix.kind == _YAW:
+            return fix.r + (sd * self._yaw_rate) ** 2
+        rows = fix.rows
+        v = sd * self._x[rows.start + 3:rows.stop + 3]
+        return fix.r + np.outer(v, v)
 
     def _apply_reset(self, fix: _Fix) -> None:
         """Jump position and yaw; rotate velocity (and its covariance) by the heading change."""

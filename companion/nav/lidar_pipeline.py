@@ -103,6 +103,10 @@ class LidarPipelineConfig:
         "White acceleration noise of the fusion's IMU prediction, m/s^2/sqrt(Hz): the IMU's own plus the autopilot's "
         "tilt error seen through gravity, vibration, impacts (the part ArduPilot's EK3_ACC_P_NSE plays).",
         (1e-5, 1.0)))
+    fix_time_sd_s: float = field(default=FusionConfig.fix_time_sd_s, metadata=meta(
+        "1-sigma error of a scan's capture time on the autopilot IMU's time line, s (the scanner's and the "
+        "autopilot's clocks each mapped onto the daemon's, the autopilot's accelerometer filter): each fix's "
+        "variance grows by (velocity x this)^2 along the velocity, so fast flight trusts a fix less.", (0.0, 0.2)))
     line_model_error_m: float = field(default=LineParams.model_floor_m, metadata=meta(
         "1-sigma error of every fitted line beyond what its residuals show (wall roughness, a range bias that "
         "depends on the surface), m; both scanners.", (0.0, 0.1)))
@@ -201,7 +205,8 @@ class LidarPipeline:
                                           planar_mount(horizontal), initial)
         self.height = HeightEstimator(tuple(vertical.position_m), tuple(math.radians(a) for a in vertical.rpy_deg),
                                       height_params(cfg))
-        self.fusion = FusionFilter(FusionConfig(accel_noise_density=cfg.accel_noise_density))
+        self.fusion = FusionFilter(FusionConfig(accel_noise_density=cfg.accel_noise_density,
+                                                fix_time_sd_s=cfg.fix_time_sd_s))
         self.output = FusedOutput(self.fusion, health, "nav:fusion")
         self.stats = LidarPipelineStats()
         self.timings = {"lidar": Timings(), "fusion": Timings()}
