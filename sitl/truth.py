@@ -166,6 +166,7 @@ class _Climb:
         self._knots: deque[tuple[float, float, float, float]] = deque()  # (t s, height m, velocity m/s, accel m/s^2)
 
     def add(self, t: float, up_mps2: float) -> None:
+        """One sample: ``up_mps2`` (m/s^2) from daemon time ``t`` (s) on; one older than the newest is dropped."""
         if not self._knots:
             self._knots.append((t, 0.0, 0.0, up_mps2))
             return
