@@ -220,7 +220,6 @@ class BaroAltitude:
 
     def __init__(self) -> None:
         self._readings: deque[tuple[float, float]] = deque(maxlen=2)  # (daemon time, altitude m AMSL)
-        self._first_seen = -math.inf  # daemon time the newest reading first arrived (s)
         self._last_arrival = -math.inf  # daemon time of the newest message (s)
         self._interval = BARO_READING_S  # mean time between messages (s), a running average
         self._still_since: float | None = None  # once a newer reading equalled the newest: at rest until then
@@ -234,8 +233,8 @@ class BaroAltitude:
         self._last_arrival = t_arrival
         if not self._readings or altitude_m != self._readings[-1][1]:
             self._readings.append((t_arrival - BARO_READING_LAG_S, altitude_m))
-            self._first_seen, self._still_since = t_arrival, None
-        elif t_arrival > self._first_seen + BARO_READING_S + 2.0 * self._interval:
+            self._still_since = None
+        elif t_arrival > self._readings[-1][0] + BARO_READING_LAG_S + BARO_READING_S + 2.0 * self._interval:
             self._still_since = t_arrival - BARO_READING_S - 2.0 * self._interval
 
     def add_acceleration(self, t: float, up_mps2: float) -> None:

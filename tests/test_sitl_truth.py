@@ -157,6 +157,7 @@ def test_arducopter_sitls_barometer_altitude_follows_a_takeoffs_acceleration_bet
     assert max(abs(e) for e in errors) < 0.005
     assert max(abs(e) for e in slope_errors) > 0.03  # what the slope alone gives
 
+
 def test_arducopter_sitls_barometer_altitude_stops_where_the_vehicle_landed() -> None:
     """Descending at 0.5 m/s onto the floor at 100 m and stopping dead there: once the readings
     repeat, the altitude is the floor's, not the last descent's slope followed on below it."""
