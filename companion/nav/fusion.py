@@ -628,6 +628,8 @@ class FusionFilter:
         """The fix's variance (m^2, or rad^2 for yaw) plus what its capture time's uncertainty
         (``fix_time_sd_s``) adds at the working state's velocity (or yaw rate)."""
         sd = self.config.fix_time_sd_s
+        if sd == 0.0:
+            return fix.r
         if fix.kind == _YAW:
             return fix.r + (sd * self._yaw_rate) ** 2
         rows = fix.rows
