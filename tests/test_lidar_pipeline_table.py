@@ -5,7 +5,8 @@ estimator refuses it while the fused (IMU-carried) height says the floor is furt
 (companion/nav/height.py). That must hold however long the floor stays hidden: once the fusion has
 had no height fix for a second it reports the height lost, and it re-seeds its height from the next
 fix that fails its gate (its relock) - a table top let through then becomes a confident height 0.75 m
-off, and the vehicle climbs by the table's height.
+off, and the vehicle climbs by the table's height. A table top seen beside the floor before, though,
+stands in for it with the step between them (its height above the floor) added.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import math
 import numpy as np
 
 from companion.config import MountConfig
-from companion.health import Health
+from companion.health import Health, State
 from companion.messages import ImuSample
 from companion.nav.bench_stages import DEFAULT_WORLD, make_mount, synthetic_scan
 from companion.nav.lidar_pipeline import LidarPipeline, LidarPipelineConfig
@@ -25,16 +26,18 @@ from drivers.lidar_models import URG_04LX, UTM_30LX
 from sitl.raycast import WorldGeometry
 
 ARENA = load_world(DEFAULT_WORLD)
-HOVER = np.array([6.5, 1.6, -0.9])  # NED m: in the north-west room, 0.9 m up, beside the table
+BESIDE_TABLE = np.array([6.5, 1.6, -0.9])  # NED m: in the north-west room, 0.9 m up, the table ahead
+AWAY_FROM_TABLE = np.array([6.5, 3.0, -0.9])  # the same room and height, the table out of the vertical scan
 OVER_TABLE = np.array([7.4, 1.6, -0.9])  # above the 0.75 m table: only its top in the vertical scan
 HORIZONTAL = MountConfig(position_m=(0.0, 0.0, -0.10))
 VERTICAL = MountConfig(position_m=(0.05, 0.0, 0.05), rpy_deg=(90.0, 0.0, 0.0))
 
 
-def test_a_table_hiding_the_floor_for_seconds_never_becomes_the_height() -> None:
-    """5 s hovering beside the table, then 2.5 s with only the table top in the vertical scanner's
-    view (the horizontal one still sees the room from where the vehicle is, the IMU says it is
-    still): the height is carried by the IMU and reported lost, never re-seeded to the table."""
+def hover_then_over_table(vertical_before: np.ndarray) -> tuple[LidarPipeline, Health, list[float], int]:
+    """5 s with the vertical scanner seeing the room from ``vertical_before`` (NED m), then 2.5 s
+    with only the table top in its view (the horizontal one sees the room from beside the table
+    throughout, the IMU says the vehicle is still): the pipeline, its health, the fused heights
+    (m) over the table and the height fixes taken there."""
     geometry = WorldGeometry.from_world(ARENA)
     rng = np.random.default_rng(3)
     cfg = LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v", initial_pose=(6.5, 1.6, 0.0))
@@ -43,13 +46,16 @@ def test_a_table_hiding_the_floor_for_seconds_never_becomes_the_height() -> None
     h_mount = make_mount(HORIZONTAL.position_m, (0.0, 0.0, 0.0))
     v_mount = make_mount(VERTICAL.position_m, (math.pi / 2, 0.0, 0.0))
     heights = []
+    fixes_before = 0
     for k in range(1500):  # 7.5 s of 5 ms ticks
         t = k * 0.005
         if k % 5 == 0:  # 40 Hz
-            scan = synthetic_scan(geometry, UTM_30LX, h_mount, HOVER, (0.0, 0.0, 0.0), rng, 0.01, sequence=k)
+            scan = synthetic_scan(geometry, UTM_30LX, h_mount, BESIDE_TABLE, (0.0, 0.0, 0.0), rng, 0.01, sequence=k)
             pipeline.on_horizontal_scan(dataclasses.replace(scan, t_capture=t))
         if k % 20 == 0:  # 10 Hz
-            seen_from = HOVER if t < 5.0 else OVER_TABLE
+            if k == 1000:  # 5 s: over the table from now
+                fixes_before = pipeline.stats.height_fixes
+            seen_from = vertical_before if t < 5.0 else OVER_TABLE
             scan = synthetic_scan(geometry, URG_04LX, v_mount, seen_from, (0.0, 0.0, 0.0), rng, 0.01, sequence=k)
             pipeline.on_vertical_scan(dataclasses.replace(scan, t_capture=t))
         if k % 4 == 0:  # 50 Hz
@@ -57,7 +63,22 @@ def test_a_table_hiding_the_floor_for_seconds_never_becomes_the_height() -> None
             pipeline.step(t)
             if t > 5.0:
                 heights.append(-float(pipeline.fusion.state(t).position_ned[2]))
-    assert pipeline.fusion.stats.relocks == 0
+    return pipeline, health, heights, pipeline.stats.height_fixes - fixes_before
+
+
+def test_a_table_never_seen_beside_the_floor_never_becomes_the_height_while_it_hides_the_floor() -> None:
+    """The height is carried by the IMU and reported lost, never re-seeded to the table top."""
+    pipeline, health, heights, fixes_over_table = hover_then_over_table(AWAY_FROM_TABLE)
+    assert pipeline.fusion.stats.relocks == 0 and fixes_over_table == 0
     assert max(abs(h - 0.9) for h in heights) < 0.05  # carried by the IMU, not 0.15 m over the table
     height = health.get("nav:height")
-    assert height is not None and "table top" in height.reason
+    assert height is not None and height.state == State.LOST and "table top" in height.reason
+
+
+def test_a_table_seen_beside_the_floor_stands_in_for_it_while_it_hides_the_floor() -> None:
+    """The table top plus its step above the floor keeps giving height fixes (degraded)."""
+    pipeline, health, heights, fixes_over_table = hover_then_over_table(BESIDE_TABLE)
+    assert pipeline.fusion.stats.relocks == 0 and fixes_over_table >= 20  # of 25 scans
+    assert max(abs(h - 0.9) for h in heights) < 0.02
+    height = health.get("nav:height")
+    assert height is not None and height.state == State.DEGRADED and "stands in" in height.reason

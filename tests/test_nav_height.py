@@ -95,6 +95,21 @@ def test_with_the_fused_height_known_a_table_top_alone_is_no_floor(geometry: Wor
     assert est.update(vertical_scan(geometry, *TABLE_XY, 0.9, rng), expected=(0.9, 0.3)).state != "lost"
 
 
+def test_a_table_top_seen_beside_the_floor_stands_in_for_it_with_its_step(geometry: WorldGeometry) -> None:
+    """Seen beside the floor on three scans (the fused height known), the table's step (0.75 m
+    above the floor) is remembered; with the floor hidden its top then gives a degraded fix of the
+    height above the floor, not a lost one, nor the 0.15 m above the table."""
+    rng = np.random.default_rng(6)
+    est = HeightEstimator(MOUNT_POSITION, MOUNT_RPY)
+    for _ in range(3):
+        assert est.update(vertical_scan(geometry, 6.5, 1.6, 0.9, rng), expected=(0.9, 0.01)).state != "lost"
+    fix = est.update(vertical_scan(geometry, *TABLE_XY, 0.9, rng), expected=(0.9, 0.03))
+    assert fix.state == "degraded" and "stands in" in fix.reason
+    assert fix.height_m == pytest.approx(0.9, abs=0.02) and 0.0 < fix.variance < 0.02 ** 2
+    # A surface that matches no remembered step stays refused: the table top 0.3 m below, expected 1.35 m up.
+    assert est.update(vertical_scan(geometry, *TABLE_XY, 1.05, rng), expected=(1.35, 0.03)).state == "lost"
+
+
 def test_no_floor_is_lost_without_nan(geometry: WorldGeometry) -> None:
     est = HeightEstimator(MOUNT_POSITION, MOUNT_RPY)
     n = URG04LX_ANGLES.size
