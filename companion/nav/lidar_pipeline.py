@@ -119,6 +119,9 @@ class LidarPipelineConfig:
     height_model_error_m: float = field(default=math.sqrt(HeightParams.variance_floor_m2), metadata=meta(
         "1-sigma error of every height fix beyond its floor line's fit (an uneven floor), m. Near zero the fusion "
         "refuses the fixes after a touchdown's jolt (README, \"The noise floors as settings\").", (0.0, 0.5)))
+    attitude_error_deg: float = field(default=HeightParams.attitude_sd_deg, metadata=meta(
+        "1-sigma error of the autopilot's roll and pitch, degrees: the height fix levels each floor line with them "
+        "where its own fitted direction is less certain (a far floor line's at grazing angles).", (0.0, 10.0)))
 
     def sensor_inputs(self) -> dict[str, str]:
         return {"horizontal_sensor": "lidar", "vertical_sensor": "lidar", "imu_sensor": "imu"}
@@ -164,7 +167,8 @@ def planar_params(cfg: LidarPipelineConfig, survey_error_m: float = CornerParams
 def height_params(cfg: LidarPipelineConfig) -> HeightParams:
     """The vertical scanner's height fix with the config's noise floors."""
     lines = dataclasses.replace(HeightParams().lines, model_floor_m=cfg.line_model_error_m)
-    return HeightParams(lines=lines, variance_floor_m2=cfg.height_model_error_m ** 2)
+    return HeightParams(lines=lines, variance_floor_m2=cfg.height_model_error_m ** 2,
+                        attitude_sd_deg=cfg.attitude_error_deg)
 
 
 def planar_mount(mount: MountConfig) -> Mount2D:
