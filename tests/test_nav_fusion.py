@@ -540,13 +540,13 @@ def _climb_with_jittered_fix_stamps(config: FusionConfig, seed: int) -> tuple[Fu
 
 def test_height_fixes_with_stamps_off_by_the_clock_mappings_error_are_used_not_gated_in_a_fast_climb() -> None:
     """At 1 m/s a fix stamped 10 ms off is 1 cm off, two of its 5 mm sigmas. Taken as exactly
-    timed (``fix_time_sd_s`` 0, the default), such fixes fail the gate and the filter claims more
-    than it knows (NEES above 1); with the capture time's uncertainty (10 ms) in their variance,
+    timed (``fix_time_sd_s`` 0), such fixes fail the gate and the filter claims more than it knows
+    (NEES above 1); with the capture time's uncertainty (10 ms, the default) in their variance,
     every fix is used and the claimed height sigma covers the error."""
     exact = [_climb_with_jittered_fix_stamps(FusionConfig(fix_time_sd_s=0.0), seed) for seed in range(3)]
     assert sum(f.stats.fixes_gated["height"] for f, _, _ in exact) >= 5
     assert max(nees for _, _, nees in exact) > 2.0
-    timed = FusionConfig(fix_time_sd_s=0.01)
+    timed = FusionConfig()
     for f, worst, nees in (_climb_with_jittered_fix_stamps(timed, seed) for seed in range(3)):
         assert f.stats.fixes_gated["height"] == 0 and f.stats.relocks == 0
         assert worst < 0.03 and nees < 1.5

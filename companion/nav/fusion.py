@@ -123,8 +123,8 @@ class FusionConfig:
     # clock and the autopilot's are each mapped onto the daemon's, and the autopilot's accelerometer
     # filter delays its samples. The state moves by its rate times that, so a fix's variance grows by
     # (velocity x this)^2 along the velocity (yaw: yaw rate); fast flight trusts each fix less.
-    # 0: the capture times are taken as exact (README, "ArduPilot SITL": 10 ms measured there).
-    fix_time_sd_s: float = 0.0
+    # 10 ms: measured on ArduCopter SITL's link (README, "ArduPilot SITL"); 0: taken as exact.
+    fix_time_sd_s: float = 0.01
 
 
 @dataclass

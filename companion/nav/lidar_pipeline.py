@@ -106,8 +106,8 @@ class LidarPipelineConfig:
     fix_time_sd_s: float = field(default=FusionConfig.fix_time_sd_s, metadata=meta(
         "1-sigma error of a scan's capture time on the autopilot IMU's time line, s (the scanner's and the "
         "autopilot's clocks each mapped onto the daemon's, the autopilot's accelerometer filter): each fix's "
-        "variance grows by (velocity x this)^2 along the velocity, so fast flight trusts a fix less; 0: taken as "
-        "exact (ArduCopter SITL's TCP link measured 11-12 ms at the median: config/sitl.yaml declares 0.01).",
+        "variance grows by (velocity x this)^2 along the velocity, so fast flight trusts a fix less (ArduCopter "
+        "SITL's TCP link measured 11-12 ms at the median); 0: taken as exact.",
         (0.0, 0.2)))
     line_model_error_m: float = field(default=LineParams.model_floor_m, metadata=meta(
         "1-sigma error of every fitted line beyond what its residuals show (wall roughness, a range bias that "
