@@ -87,7 +87,7 @@ on walls; a clear winner (every position more than ``reloc_distinct_m`` away at 
 like a corner one (a real building's rooms hold too few corners for a 1-deg scanner to see
 three, and most of its scans see walls of two directions). A winner within ``jump_m`` /
 ``jump_rad`` of the held pose resumes tracking at once. A jump (or a first pose) is only a
-candidate (:attr:`PlanarLocalizer.candidate`) until ``reloc_confirm_frames`` scans found it,
+candidate (:attr:`PlanarLocalizer.candidate`, reloc_candidate.py) until ``reloc_confirm_frames`` scans found it,
 each within ``reloc_confirm_gate_m`` of the previous one moved by the motion given with the
 scans (``moved_m``: odometry or the fused IMU; at 40 scans/s without it the gate allows 12 m/s)
 and turned by the gyro's yaw change within ``reloc_confirm_gate_rad``. A scan that can test
@@ -107,7 +107,7 @@ from typing import Literal
 
 import numpy as np
 
-from companion.frames import planar_moved, planar_rotation, rotation_from_euler, wrap_pi
+from companion.frames import planar_rotation, rotation_from_euler, wrap_pi
 from companion.nav.corner_fix import corner_fix_covariance
 from companion.nav.corner_shape import map_corner_rays, observed_rays, ray_limits, shapes_agree
 from companion.nav.corners import CornerParams, Corners, find_corners
@@ -115,6 +115,7 @@ from companion.nav.edges import EdgeParams, Edges, occluding_ends
 from companion.nav.heading import (UNMEASURED_VARIANCE_RAD2, HeadingParams, HeadingResult,
                                    heading_hypotheses, track_heading)
 from companion.nav.lines import LineParams, LineSet, extract_lines
+from companion.nav.reloc_candidate import RelocCandidate, carried, found_again
 from companion.nav.corner_hypotheses import distinct_poses, pose_hypotheses
 from companion.nav.wall_fix import WallMap, wall_fix
 from companion.nav.wall_hypotheses import MapWalls, wall_hypotheses
@@ -228,28 +229,6 @@ class Match:
     matched: int
     rms_m: float  # RMS residual of the matched corners after the update
     pairs: tuple[tuple[int, int], ...] = ()  # (observed corner, map corner) indices of the ``matched``
-
-
-@dataclass(frozen=True)
-class RelocCandidate:
-    """A relocalization jump not yet confirmed: the pose the search found (x, y m; yaw rad; moved
-    with the body since), the scans that found it, the corners it matched and whether it was found
-    near the held pose."""
-
-    x: float
-    y: float
-    yaw: float
-    frames: int
-    matched: int
-    local: bool  # found near the held pose (True) or by the global search
-    idle: int = 0  # scans since it was last found that could not test it (carried by the motion)
-    walls: int = 0  # map walls it put lines on, when found by the walls instead of corners
-
-    def describe(self, needed: int) -> str:
-        """What the candidate is and how far its confirmation got (``needed`` scans)."""
-        found = f"{self.walls} walls" if self.walls else f"{self.matched} corners"
-        return (f"{'local' if self.local else 'global'} candidate ({self.x:.2f}, {self.y:.2f}) m, "
-                f"{math.degrees(self.yaw):.0f} deg, {found}: found by {self.frames} of the {needed} scans needed")
 
 
 def _near_any(points: np.ndarray, others: np.ndarray, radius: float) -> np.ndarray:
@@ -601,7 +580,7 @@ class PlanarLocalizer:
             detail = f"{detail}; by walls: {walls_detail}" if on_walls is None else detail
         timing["relocalize"] = (time.perf_counter() - t) * 1e3
         if found is None and on_walls is None:
-            self.candidate = self._carried(self.candidate)
+            self.candidate = carried(self.candidate, self._moved, self._yaw_delta, self.params.reloc_confirm_frames)
         else:
             if found is not None:
                 match, at, local = found
@@ -665,32 +644,12 @@ class PlanarLocalizer:
             return None, "the walls at the best pose do not fix the position in both directions"
         return fix, ""
 
-    def _carried(self, c: RelocCandidate | None) -> RelocCandidate | None:
-        """The candidate after a scan that neither found nor contradicted it (too few corners, no
-        clear winner): moved with the body, dropped after ``reloc_confirm_frames`` such scans in
-        a row."""
-        if c is None or c.idle >= self.params.reloc_confirm_frames:
-            return None
-        return RelocCandidate(*self._moved_candidate(c), c.frames, c.matched, c.local, c.idle + 1)
-
-    def _moved_candidate(self, c: RelocCandidate) -> tuple[float, float, float]:
-        """Where the candidate pose (x, y m, yaw rad) is after the motion given with this scan."""
-        return planar_moved((c.x, c.y, c.yaw), *self._moved, self._yaw_delta)
-
     def _confirmed(self, xy: np.ndarray, yaw: float, matched: int, walls: int, local: bool) -> bool:
-        """Count this scan for the candidate jump it found at ``xy`` (m), ``yaw`` (rad), by ``matched``
-        corners or else ``walls`` walls (a new candidate unless it agrees with the previous one moved
-        by the motion since: ``moved_m`` and the gyro's yaw change); True once enough scans found it,
-        none finding another pose in between."""
-        p, c = self.params, self.candidate
-        x, y = float(xy[0]), float(xy[1])
-        frames = 1
-        if c is not None:
-            cx, cy, cyaw = self._moved_candidate(c)
-            if (math.hypot(x - cx, y - cy) <= p.reloc_confirm_gate_m
-                    and abs(wrap_pi(yaw - cyaw)) <= p.reloc_confirm_gate_rad):
-                frames = c.frames + 1
-        self.candidate = RelocCandidate(x, y, yaw, frames, matched, local, walls=walls)
+        """Count this scan for the candidate jump it found (reloc_candidate.py); True once enough
+        scans found it, none finding another pose in between."""
+        p = self.params
+        self.candidate = found_again(self.candidate, xy, yaw, matched, walls, local, self._moved, self._yaw_delta,
+                                     p.reloc_confirm_gate_m, p.reloc_confirm_gate_rad)
         return self.candidate.frames >= p.reloc_confirm_frames
 
     def _search(self, lines: LineSet, corners: Corners,
