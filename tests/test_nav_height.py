@@ -123,6 +123,38 @@ def test_a_table_top_seen_beside_the_floor_stands_in_for_it_with_its_step(geomet
     assert est.update(vertical_scan(geometry, *TABLE_XY, 1.05, rng), expected=(1.35, 0.03)).state == "lost"
 
 
+def profile_scan(surfaces: list[tuple[float, float, float]]) -> np.ndarray:
+    """(N, 2) sensor-plane points of a URG-04LX (scan plane = body x-z, level, no noise) over
+    horizontal ``surfaces`` (depth below the scanner m, from u, to u m ahead): each beam's
+    nearest hit, NaN where it hits none."""
+    c, s = np.cos(URG04LX_ANGLES), np.sin(URG04LX_ANGLES)  # sensor y = body down
+    r = np.full(URG04LX_ANGLES.size, np.inf)
+    for depth, u0, u1 in surfaces:
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = depth / s
+        u = t * c
+        hit = (s > 1e-6) & (u >= u0) & (u <= u1)
+        r = np.where(hit & (t < r), t, r)
+    r = np.where(np.isfinite(r), r, np.nan)
+    return np.column_stack((r * c, r * s))
+
+
+def test_a_hidden_floor_matching_two_remembered_steps_gives_no_fix() -> None:
+    """Two tables seen beside the floor (0.75 and 0.70 m above it) are two remembered steps; a
+    surface alone in view that either could be (0.73 m above the expected floor, the fused height
+    known to 3 cm) gives no fix, while one that only the first matches (known to 1 cm) stands in."""
+    est = HeightEstimator()
+    floor = (1.0, -0.5, 4.0)
+    for table in ((0.25, 1.0, 2.0), (0.30, 1.0, 2.0)):
+        for _ in range(3):
+            assert est.update(profile_scan([table, floor]), expected=(1.0, 0.01)).state != "lost"
+    hidden = profile_scan([(0.27, -10.0, 10.0)])
+    ambiguous = est.update(hidden, expected=(1.0, 0.03))
+    assert ambiguous.state == "lost" and "more than one remembered surface" in ambiguous.reason
+    one = est.update(profile_scan([(0.25, -10.0, 10.0)]), expected=(1.0, 0.01))
+    assert one.state == "degraded" and one.height_m == pytest.approx(1.0, abs=0.01)
+
+
 def test_no_floor_is_lost_without_nan(geometry: WorldGeometry) -> None:
     est = HeightEstimator(MOUNT_POSITION, MOUNT_RPY)
     n = URG04LX_ANGLES.size
