@@ -155,6 +155,15 @@ def test_a_hidden_floor_matching_two_remembered_steps_gives_no_fix() -> None:
     assert one.state == "degraded" and one.height_m == pytest.approx(1.0, abs=0.01)
 
 
+def test_a_short_floor_line_is_a_fix_like_any_other() -> None:
+    """The floor seen only 2.0-2.45 m ahead (a 0.45 m line, the rest hidden by a box under the
+    vehicle reaching 1.9 m ahead): an ok fix at the true height, its variance saying how good it is,
+    not a degraded one (every such scan slowed the realistic patrol's mission)."""
+    fix = HeightEstimator().update(profile_scan([(1.0, 2.0, 2.45), (0.5, -0.5, 0.95)]), expected=(1.0, 0.01))
+    assert fix.state == "ok" and fix.height_m == pytest.approx(1.0, abs=0.01)
+    assert 0.005 ** 2 <= fix.variance < 0.02 ** 2
+
+
 def test_no_floor_is_lost_without_nan(geometry: WorldGeometry) -> None:
     est = HeightEstimator(MOUNT_POSITION, MOUNT_RPY)
     n = URG04LX_ANGLES.size

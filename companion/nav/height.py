@@ -71,8 +71,7 @@ class HeightParams:
     lines: LineParams = field(default_factory=lambda: LineParams(noise_m=0.01, noise_per_m=0.01, break_grazing_deg=0.0))
     floor_angle_tolerance_deg: float = 10.0  # a floor line's normal within this of the expected
     furthest_tolerance_m: float = 0.1  # floor candidates: within this of the furthest one, metres
-    min_length_m: float = 0.3  # shorter floor-like lines are ignored, metres
-    good_length_m: float = 0.6  # a shorter floor line makes the fix degraded, metres
+    min_length_m: float = 0.3  # shorter floor-like lines are ignored, m; a longer one is a fix like any other
     min_gradient: float = 0.3  # |g| below this: the scan plane is too flat to see the floor
     jump_m: float = 0.2  # a larger change from the previous fix is reported, metres
     variance_floor_m2: float = 0.005 ** 2  # model floor of the variance, m^2
@@ -159,7 +158,7 @@ class HeightEstimator:
                 return self._stand_in(height, variance, above, expected[1] ** 2, int(floor.size))
             if expected[1] < p.jump_m / 2.0 and abs(above) <= 3.0 * math.sqrt(expected[1] ** 2 + variance):
                 self._remember_steps(height - heights, variance + variances)
-        return self._fix(height, variance, float(lines.length[floor[k]]), int(floor.size))
+        return self._fix(height, variance, int(floor.size))
 
     def _floor_heights(self, lines: LineSet, k: np.ndarray, off: np.ndarray, floor_normal: float,
                        gain: float) -> tuple[np.ndarray, np.ndarray]:
@@ -212,14 +211,12 @@ class HeightEstimator:
         return HeightFix(height + step.above_m, variance + step.variance, "degraded",
                          f"the floor hidden: a surface seen {step.above_m:.2f} m above it stands in", count)
 
-    def _fix(self, height: float, variance: float, length: float, count: int) -> HeightFix:
+    def _fix(self, height: float, variance: float, count: int) -> HeightFix:
         p = self.params
         previous, self._previous = self._previous, height
         if previous is not None and abs(height - previous) > p.jump_m:
             return HeightFix(height, variance, "degraded",
                              f"height jumped by {height - previous:+.2f} m: a step in the floor?", count)
-        if length < p.good_length_m:
-            return HeightFix(height, variance, "degraded", f"floor line only {length:.2f} m long", count)
         return HeightFix(height, variance, "ok", "", count)
 
 
