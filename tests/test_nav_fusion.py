@@ -11,13 +11,8 @@ import pytest
 
 from companion.frames import GRAVITY_MPS2, wrap_pi
 from companion.health import State
-from companion.nav.fusion import (
-    ROLL_PITCH_VARIANCE_RAD2,
-    FusedState,
-    FusionConfig,
-    FusionFilter,
-    to_pose_estimate,
-)
+from companion.nav.fusion import FusedState, FusionConfig, FusionFilter
+from companion.nav.fusion_io import ROLL_PITCH_VARIANCE_RAD2, to_pose_estimate
 
 IMU_DT = 0.02  # 50 Hz
 FIX_PERIOD = 0.1  # 10 Hz

@@ -11,7 +11,8 @@ import time
 import numpy as np
 
 from companion.frames import GRAVITY_MPS2
-from companion.nav.fusion import FusionFilter, to_pose_estimate
+from companion.nav.fusion import FusionFilter
+from companion.nav.fusion_io import to_pose_estimate
 from companion.timing import percentiles_ms
 
 IMU_DT_S = 0.02  # 50 Hz

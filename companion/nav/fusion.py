@@ -61,12 +61,6 @@ import numpy as np
 
 from companion.frames import GRAVITY_MPS2, euler_yaw_rate, rotation_from_euler, wrap_pi
 from companion.health import State
-from companion.messages import PoseEstimate
-
-# Roll and pitch come from the autopilot's own attitude estimate; the pose covariance gives them
-# this small constant variance, (0.01 rad)^2 ~ (0.6 deg)^2. ArduPilot folds roll/pitch/yaw into
-# one angle error, so keeping these small keeps the yaw variance meaningful.
-ROLL_PITCH_VARIANCE_RAD2 = 1e-4
 
 # Chi-square 99.9 % quantiles by degrees of freedom: a consistent fix fails 1 time in 1000.
 CHI2_GATE_999 = {1: 10.828, 2: 13.816, 3: 16.266}
@@ -789,24 +783,3 @@ def _unknown_state(t: float, reason: str, reset_counter: int) -> FusedState:
     return FusedState(t, np.zeros(3), np.zeros(3), 0.0, UNKNOWN_VARIANCE * np.eye(3),
                       UNKNOWN_VARIANCE * np.eye(3), UNKNOWN_VARIANCE, False, reason, State.LOST,
                       np.zeros(3), reset_counter)
-
-
-def to_pose_estimate(state: FusedState, roll: float, pitch: float, t_capture: float | None = None,
-                     reset: bool = False, source: str = "fusion") -> PoseEstimate:
-    """The :class:`PoseEstimate` of a healthy fused state.
-
-    ``roll``/``pitch`` (rad) come from the autopilot and get ``ROLL_PITCH_VARIANCE_RAD2``;
-    ``t_capture`` (s, daemon clock) defaults to ``state.t``; ``reset`` marks a jump (compare
-    ``state.reset_counter`` with the previous one). Position-velocity correlations are
-    dropped: MAVLink has no field for them. Raises ValueError for an unhealthy state, which
-    must not be sent.
-    """
-    if not state.healthy:
-        raise ValueError(f"fused state is not healthy ({state.reason}): do not send it")
-    cov = np.zeros((6, 6))
-    cov[0:3, 0:3] = state.position_covariance
-    cov[3, 3] = cov[4, 4] = ROLL_PITCH_VARIANCE_RAD2
-    cov[5, 5] = state.yaw_variance
-    return PoseEstimate(state.t if t_capture is None else float(t_capture), state.position_ned.copy(),
-                        (float(roll), float(pitch), state.yaw), cov, state.velocity_ned.copy(),
-                        state.velocity_covariance.copy(), reset, source, degraded=state.status != State.OK)

@@ -1,7 +1,7 @@
 """What a pose pipeline built around a :class:`~companion.nav.fusion.FusionFilter` does at its
 edges each nav cycle: keep the IMU samples that arrived since the previous cycle and predict with
 them (:class:`ImuFeed`), and turn the filter's state into what the pipeline may send
-(:class:`FusedOutput`). The lidar and laser-dot pipelines share them.
+(:class:`FusedOutput`, :func:`to_pose_estimate`). The lidar and laser-dot pipelines share them.
 
 Frames and units as in companion/nav/fusion.py: world LOCAL_NED, body FRD, radians, daemon-clock
 seconds.
@@ -9,9 +9,16 @@ seconds.
 
 from __future__ import annotations
 
+import numpy as np
+
 from companion.health import Health, State
-from companion.messages import ImuSample
+from companion.messages import ImuSample, PoseEstimate
 from companion.nav.fusion import FusedState, FusionFilter
+
+# Roll and pitch come from the autopilot's own attitude estimate; the pose covariance gives them
+# this small constant variance, (0.01 rad)^2 ~ (0.6 deg)^2. ArduPilot folds roll/pitch/yaw into
+# one angle error, so keeping these small keeps the yaw variance meaningful.
+ROLL_PITCH_VARIANCE_RAD2 = 1e-4
 
 
 class ImuFeed:
@@ -56,3 +63,24 @@ class FusedOutput:
         reset = state.reset_counter != self._reset_counter
         self._reset_counter = state.reset_counter
         return state, reset
+
+
+def to_pose_estimate(state: FusedState, roll: float, pitch: float, t_capture: float | None = None,
+                     reset: bool = False, source: str = "fusion") -> PoseEstimate:
+    """The :class:`PoseEstimate` of a healthy fused state.
+
+    ``roll``/``pitch`` (rad) come from the autopilot and get ``ROLL_PITCH_VARIANCE_RAD2``;
+    ``t_capture`` (s, daemon clock) defaults to ``state.t``; ``reset`` marks a jump (compare
+    ``state.reset_counter`` with the previous one). Position-velocity correlations are
+    dropped: MAVLink has no field for them. Raises ValueError for an unhealthy state, which
+    must not be sent.
+    """
+    if not state.healthy:
+        raise ValueError(f"fused state is not healthy ({state.reason}): do not send it")
+    cov = np.zeros((6, 6))
+    cov[0:3, 0:3] = state.position_covariance
+    cov[3, 3] = cov[4, 4] = ROLL_PITCH_VARIANCE_RAD2
+    cov[5, 5] = state.yaw_variance
+    return PoseEstimate(state.t if t_capture is None else float(t_capture), state.position_ned.copy(),
+                        (float(roll), float(pitch), state.yaw), cov, state.velocity_ned.copy(),
+                        state.velocity_covariance.copy(), reset, source, degraded=state.status != State.OK)

@@ -36,8 +36,8 @@ from companion.frames import planar_increment, wrap_pi
 from companion.health import Health, State
 from companion.messages import Estimate, PoseEstimate, Scan
 from companion.nav.corners import CornerParams
-from companion.nav.fusion import FusedState, FusionConfig, FusionFilter, to_pose_estimate, without_direction
-from companion.nav.fusion_io import FusedOutput, ImuFeed
+from companion.nav.fusion import FusedState, FusionConfig, FusionFilter, without_direction
+from companion.nav.fusion_io import FusedOutput, ImuFeed, to_pose_estimate
 from companion.nav.heading import HeadingParams
 from companion.nav.height import HeightEstimator, HeightParams
 from companion.nav.lines import LineParams

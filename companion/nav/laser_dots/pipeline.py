@@ -40,8 +40,8 @@ from companion.frames import rotation_from_euler, wrap_pi
 from companion.health import Health, State
 from companion.laser_beams import BeamRigConfig
 from companion.messages import AttitudeEstimate, Estimate, Frame, PoseEstimate, RangeEstimate
-from companion.nav.fusion import FusionFilter, to_pose_estimate
-from companion.nav.fusion_io import FusedOutput, ImuFeed
+from companion.nav.fusion import FusionFilter
+from companion.nav.fusion_io import FusedOutput, ImuFeed, to_pose_estimate
 from companion.nav.laser_dots import geometry
 from companion.nav.laser_dots.frame_pose import FramePoseParams, FramePoser, FrameResult
 from companion.pipeline import PipelineContext
