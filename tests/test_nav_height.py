@@ -139,6 +139,25 @@ def profile_scan(surfaces: list[tuple[float, float, float]]) -> np.ndarray:
     return np.column_stack((r * c, r * s))
 
 
+def test_unsure_of_its_height_a_remembered_table_alone_is_no_floor_but_the_open_floor_is(
+        geometry: WorldGeometry) -> None:
+    """With the fused height unsure (sigma 0.3 m: 0.75 m off is within its 3 sigma), a table top
+    alone in view that a remembered step matches may be the floor or that table: no fix (lost),
+    where before it became a confident 0.15 m height. The open floor, a line longer than the table
+    ever gave, and the floor beside the table are still taken."""
+    rng = np.random.default_rng(7)
+    est = HeightEstimator(MOUNT_POSITION, MOUNT_RPY)
+    for _ in range(3):
+        assert est.update(vertical_scan(geometry, 6.5, 1.6, 0.9, rng), expected=(0.9, 0.01)).state != "lost"
+    alone = est.update(vertical_scan(geometry, *TABLE_XY, 0.9, rng), expected=(0.9, 0.3))
+    assert alone.state == "lost" and "may be the floor or the surface seen 0.75 m above it" in alone.reason
+    assert_finite(alone)
+    open_floor = est.update(vertical_scan(geometry, 2.5, 2.0, 1.0, rng), expected=(1.0, 0.3))
+    assert open_floor.state != "lost" and open_floor.height_m == pytest.approx(1.0, abs=0.01)
+    beside = est.update(vertical_scan(geometry, 6.5, 1.6, 0.9, rng), expected=(0.9, 0.3))
+    assert beside.state != "lost" and beside.height_m == pytest.approx(0.9, abs=0.01)
+
+
 def test_a_hidden_floor_matching_two_remembered_steps_gives_no_fix() -> None:
     """Two tables seen beside the floor (0.75 and 0.70 m above it) are two remembered steps; a
     surface alone in view that either could be (0.73 m above the expected floor, the fused height

@@ -45,6 +45,11 @@ step's) turns it into a degraded fix: the surface's height plus the step, its va
 Hovering over a table no longer leaves the height to the IMU alone (a realistic patrol held 1.7 s
 over one, the height drifting 15 cm). Two remembered steps that both match give no fix: which
 surface it is, the scan cannot tell.
+
+The same memory guards a fused height too unsure to refuse a table top (3 sigma beyond the
+table's height, e.g. after seconds without a fix): a furthest surface that a confirmed step may
+be is no fix (lost) unless the scan tells it is the floor: it is longer than that step was ever
+seen (by ``step_length_margin_m``), or the step itself is in view above it.
 """
 
 from __future__ import annotations
@@ -78,6 +83,7 @@ class HeightParams:
     attitude_sd_deg: float = 0.3  # 1-sigma error of the autopilot's roll and pitch, degrees
     step_confirm_scans: int = 3  # sightings beside the floor before a step stands in for it
     max_steps: int = 4  # steps remembered (the most recently seen), e.g. tables in the room
+    step_length_margin_m: float = 0.3  # a floor line longer than a step was ever seen by this is not that step, m
 
 
 @dataclass(frozen=True)
@@ -96,18 +102,21 @@ LOST_VARIANCE_M2 = 100.0
 
 @dataclass
 class _Step:
-    """A floor-like surface seen above the floor: how far above (m), its variance (m^2) and sightings."""
+    """A floor-like surface seen above the floor: how far above (m), its variance (m^2), the longest
+    line it gave (m) and its sightings."""
 
     above_m: float
     variance: float
+    length_m: float
     sightings: int = 1
 
     def matches(self, above_m: float, variance: float) -> bool:
         """Whether a surface ``above_m`` (variance m^2) above the floor is this step, within three sigmas."""
         return abs(above_m - self.above_m) <= 3.0 * math.sqrt(variance + self.variance)
 
-    def add(self, above_m: float, variance: float, variance_floor: float) -> None:
+    def add(self, above_m: float, variance: float, length_m: float, variance_floor: float) -> None:
         """Average another sighting in (inverse-variance weighted; the variance not below ``variance_floor``)."""
+        self.length_m = max(self.length_m, length_m)
         w = self.variance / (self.variance + variance)
         self.above_m += w * (above_m - self.above_m)
         self.variance = max(self.variance * variance / (self.variance + variance), variance_floor)
@@ -157,7 +166,12 @@ class HeightEstimator:
             if above > max(p.jump_m, 3.0 * math.sqrt(expected[1] ** 2 + variance)):
                 return self._stand_in(height, variance, above, expected[1] ** 2, int(floor.size))
             if expected[1] < p.jump_m / 2.0 and abs(above) <= 3.0 * math.sqrt(expected[1] ** 2 + variance):
-                self._remember_steps(height - heights, variance + variances)
+                self._remember_steps(height - heights, variance + variances, lines.length[floor])
+            elif step := self._could_be_a_step(above, variance + expected[1] ** 2, float(lines.length[floor[k]]),
+                                               height - heights, variance + variances):
+                return _lost(f"the furthest floor-like surface may be the floor or the surface seen "
+                             f"{step.above_m:.2f} m above it (the fused height is known to {expected[1]:.2f} m)",
+                             int(floor.size))
         return self._fix(height, variance, int(floor.size))
 
     def _floor_heights(self, lines: LineSet, k: np.ndarray, off: np.ndarray, floor_normal: float,
@@ -176,30 +190,46 @@ class HeightEstimator:
         lever = centroid[:, 1] * c - centroid[:, 0] * s  # from the foot of the normal to the centroid, m
         return gain * d, gain * gain * (lines.offset_var[k] + alpha_var * lever ** 2) + self.params.variance_floor_m2
 
-    def _remember_steps(self, above: np.ndarray, variances: np.ndarray) -> None:
+    def _remember_steps(self, above: np.ndarray, variances: np.ndarray, lengths: np.ndarray) -> None:
         """Average the surfaces seen beside the floor (``above``: how far above it, m, with
-        ``variances``, m^2; the floor itself and lines nearer than ``jump_m`` are no step) into
-        the remembered steps."""
+        ``variances``, m^2, and line ``lengths``, m; the floor itself and lines nearer than ``jump_m``
+        are no step) into the remembered steps."""
         p = self.params
-        for a, v in zip(above.tolist(), variances.tolist()):
+        for a, v, length in zip(above.tolist(), variances.tolist(), lengths.tolist()):
             if a <= p.jump_m:
                 continue
             step = next((s for s in reversed(self._steps) if s.matches(a, v)), None)
             if step is None:
                 if len(self._steps) == p.max_steps:
                     self._steps.pop(0)
-                self._steps.append(_Step(a, v))
+                self._steps.append(_Step(a, v, length))
             else:
-                step.add(a, v, 2.0 * p.variance_floor_m2)
+                step.add(a, v, length, 2.0 * p.variance_floor_m2)
                 self._steps.remove(step)
                 self._steps.append(step)
+
+    def _confirmed_steps(self, above: float, variance: float) -> list[_Step]:
+        """The remembered steps, confirmed by ``step_confirm_scans`` sightings, that a surface
+        ``above`` metres above the expected floor (variance m^2, the fused height's included) may be."""
+        return [s for s in self._steps if s.sightings >= self.params.step_confirm_scans and s.matches(above, variance)]
+
+    def _could_be_a_step(self, above: float, variance: float, length_m: float, others_above: np.ndarray,
+                         others_variances: np.ndarray) -> _Step | None:
+        """A confirmed step that a floor candidate ``above`` metres above the expected floor (variance
+        m^2) and ``length_m`` long may be instead of the floor, None if none. It is the floor if it is
+        longer than the step was ever seen (by ``step_length_margin_m``), or if the scan shows the
+        step itself above it (``others_above``: the scan's floor-like lines above the candidate, m,
+        with ``others_variances``, m^2)."""
+        margin = self.params.step_length_margin_m
+        return next((s for s in self._confirmed_steps(above, variance) if length_m <= s.length_m + margin
+                     and not any(s.matches(a, v) for a, v in zip(others_above.tolist(), others_variances.tolist()))),
+                    None)
 
     def _stand_in(self, height: float, variance: float, above: float, expected_variance: float,
                   count: int) -> HeightFix:
         """The fix from a surface ``above`` metres above the expected floor (the floor hidden):
         the one confirmed step it matches, else lost."""
-        steps = [s for s in self._steps if s.sightings >= self.params.step_confirm_scans
-                 and s.matches(above, variance + expected_variance)]
+        steps = self._confirmed_steps(above, variance + expected_variance)
         if len(steps) != 1:
             reason = "more than one remembered surface matches it" if steps else "the floor is not in view"
             return _lost(f"the furthest floor-like surface is {above:.2f} m above the expected floor "
