@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from companion.nav.bench_stages import DEFAULT_WORLD, make_mount, synthetic_scan
-from companion.nav.height import HeightEstimator, HeightFix
+from companion.nav.height import HeightEstimator, HeightFix, HeightParams
+from companion.nav.lines import LineParams
 from drivers.lidar_models import URG_04LX
 from companion.messages import Scan
 from sitl.raycast import WorldGeometry
@@ -172,6 +173,18 @@ def test_a_hidden_floor_matching_two_remembered_steps_gives_no_fix() -> None:
     assert ambiguous.state == "lost" and "more than one remembered surface" in ambiguous.reason
     one = est.update(profile_scan([(0.25, -10.0, 10.0)]), expected=(1.0, 0.01))
     assert one.state == "degraded" and one.height_m == pytest.approx(1.0, abs=0.01)
+
+
+def test_exact_sightings_of_a_step_keep_it_finite_and_standing_in() -> None:
+    """Noise-free scans with no noise or model error declared (every variance 0): a second sighting
+    of the step no longer divides by zero, and the step stands in for the hidden floor."""
+    exact = LineParams(noise_m=0.0, noise_per_m=0.0, break_grazing_deg=0.0, model_floor_m=0.0)
+    est = HeightEstimator(params=HeightParams(lines=exact, variance_floor_m2=0.0, attitude_sd_deg=0.0))
+    for _ in range(3):
+        assert est.update(profile_scan([(0.25, 1.0, 2.0), (1.0, -0.5, 4.0)]), expected=(1.0, 0.0)).state != "lost"
+    fix = est.update(profile_scan([(0.25, -10.0, 10.0)]), expected=(1.0, 0.001))
+    assert fix.state == "degraded" and fix.height_m == pytest.approx(1.0, abs=1e-6)
+    assert math.isfinite(fix.variance)
 
 
 def test_a_short_floor_line_is_a_fix_like_any_other() -> None:

@@ -117,9 +117,10 @@ class _Step:
     def add(self, above_m: float, variance: float, length_m: float, variance_floor: float) -> None:
         """Average another sighting in (inverse-variance weighted; the variance not below ``variance_floor``)."""
         self.length_m = max(self.length_m, length_m)
-        w = self.variance / (self.variance + variance)
-        self.above_m += w * (above_m - self.above_m)
-        self.variance = max(self.variance * variance / (self.variance + variance), variance_floor)
+        total = self.variance + variance
+        if total > 0.0:  # both 0 (noise-free data, no noise or model error declared): nothing to weigh
+            self.above_m += self.variance / total * (above_m - self.above_m)
+            self.variance = max(self.variance * variance / total, variance_floor)
         self.sightings += 1
 
 
@@ -205,8 +206,7 @@ class HeightEstimator:
                 self._steps.append(_Step(a, v, length))
             else:
                 step.add(a, v, length, 2.0 * p.variance_floor_m2)
-                self._steps.remove(step)
-                self._steps.append(step)
+                self._seen_last(step)
 
     def _confirmed_steps(self, above: float, variance: float) -> list[_Step]:
         """The remembered steps, confirmed by ``step_confirm_scans`` sightings, that a surface
@@ -225,6 +225,11 @@ class HeightEstimator:
                      and not any(s.matches(a, v) for a, v in zip(others_above.tolist(), others_variances.tolist()))),
                     None)
 
+    def _seen_last(self, step: _Step) -> None:
+        """Move ``step`` to the end of the list: the most recently seen, the last to be forgotten."""
+        self._steps.remove(step)
+        self._steps.append(step)
+
     def _stand_in(self, height: float, variance: float, above: float, expected_variance: float,
                   count: int) -> HeightFix:
         """The fix from a surface ``above`` metres above the expected floor (the floor hidden):
@@ -235,8 +240,7 @@ class HeightEstimator:
             return _lost(f"the furthest floor-like surface is {above:.2f} m above the expected floor "
                          f"(a table top?): {reason}", count)
         step = steps[0]
-        self._steps.remove(step)
-        self._steps.append(step)
+        self._seen_last(step)
         self._previous = height + step.above_m
         return HeightFix(height + step.above_m, variance + step.variance, "degraded",
                          f"the floor hidden: a surface seen {step.above_m:.2f} m above it stands in", count)
