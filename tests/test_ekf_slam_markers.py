@@ -268,7 +268,7 @@ def test_a_marker_camera_section_builds_and_its_frames_map_the_markers_in_the_sl
         assert np.linalg.norm(mapped[marker.id] - [*marker.position, 0.0]) < 1.0  # GNSS 0.2 m, range sigma ~0.7 m
 
 
-def test_a_frame_is_levelled_with_the_nearest_imu_attitude_and_dropped_without_one_within_0_1_s(
+def test_a_frame_is_levelled_with_the_imu_attitude_at_its_time_and_dropped_without_one_within_0_1_s(
         monkeypatch: pytest.MonkeyPatch) -> None:
     section = load_text("gnss: gnss\nbase_ne: [0, 0]\nmarker_camera: down\nmarker_calibration: down.yaml\n",
                         EkfSlamPipelineConfig)
@@ -286,11 +286,11 @@ def test_a_frame_is_levelled_with_the_nearest_imu_attitude_and_dropped_without_o
     blank = np.full((480, 640), 128, np.uint8)
     for t, roll in ((1.00, 0.0), (1.02, 0.1), (1.04, 0.2)):
         handlers["imu"](ImuSample(t, np.zeros(3), np.zeros(3), (roll, -0.05, 0.0)))
-    handlers["down"](Frame("down", 1.015, blank, 1))  # nearest: the sample at 1.02 s (not the one before it)
+    handlers["down"](Frame("down", 1.015, blank, 1))  # between the samples at 1.00 and 1.02 s: roll 0.075
     pipeline.step(1.05)
     handlers["down"](Frame("down", 1.2, blank, 2))  # waits for the IMU samples up to it ...
     pipeline.step(1.3)
     handlers["down"](Frame("down", 1.3, blank, 3))  # ... and is overtaken by this one (dropped)
     pipeline.step(1.9)  # the IMU stopped: released after HOLD_FOR_IMU_S, 0.26 s from the last sample (dropped)
-    assert levelled == [(0.1, -0.05)]
+    assert levelled == [(pytest.approx(0.075), pytest.approx(-0.05))]
     assert pipeline.stats.marker_frames == 1 and pipeline.stats.marker_frames_dropped == 2

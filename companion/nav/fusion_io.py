@@ -13,6 +13,7 @@ import numpy as np
 
 from companion.health import Health, State
 from companion.messages import ImuSample, PoseEstimate
+from companion.nav.attitude_history import AttitudeHistory
 from companion.nav.fusion import FusedState, FusionFilter
 
 # Roll and pitch come from the autopilot's own attitude estimate; the pose covariance gives them
@@ -23,17 +24,25 @@ ROLL_PITCH_VARIANCE_RAD2 = 1e-4
 
 class ImuFeed:
     """The IMU samples a pipeline received since its previous nav cycle (oldest first), and the
-    autopilot's newest attitude (roll, pitch, yaw rad of body FRD in NED; zeros before any)."""
+    autopilot's attitude (roll, pitch, yaw rad of body FRD in NED): the newest (zeros before
+    any), and over the last second at any instant (:meth:`euler_at`)."""
 
     def __init__(self) -> None:
         self.samples: list[ImuSample] = []
         self.euler: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        self._attitudes = AttitudeHistory()
 
     def add(self, sample: ImuSample) -> None:
         """The driver's handler: keep ``sample`` for the next cycle."""
         self.samples.append(sample)
         if sample.euler_rad is not None:
             self.euler = sample.euler_rad
+            self._attitudes.add(sample.t, sample.euler_rad)
+
+    def euler_at(self, t: float) -> tuple[float, float, float]:
+        """The autopilot's attitude at daemon time ``t`` (s), what a scan or frame captured then is
+        levelled with (companion/nav/attitude_history.py); the newest before any is kept."""
+        return self._attitudes.at(t) or self.euler
 
     def predict(self, fusion: FusionFilter) -> None:
         """Propagate ``fusion`` with every sample kept, in order, and forget them."""

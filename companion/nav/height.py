@@ -138,6 +138,13 @@ class HeightEstimator:
         self._previous: float | None = None
         self._steps: list[_Step] = []  # the most recently seen last
 
+    def floor_beam_fraction(self, scan: Scan) -> float:
+        """Where in its sweep (0: first beam, 1: last) the scanner looks straight down the body's z
+        axis (its beam nearest that): when it sees the floor under the vehicle."""
+        m = self.mount_rotation
+        down = m[2, 0] * np.cos(scan.angles_rad) + m[2, 1] * np.sin(scan.angles_rad)
+        return float(np.argmax(down)) / max(scan.angles_rad.size - 1, 1)
+
     def update(self, scan: Scan | np.ndarray, roll: float = 0.0, pitch: float = 0.0,
                valid: np.ndarray | None = None, expected: tuple[float, float] | None = None) -> HeightFix:
         """Height from one scan (a Scan, or (N, 2) sensor-plane points in beam order with an

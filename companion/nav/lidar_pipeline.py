@@ -266,11 +266,8 @@ class LidarPipeline:
         self.timings["fusion"].add((predicted - started + time.perf_counter() - resumed) * 1e3)
         return [] if estimate is None else [estimate]
 
-    def _attitude(self) -> tuple[float, float, float]:
-        return self.imu.euler
-
     def _process_horizontal(self, scan: Scan) -> float:
-        roll, pitch, yaw = self._attitude()
+        roll, pitch, yaw = self.imu.euler_at(scan.t_capture + scan.sweep_s / 2.0)  # levelled at mid-sweep
         yaw_delta = 0.0 if self._scan_yaw is None else wrap_pi(yaw - self._scan_yaw)
         self._scan_yaw = yaw
         state = self.fusion.state(scan.t_capture)
@@ -322,7 +319,8 @@ class LidarPipeline:
         return (forward, right)
 
     def _process_vertical(self, scan: Scan) -> float:
-        roll, pitch, _ = self._attitude()
+        # Levelled with the attitude when the scanner looked straight down: the floor's beams.
+        roll, pitch, _ = self.imu.euler_at(scan.t_capture + scan.sweep_s * self.height.floor_beam_fraction(scan))
         # The IMU-carried height, also once the fusion reports it lost: a floor hidden for a second (a
         # table top alone in view) is when a table top must still not become the floor, or the fusion
         # re-seeds its height to it. Not initialised, its variance (1e6 m^2) rules nothing out.
@@ -344,7 +342,7 @@ class LidarPipeline:
         if fused is None:
             return None
         state, reset = fused
-        roll, pitch, _ = self._attitude()
+        roll, pitch, _ = self.imu.euler
         return to_pose_estimate(self._with_shared_errors(state), roll, pitch, reset=reset, source=self.name)
 
     def _with_shared_errors(self, state: FusedState) -> FusedState:

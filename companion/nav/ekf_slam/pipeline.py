@@ -9,8 +9,8 @@ Data flow, every nav cycle, the inputs taken in capture-time order (no I/O here)
   velocity estimate, the motion input a vehicle still has without GNSS (the seed's commanded
   velocity and heading), each resolved along the autopilot's heading;
 - landmark sightings (``landmarks``, kind landmarks, and / or the fiducial markers of the camera
-  ``marker_camera``, :mod:`.markers`, levelled with the roll and pitch of the IMU sample nearest each
-  frame's capture time) -> the SLAM's updates and new landmarks, with
+  ``marker_camera``, :mod:`.markers`, levelled with the autopilot's roll and pitch at each frame's
+  capture time, companion/nav/attitude_history.py) -> the SLAM's updates and new landmarks, with
   the vehicle's height measured, not assumed: the autopilot's barometric altitude on the datum
   the first GNSS heights gave it (the seed holds the altitude exact; a real one wanders, and a
   metre of height error is five sigmas of the seed's range noise), so the descent to land still
@@ -43,7 +43,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -54,6 +53,7 @@ from companion.calibration import load_calibration
 from companion.frames import euler_yaw_rate, ned_from_geodetic, wrap_pi
 from companion.health import Health, State
 from companion.messages import Estimate, Frame, GnssFix, Guidance, ImuSample, LandmarkSightings, PoseEstimate
+from companion.nav.attitude_history import AttitudeHistory
 from companion.nav.ekf_slam.config import EkfSlamConfig, RecoveryPlannerConfig
 from companion.nav.ekf_slam.filter import EkfSlam
 from companion.nav.ekf_slam.markers import MarkerParams, MarkerSighter
@@ -74,7 +74,6 @@ MAX_LATE_FIX_S = 1.0  # a fix or frame up to this far from the SLAM's time is mo
 DOPPLER_MAX_AGE_S = 0.6  # the GNSS Doppler velocity is the motion input this long after its fix (5 Hz + latency)
 MIN_FIX_SIGMA_M = 0.1  # a receiver claiming less (or 0) is taken at this
 BARO_DATUM_FIXES = 50  # the baro datum is the mean of this many fixes' heights (10 s at 5 Hz), then frozen
-ATTITUDE_HISTORY = 512  # IMU attitudes kept to level marker frames with (over a second at 400 Hz)
 JUMP_RESET_M = 1.0  # a landmark frame moving the vehicle this far is sent as a position reset (see _on_sightings)
 MAX_ATTITUDE_GAP_S = 0.1  # a marker frame without an IMU attitude this close to its capture time is dropped
 
@@ -248,7 +247,7 @@ class EkfSlamPipeline:
         self._usable_since: float | None = None
         self._in_view: dict[int, np.ndarray] = {}
         self._reset_pending = False  # the next estimate is a reset (a landmark frame made the vehicle jump)
-        self._attitudes: deque[tuple[float, float, float]] = deque(maxlen=ATTITUDE_HISTORY)  # (t s, roll, pitch rad)
+        self._attitudes = AttitudeHistory()  # the autopilot's, to level marker frames with
         health.report(HEALTH, State.LOST, "waiting for a GNSS fix")
 
     # -- inputs (driver callbacks) ------------------------------------------------------
@@ -264,7 +263,7 @@ class EkfSlamPipeline:
     def _keep(self, message: GnssFix | LandmarkSightings | ImuSample | Frame) -> None:
         t = message.t if isinstance(message, ImuSample) else message.t_capture
         if isinstance(message, ImuSample) and message.euler_rad is not None:
-            self._attitudes.append((message.t, message.euler_rad[0], message.euler_rad[1]))
+            self._attitudes.add(message.t, message.euler_rad)
         self._order += 1
         self._inbox.append((t, self._order, message))
 
@@ -427,15 +426,14 @@ class EkfSlamPipeline:
             self._replan(frame.t_capture)
 
     def _on_frame(self, frame: Frame) -> None:
-        """A marker camera frame -> its markers' sightings, levelled with the roll and pitch of the
-        IMU sample nearest its capture time -> :meth:`_on_sightings`."""
+        """A marker camera frame -> its markers' sightings, levelled with the autopilot's roll and
+        pitch at its capture time (interpolated between the IMU samples around it) -> :meth:`_on_sightings`."""
         assert self.markers is not None  # frames come with a marker camera
-        times = np.array([a[0] for a in self._attitudes])
-        nearest = int(np.argmin(np.abs(times - frame.t_capture))) if len(times) else -1
-        if nearest < 0 or abs(times[nearest] - frame.t_capture) > MAX_ATTITUDE_GAP_S:
+        attitude = self._attitudes.at(frame.t_capture, MAX_ATTITUDE_GAP_S)
+        if attitude is None:
             self.stats.marker_frames_dropped += 1
             return
-        _, roll, pitch = self._attitudes[nearest]
+        roll, pitch, _ = attitude
         seen = self.markers.sightings(frame, roll, pitch)
         self.stats.marker_frames += 1
         self.stats.markers_skipped += seen.outside_id_range + seen.ambiguous + seen.failed

@@ -180,14 +180,15 @@ class LaserDotsPipeline:
         return out if estimate is None else [estimate, *out]
 
     def _process(self, frame: Frame) -> None:
-        result = self.poser.process(frame.image, rotation_from_euler(*self.imu.euler), self._previous_pose,
+        attitude = self.imu.euler_at(frame.t_capture)  # the autopilot's, when the frame was exposed
+        result = self.poser.process(frame.image, rotation_from_euler(*attitude), self._previous_pose,
                                     self._previous_pixels)
         found = result.dots.found
         self._previous_pixels = np.where(found[:, None], result.dots.pixels, np.nan) if found.any() else None
         if result.kind == "pose":
-            self._correct_pose(frame.t_capture, result)
+            self._correct_pose(frame.t_capture, result, attitude)
         elif result.kind == "tilt":
-            self._correct_tilt(frame.t_capture, result)
+            self._correct_tilt(frame.t_capture, result, attitude)
         else:
             key = result.reason.split(":")[0]
             self.stats.refused[key] = self.stats.refused.get(key, 0) + 1
@@ -196,25 +197,25 @@ class LaserDotsPipeline:
             self.health.report("nav:laser_dots", State.DEGRADED, result.reason)
         self.last_result = (frame.t_capture, result)
 
-    def _correct_pose(self, t_capture: float, result: FrameResult) -> None:
+    def _correct_pose(self, t_capture: float, result: FrameResult, attitude: tuple[float, float, float]) -> None:
         solution, cov = result.solution, result.covariance
         assert solution is not None and cov is not None  # a "pose" result has both
         roll, pitch, yaw = (float(a) for a in solution.euler_rad)
         self.fusion.correct_position(t_capture, solution.position_ned, cov[:3, :3])
         self.fusion.correct_yaw(t_capture, yaw, float(cov[5, 5]))
-        self._measured = ((roll, pitch), self.imu.euler)
+        self._measured = ((roll, pitch), attitude)
         self._attitude_cov = cov[3:5, 3:5]
         self._previous_pose = (solution.rotation, solution.position_ned)
         self.stats.pose_fixes += 1
         self.health.report("nav:laser_dots", State.OK, result.reason)
 
-    def _correct_tilt(self, t_capture: float, result: FrameResult) -> None:
+    def _correct_tilt(self, t_capture: float, result: FrameResult, attitude: tuple[float, float, float]) -> None:
         """No marker in view: a height correction, DISTANCE_SENSOR and the attitude cross-check."""
         assert result.tilt is not None and result.tilt_covariance is not None  # a "tilt" result has both
         height, roll, pitch = result.tilt
         cov = result.tilt_covariance
         self.fusion.correct_height(t_capture, height, float(cov[0, 0]))
-        self._measured = ((roll, pitch), self.imu.euler)
+        self._measured = ((roll, pitch), attitude)
         self._attitude_cov = cov[1:, 1:]
         cos_tilt = math.cos(roll) * math.cos(pitch)  # the body's down axis against the floor normal
         low, high = self.cfg.height_range_m
