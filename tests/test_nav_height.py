@@ -140,23 +140,45 @@ def profile_scan(surfaces: list[tuple[float, float, float]]) -> np.ndarray:
     return np.column_stack((r * c, r * s))
 
 
-def test_unsure_of_its_height_a_remembered_table_alone_is_no_floor_but_the_open_floor_is(
+def test_unsure_of_its_height_a_remembered_table_alone_is_no_floor_but_the_floor_elsewhere_is(
         geometry: WorldGeometry) -> None:
     """With the fused height unsure (sigma 0.3 m: 0.75 m off is within its 3 sigma), a table top
-    alone in view that a remembered step matches may be the floor or that table: no fix (lost),
-    where before it became a confident 0.15 m height. The open floor, a line longer than the table
-    ever gave, and the floor beside the table are still taken."""
+    alone in view where a table was remembered may be the floor or that table: no fix (lost), where
+    before it became a confident 0.15 m height. The open floor (a line longer than the table ever
+    gave), the floor beside the table, and with nothing known of the height (sigma 1 km) a short
+    floor line by a wall far from the table are still taken; the last is refused only when where
+    the vehicle is is unknown too."""
     rng = np.random.default_rng(7)
     est = HeightEstimator(MOUNT_POSITION, MOUNT_RPY)
     for _ in range(3):
-        assert est.update(vertical_scan(geometry, 6.5, 1.6, 0.9, rng), expected=(0.9, 0.01)).state != "lost"
-    alone = est.update(vertical_scan(geometry, *TABLE_XY, 0.9, rng), expected=(0.9, 0.3))
+        beside = est.update(vertical_scan(geometry, 6.5, 1.6, 0.9, rng), expected=(0.9, 0.01), pose=(6.5, 1.6, 0.0))
+        assert beside.state != "lost"
+    alone = est.update(vertical_scan(geometry, *TABLE_XY, 0.9, rng), expected=(0.9, 0.3), pose=(*TABLE_XY, 0.0))
     assert alone.state == "lost" and "may be the floor or the surface seen 0.75 m above it" in alone.reason
     assert_finite(alone)
-    open_floor = est.update(vertical_scan(geometry, 2.5, 2.0, 1.0, rng), expected=(1.0, 0.3))
+    open_floor = est.update(vertical_scan(geometry, 2.5, 2.0, 1.0, rng), expected=(1.0, 0.3), pose=(2.5, 2.0, 0.0))
     assert open_floor.state != "lost" and open_floor.height_m == pytest.approx(1.0, abs=0.01)
-    beside = est.update(vertical_scan(geometry, 6.5, 1.6, 0.9, rng), expected=(0.9, 0.3))
+    beside = est.update(vertical_scan(geometry, 6.5, 1.6, 0.9, rng), expected=(0.9, 0.3), pose=(6.5, 1.6, 0.0))
     assert beside.state != "lost" and beside.height_m == pytest.approx(0.9, abs=0.01)
+    by_a_wall = vertical_scan(geometry, 4.8, 4.8, 1.0, rng)  # a 0.7 m floor line, 3 m from the table
+    far = est.update(by_a_wall, expected=(0.0, 1000.0), pose=(4.8, 4.8, 0.0))
+    assert far.state != "lost" and far.height_m == pytest.approx(1.0, abs=0.01)
+    assert est.update(by_a_wall, expected=(0.0, 1000.0)).state == "lost"
+
+
+def test_a_hidden_floor_stands_in_with_the_remembered_step_at_that_place() -> None:
+    """Two tables at about the same height in two places (0.75 m above the floor here, 0.70 m ten
+    metres east) are two steps; the floor hidden at the first, its step alone stands in, the other
+    being elsewhere (without the pose both would match: no fix)."""
+    est = HeightEstimator()
+    floor = (1.0, -0.5, 4.0)
+    for table, east in (((0.25, 1.0, 2.0), 0.0), ((0.30, 1.0, 2.0), 10.0)):
+        for _ in range(3):
+            assert est.update(profile_scan([table, floor]), expected=(1.0, 0.01), pose=(0.0, east, 0.0)).state != "lost"
+    hidden = profile_scan([(0.26, 0.5, 2.5)])
+    fix = est.update(hidden, expected=(1.0, 0.03), pose=(0.0, 0.0, 0.0))
+    assert fix.state == "degraded" and fix.height_m == pytest.approx(1.01, abs=0.01)
+    assert est.update(hidden, expected=(1.0, 0.03)).state == "lost"
 
 
 def test_a_hidden_floor_matching_two_remembered_steps_gives_no_fix() -> None:

@@ -32,24 +32,28 @@ And with the fused height given (``expected``: what the IMU carried since the la
 floor candidate NEARER than that by more than ``jump_m`` and three sigmas is no fix at all
 (lost): with the floor hidden, a table top is the furthest floor-like line, and as a fix it
 would be a confident wrong height once the fusion re-seeds to it (its relock after a second of
-gated fixes: the vehicle climbs by the table's height). A candidate further than expected is
-always the floor (beams never reach below it).
+gated fixes: the vehicle climbs by the table's height). A candidate further than a well-known
+expected height is the floor (beams never reach below it).
 
 A surface seen beside the floor stands in for it (as ArduPilot's EKF3 carries a terrain offset
 under its rangefinder): whenever the floor is found consistent with a fused height known within
 ``jump_m / 2`` (1 sigma) and a floor-like line lies above it by more than ``jump_m``, the
-estimator remembers that step (how far above the floor, averaged over sightings). With the floor
-hidden and the furthest surface refused as above, a step confirmed by ``step_confirm_scans``
-sightings that the surface matches within three sigmas (the fused height's, the surface's and the
-step's) turns it into a degraded fix: the surface's height plus the step, its variance the sum.
-Hovering over a table no longer leaves the height to the IMU alone (a realistic patrol held 1.7 s
-over one, the height drifting 15 cm). Two remembered steps that both match give no fix: which
-surface it is, the scan cannot tell.
+estimator remembers that step: how far above the floor, and where (given the vehicle's map pose:
+its line's centroid), averaged over sightings. A surface may be a step if it lies as far above the
+floor within three sigmas (the fused height's, the surface's and the step's) and near the step's
+place (within ``step_margin_m`` beyond both lines' half lengths; anywhere when either place is
+unknown). With the floor hidden and the furthest surface refused as above, the one step confirmed
+by ``step_confirm_scans`` sightings that the surface may be turns it into a degraded fix: the
+surface's height plus the step, its variance the sum. Hovering over a table no longer leaves the
+height to the IMU alone (a realistic patrol held 1.7 s over one, the height drifting 15 cm). Two
+remembered steps that both may be it give no fix: which surface it is, the scan cannot tell.
 
 The same memory guards a fused height too unsure to refuse a table top (3 sigma beyond the
-table's height, e.g. after seconds without a fix): a furthest surface that a confirmed step may
-be is no fix (lost) unless the scan tells it is the floor: it is longer than that step was ever
-seen (by ``step_length_margin_m``), or the step itself is in view above it.
+table's height: after seconds without a fix, or the filter not initialised): a furthest surface
+that a confirmed step may be is no fix (lost) unless the scan tells it is the floor: it is longer
+than that step was ever seen (by ``step_length_margin_m``), or the step itself is in view above it.
+Away from the remembered tables the floor is taken as before; without the vehicle's pose every
+step is near, and a short floor line (between obstacles, by a wall) waits for a longer one.
 """
 
 from __future__ import annotations
@@ -84,6 +88,7 @@ class HeightParams:
     step_confirm_scans: int = 3  # sightings beside the floor before a step stands in for it
     max_steps: int = 4  # steps remembered (the most recently seen), e.g. tables in the room
     step_length_margin_m: float = 0.3  # a floor line longer than a step was ever seen by this is not that step, m
+    step_margin_m: float = 0.5  # a surface this near a step (beyond both lines' half lengths) may be it, m
 
 
 @dataclass(frozen=True)
@@ -100,28 +105,59 @@ class HeightFix:
 LOST_VARIANCE_M2 = 100.0
 
 
-@dataclass
-class _Step:
-    """A floor-like surface seen above the floor: how far above (m), its variance (m^2), the longest
-    line it gave (m) and its sightings."""
+@dataclass(frozen=True)
+class _Surface:
+    """A floor-like line of one scan: how far above the floor (or the expected floor) it lies (m),
+    the variance of that (m^2), its length (m) and where its centroid lies (north, east m in the
+    map; None without the vehicle's pose)."""
 
     above_m: float
     variance: float
     length_m: float
+    where_ne: tuple[float, float] | None
+
+
+@dataclass
+class _Step:
+    """A floor-like surface seen above the floor: how far above (m), its variance (m^2), the longest
+    line it gave (m), where (north, east m: the mean of its sightings' centroids; None if seen
+    without a pose) and its sightings."""
+
+    above_m: float
+    variance: float
+    length_m: float
+    where_ne: tuple[float, float] | None
     sightings: int = 1
 
-    def matches(self, above_m: float, variance: float) -> bool:
-        """Whether a surface ``above_m`` (variance m^2) above the floor is this step, within three sigmas."""
-        return abs(above_m - self.above_m) <= 3.0 * math.sqrt(variance + self.variance)
+    def matches(self, surface: _Surface) -> bool:
+        """Whether ``surface`` lies as far above the floor as this step, within three sigmas."""
+        return abs(surface.above_m - self.above_m) <= 3.0 * math.sqrt(surface.variance + self.variance)
 
-    def add(self, above_m: float, variance: float, length_m: float, variance_floor: float) -> None:
-        """Average another sighting in (inverse-variance weighted; the variance not below ``variance_floor``)."""
-        self.length_m = max(self.length_m, length_m)
-        total = self.variance + variance
-        if total > 0.0:  # both 0 (noise-free data, no noise or model error declared): nothing to weigh
-            self.above_m += self.variance / total * (above_m - self.above_m)
-            self.variance = max(self.variance * variance / total, variance_floor)
+    def near(self, surface: _Surface, margin_m: float) -> bool:
+        """Whether ``surface`` lies within ``margin_m`` of this step beyond both lines' half lengths
+        (True when either place is unknown)."""
+        if self.where_ne is None or surface.where_ne is None:
+            return True
+        reach = (self.length_m + surface.length_m) / 2.0 + margin_m
+        return math.dist(self.where_ne, surface.where_ne) <= reach
+
+    def add(self, surface: _Surface, variance_floor: float) -> None:
+        """Count another sighting in: the longest line kept, the place the mean of the sightings',
+        how far above the floor inverse-variance weighted (the variance not below ``variance_floor``;
+        both variances 0, it is kept as it is)."""
+        self.length_m = max(self.length_m, surface.length_m)
         self.sightings += 1
+        if surface.where_ne is not None:
+            if self.where_ne is None:
+                self.where_ne = surface.where_ne
+            else:
+                n, e = self.where_ne
+                self.where_ne = (n + (surface.where_ne[0] - n) / self.sightings,
+                                 e + (surface.where_ne[1] - e) / self.sightings)
+        total = self.variance + surface.variance
+        if total > 0.0:  # both 0 (noise-free data, no noise or model error declared): nothing to weigh
+            self.above_m += self.variance / total * (surface.above_m - self.above_m)
+            self.variance = max(self.variance * surface.variance / total, variance_floor)
 
 
 class HeightEstimator:
@@ -146,10 +182,12 @@ class HeightEstimator:
         return float(np.argmax(down)) / max(scan.angles_rad.size - 1, 1)
 
     def update(self, scan: Scan | np.ndarray, roll: float = 0.0, pitch: float = 0.0,
-               valid: np.ndarray | None = None, expected: tuple[float, float] | None = None) -> HeightFix:
+               valid: np.ndarray | None = None, expected: tuple[float, float] | None = None,
+               pose: tuple[float, float, float] | None = None) -> HeightFix:
         """Height from one scan (a Scan, or (N, 2) sensor-plane points in beam order with an
         optional validity mask) at body ``roll`` and ``pitch`` (radians); ``expected``: the
-        fused height above the floor and its 1-sigma (m) at the scan's time, if known."""
+        fused height above the floor and its 1-sigma (m) at the scan's time, if known; ``pose``:
+        the vehicle's map pose (north m, east m, yaw rad), if known: where the surfaces seen lie."""
         p = self.params
         points, ok, ranges = _sensor_points(scan, valid)
         level = rotation_from_euler(roll, pitch, 0.0)
@@ -170,17 +208,34 @@ class HeightEstimator:
         k = int(furthest[np.argmax(lines.length[floor[furthest]])])
         height, variance = float(heights[k]), float(variances[k])
         if expected is not None:
+            where = self._where(lines.centroid[floor], level, pose)
+            lengths = lines.length[floor].tolist()
             above = expected[0] - height
-            if above > max(p.jump_m, 3.0 * math.sqrt(expected[1] ** 2 + variance)):
-                return self._stand_in(height, variance, above, expected[1] ** 2, int(floor.size))
-            if expected[1] < p.jump_m / 2.0 and abs(above) <= 3.0 * math.sqrt(expected[1] ** 2 + variance):
-                self._remember_steps(height - heights, variance + variances, lines.length[floor])
-            elif step := self._could_be_a_step(above, variance + expected[1] ** 2, float(lines.length[floor[k]]),
-                                               height - heights, variance + variances):
+            candidate = _Surface(above, variance + expected[1] ** 2, lengths[k], where[k] if where else None)
+            if above > max(p.jump_m, 3.0 * math.sqrt(candidate.variance)):
+                return self._stand_in(height, variance, candidate, int(floor.size))
+            # The lines above the candidate (by more than jump_m): steps, if the candidate is the floor.
+            seen = [_Surface(height - h, variance + v, length, where[j] if where else None)
+                    for j, (h, v, length) in enumerate(zip(heights.tolist(), variances.tolist(), lengths))
+                    if height - h > p.jump_m]
+            if expected[1] < p.jump_m / 2.0 and abs(above) <= 3.0 * math.sqrt(candidate.variance):
+                self._remember_steps(seen)
+            elif step := self._could_be_a_step(candidate, seen):
                 return _lost(f"the furthest floor-like surface may be the floor or the surface seen "
                              f"{step.above_m:.2f} m above it (the fused height is known to {expected[1]:.2f} m)",
                              int(floor.size))
         return self._fix(height, variance, int(floor.size))
+
+    def _where(self, centroids: np.ndarray, level: np.ndarray,
+               pose: tuple[float, float, float] | None) -> list[tuple[float, float]] | None:
+        """Where (north, east m in the map) the sensor-plane ``centroids`` (n, 2) m lie, the body
+        levelled by ``level`` at map ``pose`` (north m, east m, yaw rad); None without a pose."""
+        if pose is None:
+            return None
+        body = centroids @ self.mount_rotation[:, :2].T + self.mount_position
+        forward, right = (body @ level.T)[:, :2].T
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        return list(zip((pose[0] + c * forward - s * right).tolist(), (pose[1] + s * forward + c * right).tolist()))
 
     def _floor_heights(self, lines: LineSet, k: np.ndarray, off: np.ndarray, floor_normal: float,
                        gain: float) -> tuple[np.ndarray, np.ndarray]:
@@ -198,53 +253,51 @@ class HeightEstimator:
         lever = centroid[:, 1] * c - centroid[:, 0] * s  # from the foot of the normal to the centroid, m
         return gain * d, gain * gain * (lines.offset_var[k] + alpha_var * lever ** 2) + self.params.variance_floor_m2
 
-    def _remember_steps(self, above: np.ndarray, variances: np.ndarray, lengths: np.ndarray) -> None:
-        """Average the surfaces seen beside the floor (``above``: how far above it, m, with
-        ``variances``, m^2, and line ``lengths``, m; the floor itself and lines nearer than ``jump_m``
-        are no step) into the remembered steps."""
+    def _remember_steps(self, seen: list[_Surface]) -> None:
+        """Average the surfaces ``seen`` above the floor (their ``above_m`` from it) into the
+        remembered steps: a step is one that lies as far above the floor, near the same place."""
         p = self.params
-        for a, v, length in zip(above.tolist(), variances.tolist(), lengths.tolist()):
-            if a <= p.jump_m:
-                continue
-            step = next((s for s in reversed(self._steps) if s.matches(a, v)), None)
+        for surface in seen:
+            step = next((s for s in reversed(self._steps)
+                         if s.matches(surface) and s.near(surface, p.step_margin_m)), None)
             if step is None:
                 if len(self._steps) == p.max_steps:
                     self._steps.pop(0)
-                self._steps.append(_Step(a, v, length))
+                self._steps.append(_Step(surface.above_m, surface.variance, surface.length_m, surface.where_ne))
             else:
-                step.add(a, v, length, 2.0 * p.variance_floor_m2)
+                step.add(surface, 2.0 * p.variance_floor_m2)
                 self._seen_last(step)
 
-    def _confirmed_steps(self, above: float, variance: float) -> list[_Step]:
-        """The remembered steps, confirmed by ``step_confirm_scans`` sightings, that a surface
-        ``above`` metres above the expected floor (variance m^2, the fused height's included) may be."""
-        return [s for s in self._steps if s.sightings >= self.params.step_confirm_scans and s.matches(above, variance)]
+    def _confirmed_steps(self, surface: _Surface) -> list[_Step]:
+        """The remembered steps, confirmed by ``step_confirm_scans`` sightings, that ``surface`` (its
+        ``above_m`` from the expected floor, the fused height's variance in its own) may be: as far
+        above the floor, near the same place."""
+        p = self.params
+        return [s for s in self._steps
+                if s.sightings >= p.step_confirm_scans and s.matches(surface) and s.near(surface, p.step_margin_m)]
 
-    def _could_be_a_step(self, above: float, variance: float, length_m: float, others_above: np.ndarray,
-                         others_variances: np.ndarray) -> _Step | None:
-        """A confirmed step that a floor candidate ``above`` metres above the expected floor (variance
-        m^2) and ``length_m`` long may be instead of the floor, None if none. It is the floor if it is
-        longer than the step was ever seen (by ``step_length_margin_m``), or if the scan shows the
-        step itself above it (``others_above``: the scan's floor-like lines above the candidate, m,
-        with ``others_variances``, m^2)."""
+    def _could_be_a_step(self, candidate: _Surface, seen: list[_Surface]) -> _Step | None:
+        """A confirmed step that the floor ``candidate`` may be instead of the floor, None if none.
+        It is the floor if it is longer than the step was ever seen (by ``step_length_margin_m``),
+        or if the scan shows the step itself above it (``seen``: the scan's surfaces above the
+        candidate, their ``above_m`` from it)."""
         margin = self.params.step_length_margin_m
-        return next((s for s in self._confirmed_steps(above, variance) if length_m <= s.length_m + margin
-                     and not any(s.matches(a, v) for a, v in zip(others_above.tolist(), others_variances.tolist()))),
-                    None)
+        return next((s for s in self._confirmed_steps(candidate)
+                     if candidate.length_m <= s.length_m + margin and not any(map(s.matches, seen))), None)
 
     def _seen_last(self, step: _Step) -> None:
         """Move ``step`` to the end of the list: the most recently seen, the last to be forgotten."""
         self._steps.remove(step)
         self._steps.append(step)
 
-    def _stand_in(self, height: float, variance: float, above: float, expected_variance: float,
-                  count: int) -> HeightFix:
-        """The fix from a surface ``above`` metres above the expected floor (the floor hidden):
-        the one confirmed step it matches, else lost."""
-        steps = self._confirmed_steps(above, variance + expected_variance)
+    def _stand_in(self, height: float, variance: float, surface: _Surface, count: int) -> HeightFix:
+        """The fix from ``surface``, the furthest floor-like line, ``height`` m below the body
+        (variance m^2) and ``surface.above_m`` above the expected floor (the floor hidden): the one
+        confirmed step it may be, else lost."""
+        steps = self._confirmed_steps(surface)
         if len(steps) != 1:
             reason = "more than one remembered surface matches it" if steps else "the floor is not in view"
-            return _lost(f"the furthest floor-like surface is {above:.2f} m above the expected floor "
+            return _lost(f"the furthest floor-like surface is {surface.above_m:.2f} m above the expected floor "
                          f"(a table top?): {reason}", count)
         step = steps[0]
         self._seen_last(step)

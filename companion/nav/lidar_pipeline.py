@@ -323,11 +323,13 @@ class LidarPipeline:
         roll, pitch, _ = self.imu.euler_at(scan.t_capture + scan.sweep_s * self.height.floor_beam_fraction(scan))
         # The IMU-carried height, also once the fusion reports it lost: a floor hidden for a second (a
         # table top alone in view) is when a table top must still not become the floor, or the fusion
-        # re-seeds its height to it. Not initialised, its variance (1e6 m^2) rules nothing out.
+        # re-seeds its height to it. Not initialised, its variance (1e6 m^2) refuses nothing by itself;
+        # a table remembered where the vehicle is still may (companion/nav/height.py). The localizer's
+        # pose (known without a height) says where the surfaces seen lie.
         state = self.fusion.state(scan.t_capture)
         expected = (-float(state.position_ned[2]), math.sqrt(float(state.position_covariance[2, 2])))
         started = time.perf_counter()
-        fix = self.height.update(scan, roll, pitch, expected=expected)
+        fix = self.height.update(scan, roll, pitch, expected=expected, pose=self.localizer.pose)
         elapsed = (time.perf_counter() - started) * 1e3
         if fix.state == "lost":
             self.health.report("nav:height", State.LOST, fix.reason)
