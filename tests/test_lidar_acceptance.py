@@ -76,6 +76,20 @@ def test_patrol_flies_every_room_on_the_lidar_estimate_with_the_rpt_controller(t
     assert r["autopilot"]["setpoint_hz"] >= 45.0  # the 50 Hz control loop streams its setpoints
 
 
+@pytest.mark.parametrize(("config", "mission", "seconds"), [("sitl-declared.yaml", "patrol", 150),
+                                                        ("sitl-corridor-declared.yaml", "corridor", None)])
+def test_told_the_simulator_s_noise_the_estimate_s_covariance_is_consistent(
+        tmp_path: Path, config: str, mission: str, seconds: float | None) -> None:
+    """With the built-in vehicle's and the clean world's noise declared (config/sitl-declared.yaml),
+    the NEES of the estimates sent is inside its 95 % band: the covariance is honest when its noise
+    models are (with config/sitl.yaml's real-vehicle defaults it is cautious, about 0.08)."""
+    r = fly(tmp_path, mission, seconds, config=config)
+    est = r["estimate"]
+    assert r["control"]["mission_completed"] and est["wrong_resets"] == 0
+    low, high = est["nees_band"]
+    assert low <= est["nees_mean"] <= high, est
+
+
 def test_an_unknown_start_pose_is_found_by_global_relocalization(tmp_path: Path) -> None:
     r = fly(tmp_path, "hover", 30, seed=3, initial_pose=False)
     assert r["control"]["mission_completed"]

@@ -97,8 +97,12 @@ class LidarPipelineConfig:
         "as the gyro says; scans too poor to test it carry it, one finding another pose starts over) before it "
         "becomes the pose; until then the lidar pose is lost.", (1, 40)))
     # The noise the vehicle's sensors and building add beyond what each fit sees (the map's own, its
-    # survey error, is in the map). The defaults suit a real multirotor with a Hokuyo in a real building,
-    # and the simulated vehicles (README, "The noise floors as settings").
+    # survey error, is in the map unless survey_error_m is set). The defaults suit a real multirotor
+    # with a Hokuyo in a real building (README, "The noise floors as settings").
+    survey_error_m: float | None = field(default=None, metadata=meta(
+        "1-sigma survey error of the map's walls and corners, m, in place of the map file's `survey_error_m`; null: "
+        "the map file's. A simulated world that is its own map is exact (config/sitl-declared.yaml declares 0).",
+        (0.0, 1.0)))
     accel_noise_density: float = field(default=FusionConfig.accel_noise_density, metadata=meta(
         "White acceleration noise of the fusion's IMU prediction, m/s^2/sqrt(Hz): the IMU's own plus the autopilot's "
         "tilt error seen through gravity, vibration, impacts (the part ArduPilot's EK3_ACC_P_NSE plays).",
@@ -117,8 +121,8 @@ class LidarPipelineConfig:
     heading_error_deg: float = field(default=math.degrees(math.sqrt(HeadingParams.variance_floor_rad2)), metadata=meta(
         "1-sigma floor of the lidar heading (walls a little off the map's wall angle), degrees.", (0.0, 5.0)))
     height_model_error_m: float = field(default=math.sqrt(HeightParams.variance_floor_m2), metadata=meta(
-        "1-sigma error of every height fix beyond its floor line's fit (an uneven floor), m. Near zero the fusion "
-        "refuses the fixes after a touchdown's jolt (README, \"The noise floors as settings\").", (0.0, 0.5)))
+        "1-sigma error of every height fix beyond its floor line's fit (an uneven floor), m; 0 only for an exactly "
+        "flat floor (a simulated one).", (0.0, 0.5)))
     attitude_error_deg: float = field(default=HeightParams.attitude_sd_deg, metadata=meta(
         "1-sigma error of the autopilot's roll and pitch, degrees: the height fix levels each floor line with them "
         "where its own fitted direction is less certain (a far floor line's at grazing angles).", (0.0, 10.0)))
@@ -202,12 +206,13 @@ class LidarPipeline:
                  vertical: MountConfig, health: Health) -> None:
         self.cfg = cfg
         self.world_map = world_map
+        self.survey_error_m = world_map.survey_error_m if cfg.survey_error_m is None else cfg.survey_error_m
         self.health = health
         initial = None
         if cfg.initial_pose is not None:
             x, y, yaw_deg = cfg.initial_pose
             initial = (x, y, math.radians(yaw_deg))
-        self.localizer = planar_localizer(planar_params(cfg, world_map.survey_error_m), world_map,
+        self.localizer = planar_localizer(planar_params(cfg, self.survey_error_m), world_map,
                                           planar_mount(horizontal), initial)
         self.height = HeightEstimator(tuple(vertical.position_m), tuple(math.radians(a) for a in vertical.rpy_deg),
                                       height_params(cfg))
@@ -360,7 +365,7 @@ class LidarPipeline:
           near a recess, the fused estimate otherwise claimed 1.5 cm along the corridor with
           errors up to 5 cm, from one fix's 3 cm).
         """
-        survey = self.world_map.survey_error_m
+        survey = self.survey_error_m
         cov = state.position_covariance.copy()
         cov[0, 0] += survey * survey / self._map_features
         cov[1, 1] += survey * survey / self._map_features
