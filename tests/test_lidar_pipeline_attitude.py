@@ -7,25 +7,18 @@ enough to tilt the floor the vertical scanner sees and move the height it gives 
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
 
-from companion.config import MountConfig
 from companion.frames import rotation_from_euler
-from companion.health import Health
-from companion.messages import ImuSample
-from companion.nav.bench_stages import DEFAULT_WORLD, make_mount, synthetic_scan
-from companion.nav.lidar_pipeline import LidarPipeline, LidarPipelineConfig
+from companion.messages import ImuSample, Scan
+from companion.nav.bench_stages import DEFAULT_WORLD
 from companion.world import load_world
-from drivers.lidar_models import URG_04LX, UTM_30LX
-from sitl.raycast import WorldGeometry
+from tests.lidar_feed import LidarFeed
 
 ARENA = load_world(DEFAULT_WORLD)
 POSITION = np.array([6.5, 3.0, -0.9])  # NED m: a room of the arena, 0.9 m up, open floor below
-HORIZONTAL = MountConfig(position_m=(0.0, 0.0, -0.10))
-VERTICAL = MountConfig(position_m=(0.05, 0.0, 0.05), rpy_deg=(90.0, 0.0, 0.0))
 AMPLITUDE_RAD = math.radians(5.0)  # pitch 5 deg either way at 1 Hz: up to 31 deg/s
 VERTICAL_DELAY_S = 0.1  # a 10 Hz scan reaches the pipeline a sweep after its capture
 HORIZONTAL_DELAY_S = 0.025
@@ -39,26 +32,20 @@ def test_a_vertical_scan_captured_while_pitching_gives_the_height_of_its_own_att
     """Hovering 0.9 m up and pitching +/-5 deg at 1 Hz, each scan rendered at its capture-time
     attitude and delivered a sweep later: the fused height stays within 2.5 mm (1.1 mm here;
     levelled with the newest attitude it was 5.4 mm off, 3 mm RMS)."""
-    geometry = WorldGeometry.from_world(ARENA)
-    rng = np.random.default_rng(4)
-    cfg = LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v", initial_pose=(6.5, 3.0, 0.0))
-    pipeline = LidarPipeline(cfg, ARENA, HORIZONTAL, VERTICAL, Health(lambda: 0.0))
-    h_mount = make_mount(HORIZONTAL.position_m, (0.0, 0.0, 0.0))
-    v_mount = make_mount(VERTICAL.position_m, (math.pi / 2, 0.0, 0.0))
-    in_flight: list[tuple[float, str, object]] = []  # (delivery time s, "h" / "v", scan)
+    feed = LidarFeed(ARENA, (6.5, 3.0, 0.0), vertical_z_m=0.05, seed=4)
+    pipeline = feed.pipeline
+    in_flight: list[tuple[float, bool, Scan]] = []  # (delivery time s, horizontal?, scan)
     errors = []
     for k in range(1600):  # 8 s of 5 ms ticks
         t = k * 0.005
         attitude = (0.0, pitch_at(t), 0.0)
         if k % 5 == 0:  # 40 Hz
-            scan = synthetic_scan(geometry, UTM_30LX, h_mount, POSITION, attitude, rng, 0.01, sequence=k)
-            in_flight.append((t + HORIZONTAL_DELAY_S, "h", dataclasses.replace(scan, t_capture=t)))
+            in_flight.append((t + HORIZONTAL_DELAY_S, True, feed.horizontal_scan(t, POSITION, attitude, k)))
         if k % 20 == 0:  # 10 Hz
-            scan = synthetic_scan(geometry, URG_04LX, v_mount, POSITION, attitude, rng, 0.01, sequence=k)
-            in_flight.append((t + VERTICAL_DELAY_S, "v", dataclasses.replace(scan, t_capture=t)))
+            in_flight.append((t + VERTICAL_DELAY_S, False, feed.vertical_scan(t, POSITION, attitude, k)))
         for item in [item for item in in_flight if item[0] <= t + 1e-9]:
             in_flight.remove(item)
-            (pipeline.on_horizontal_scan if item[1] == "h" else pipeline.on_vertical_scan)(item[2])
+            (pipeline.on_horizontal_scan if item[1] else pipeline.on_vertical_scan)(item[2])
         if k % 4 == 0:  # 50 Hz
             gravity_body = rotation_from_euler(*attitude).T @ np.array([0.0, 0.0, -9.81])
             rate = np.array([0.0, AMPLITUDE_RAD * 2.0 * math.pi * math.cos(2.0 * math.pi * t), 0.0])

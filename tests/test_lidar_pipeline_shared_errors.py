@@ -16,40 +16,28 @@ import math
 import numpy as np
 import pytest
 
-from companion.config import MountConfig
-from companion.health import Health
 from companion.messages import ImuSample, PoseEstimate
-from companion.nav.bench_stages import make_mount, synthetic_scan
-from companion.nav.lidar_pipeline import LidarPipeline, LidarPipelineConfig, wall_ends_floor
+from companion.nav.lidar_pipeline import LidarPipeline, wall_ends_floor
 from companion.world import load_world
-from drivers.lidar_models import URG_04LX, UTM_30LX
-from sitl.raycast import WorldGeometry
 from tests.conftest import REPO
+from tests.lidar_feed import LidarFeed
 
 CORRIDOR = load_world(REPO / "config" / "worlds" / "corridor.yaml")
 HOVER = np.array([31.0, 1.2, -1.0])  # NED m: between the recesses at 29 m and 38 m north, 1 m up
-HORIZONTAL = MountConfig(position_m=(0.0, 0.0, -0.10))
-VERTICAL = MountConfig(position_m=(0.05, 0.0, -0.05), rpy_deg=(90.0, 0.0, 0.0))
 
 
 def _hover(seconds: float) -> tuple[LidarPipeline, PoseEstimate]:
     """The pipeline after hovering still at HOVER for ``seconds``: IMU at 50 Hz, horizontal scans
     at 40 Hz, vertical ones at 10 Hz (fresh range noise in each), one nav cycle per IMU sample."""
-    geometry = WorldGeometry.from_world(CORRIDOR)
-    rng = np.random.default_rng(7)
-    cfg = LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v", initial_pose=(31.0, 1.2, 0.0))
-    pipeline = LidarPipeline(cfg, CORRIDOR, HORIZONTAL, VERTICAL, Health(lambda: 0.0))
-    h_mount = make_mount(HORIZONTAL.position_m, (0.0, 0.0, 0.0))
-    v_mount = make_mount(VERTICAL.position_m, (math.pi / 2, 0.0, 0.0))
+    feed = LidarFeed(CORRIDOR, (31.0, 1.2, 0.0), vertical_z_m=-0.05, seed=7)
+    pipeline = feed.pipeline
     estimate = None
     for k in range(int(seconds * 200)):  # 5 ms ticks
         t = k * 0.005
         if k % 5 == 0:  # 40 Hz
-            scan = synthetic_scan(geometry, UTM_30LX, h_mount, HOVER, (0.0, 0.0, 0.0), rng, 0.01, sequence=k)
-            pipeline.on_horizontal_scan(dataclasses.replace(scan, t_capture=t))
+            pipeline.on_horizontal_scan(feed.horizontal_scan(t, HOVER, sequence=k))
         if k % 20 == 0:  # 10 Hz
-            scan = synthetic_scan(geometry, URG_04LX, v_mount, HOVER, (0.0, 0.0, 0.0), rng, 0.01, sequence=k)
-            pipeline.on_vertical_scan(dataclasses.replace(scan, t_capture=t))
+            pipeline.on_vertical_scan(feed.vertical_scan(t, HOVER, sequence=k))
         if k % 4 == 0:  # 50 Hz
             pipeline.imu.add(ImuSample(t, np.array([0.0, 0.0, -9.81]), np.zeros(3), euler_rad=(0.0, 0.0, 0.0)))
             for made in pipeline.step(t):

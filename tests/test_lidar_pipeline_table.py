@@ -11,26 +11,19 @@ stands in for it with the step between them (its height above the floor) added.
 
 from __future__ import annotations
 
-import dataclasses
-import math
-
 import numpy as np
 
-from companion.config import MountConfig
 from companion.health import Health, State
 from companion.messages import ImuSample
-from companion.nav.bench_stages import DEFAULT_WORLD, make_mount, synthetic_scan
-from companion.nav.lidar_pipeline import LidarPipeline, LidarPipelineConfig
+from companion.nav.bench_stages import DEFAULT_WORLD
+from companion.nav.lidar_pipeline import LidarPipeline
 from companion.world import load_world
-from drivers.lidar_models import URG_04LX, UTM_30LX
-from sitl.raycast import WorldGeometry
+from tests.lidar_feed import LidarFeed
 
 ARENA = load_world(DEFAULT_WORLD)
 BESIDE_TABLE = np.array([6.5, 1.6, -0.9])  # NED m: in the north-west room, 0.9 m up, the table ahead
 AWAY_FROM_TABLE = np.array([6.5, 3.0, -0.9])  # the same room and height, the table out of the vertical scan
 OVER_TABLE = np.array([7.4, 1.6, -0.9])  # above the 0.75 m table: only its top in the vertical scan
-HORIZONTAL = MountConfig(position_m=(0.0, 0.0, -0.10))
-VERTICAL = MountConfig(position_m=(0.05, 0.0, 0.05), rpy_deg=(90.0, 0.0, 0.0))
 
 
 def hover_then_over_table(vertical_before: np.ndarray) -> tuple[LidarPipeline, Health, list[float], int]:
@@ -38,32 +31,24 @@ def hover_then_over_table(vertical_before: np.ndarray) -> tuple[LidarPipeline, H
     with only the table top in its view (the horizontal one sees the room from beside the table
     throughout, the IMU says the vehicle is still): the pipeline, its health, the fused heights
     (m) over the table and the height fixes taken there."""
-    geometry = WorldGeometry.from_world(ARENA)
-    rng = np.random.default_rng(3)
-    cfg = LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v", initial_pose=(6.5, 1.6, 0.0))
-    health = Health(lambda: 0.0)
-    pipeline = LidarPipeline(cfg, ARENA, HORIZONTAL, VERTICAL, health)
-    h_mount = make_mount(HORIZONTAL.position_m, (0.0, 0.0, 0.0))
-    v_mount = make_mount(VERTICAL.position_m, (math.pi / 2, 0.0, 0.0))
+    feed = LidarFeed(ARENA, (6.5, 1.6, 0.0), vertical_z_m=0.05, seed=3)
+    pipeline = feed.pipeline
     heights = []
     fixes_before = 0
     for k in range(1500):  # 7.5 s of 5 ms ticks
         t = k * 0.005
         if k % 5 == 0:  # 40 Hz
-            scan = synthetic_scan(geometry, UTM_30LX, h_mount, BESIDE_TABLE, (0.0, 0.0, 0.0), rng, 0.01, sequence=k)
-            pipeline.on_horizontal_scan(dataclasses.replace(scan, t_capture=t))
+            pipeline.on_horizontal_scan(feed.horizontal_scan(t, BESIDE_TABLE, sequence=k))
         if k % 20 == 0:  # 10 Hz
             if k == 1000:  # 5 s: over the table from now
                 fixes_before = pipeline.stats.height_fixes
-            seen_from = vertical_before if t < 5.0 else OVER_TABLE
-            scan = synthetic_scan(geometry, URG_04LX, v_mount, seen_from, (0.0, 0.0, 0.0), rng, 0.01, sequence=k)
-            pipeline.on_vertical_scan(dataclasses.replace(scan, t_capture=t))
+            pipeline.on_vertical_scan(feed.vertical_scan(t, vertical_before if t < 5.0 else OVER_TABLE, sequence=k))
         if k % 4 == 0:  # 50 Hz
             pipeline.imu.add(ImuSample(t, np.array([0.0, 0.0, -9.81]), np.zeros(3), euler_rad=(0.0, 0.0, 0.0)))
             pipeline.step(t)
             if t > 5.0:
                 heights.append(-float(pipeline.fusion.state(t).position_ned[2]))
-    return pipeline, health, heights, pipeline.stats.height_fixes - fixes_before
+    return pipeline, feed.health, heights, pipeline.stats.height_fixes - fixes_before
 
 
 def test_a_table_never_seen_beside_the_floor_never_becomes_the_height_while_it_hides_the_floor() -> None:
