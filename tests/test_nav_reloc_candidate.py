@@ -47,3 +47,11 @@ def test_a_candidate_no_scan_can_test_is_carried_by_the_motion_then_dropped() ->
         assert (c.x, c.y) == pytest.approx((5.0 - 0.5 * k, 2.0))
     assert carried(c, (0.0, 0.5), 0.0, needed=3) is None
     assert carried(None, (0.0, 0.0), 0.0, needed=3) is None
+
+
+def test_a_candidate_found_by_walls_is_carried_with_its_wall_count() -> None:
+    """Carried, the candidate is still the one the walls found (telemetry's ``walls``, its description)."""
+    c = found_again(None, np.array([5.0, 2.0]), EAST, 0, 3, True, (0.0, 0.0), 0.0, GATE_M, GATE_RAD)
+    moved = carried(c, (0.0, 0.5), 0.0, needed=3)
+    assert moved is not None and (moved.walls, moved.matched, moved.local) == (3, 0, True)
+    assert "3 walls" in moved.describe(3)

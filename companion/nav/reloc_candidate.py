@@ -14,7 +14,7 @@ towards east; the motion is (forward, right) metres in the body frame.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -54,7 +54,8 @@ def carried(c: RelocCandidate | None, moved_m: tuple[float, float], yaw_delta: f
     clear winner): moved with the body, dropped after ``needed`` such scans in a row."""
     if c is None or c.idle >= needed:
         return None
-    return RelocCandidate(*c.moved(moved_m, yaw_delta), c.frames, c.matched, c.local, c.idle + 1)
+    x, y, yaw = c.moved(moved_m, yaw_delta)
+    return replace(c, x=x, y=y, yaw=yaw, idle=c.idle + 1)
 
 
 def found_again(c: RelocCandidate | None, xy: np.ndarray, yaw: float, matched: int, walls: int, local: bool,
