@@ -24,6 +24,9 @@ localization: walls at multiples of a constant angle, known corner features):
 
 Walkers (``walkers:``) are people walking back and forth, for the simulated scanners only: they
 are not part of the map (a localizer never reads them) and the camera simulation does not draw them.
+So is ``floor_relief:``, a floor that is not flat (a real building's is uneven by millimetres): the
+simulated scanners see the floor at its relief, while the map, the physics and the camera keep
+the plane z = 0, the datum every height is measured from.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ from __future__ import annotations
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Literal
 
@@ -191,6 +195,45 @@ class Walker:
 
 
 @dataclass(frozen=True)
+class FloorRelief:
+    """An uneven floor: its height above the datum z = 0 is a smooth random field, the sum of
+    ``WAVES`` plane waves of equal amplitude in random directions with wavelengths spread
+    log-uniformly over ``wavelength_m`` .. 4 x ``wavelength_m`` and random phases, scaled so that
+    its RMS over the floor is ``rms_m``. (A finished floor typically deviates by up to 4 mm under
+    a 1 m straightedge and 10 mm under a 4 m one: DIN 18202, table 3.)"""
+
+    WAVES = 24
+
+    rms_m: float = field(metadata=meta("RMS of the floor's height about the datum (NED z = 0), metres.", (0.0, 0.1)))
+    wavelength_m: float = field(default=2.0, metadata=meta(
+        "Shortest wavelength of the relief, metres (the longest is four times this).", (0.1, 100.0)))
+    seed: int = field(default=0, metadata=meta("Seed of the waves' directions, wavelengths and phases.", (0, 2**31)))
+
+    @cached_property
+    def _waves(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """(WAVES, 2) wave vectors (rad/m, north and east), (WAVES,) phases (rad), the amplitude (m)."""
+        rng = np.random.default_rng(self.seed)
+        heading = rng.uniform(0.0, 2.0 * math.pi, self.WAVES)
+        wavelength = self.wavelength_m * 4.0 ** rng.uniform(0.0, 1.0, self.WAVES)
+        vectors = (2.0 * math.pi / wavelength)[:, None] * np.column_stack((np.cos(heading), np.sin(heading)))
+        return vectors, rng.uniform(0.0, 2.0 * math.pi, self.WAVES), self.rms_m * math.sqrt(2.0 / self.WAVES)
+
+    @property
+    def depth_m(self) -> float:
+        """The most the floor can lie below (or above) the datum, metres: every wave's amplitude summed."""
+        return self.WAVES * self._waves[2]
+
+    def height_at(self, x: np.ndarray | float, y: np.ndarray | float) -> np.ndarray:
+        """Height (metres above the datum; NED z there is minus this) of the floor at the points
+        (x north, y east, metres; arrays of one shape): an array of that shape."""
+        vectors, phases, amplitude = self._waves
+        angle = np.multiply.outer(np.asarray(x, dtype=float), vectors[:, 0])
+        angle += np.multiply.outer(np.asarray(y, dtype=float), vectors[:, 1])
+        angle += phases
+        return amplitude * np.cos(angle).sum(axis=-1)
+
+
+@dataclass(frozen=True)
 class Opening:
     """A door or window: a rectangular hole in a wall, centred on the wall's line."""
 
@@ -266,6 +309,9 @@ class World:
         "2.56 m, repeating every 10.24 m), nothing beyond 100 m. terrain: open country for a camera high up (a "
         "fixed wing's forward camera at 20-150 m): texture of 0.5 m to 512 m, drawn to the horizon under a smooth "
         "sky."))
+    floor_relief: FloorRelief | None = field(default=None, metadata=meta(
+        "An uneven floor, for the simulated scanners only (the map, the physics and the camera keep the floor "
+        "flat at z = 0); none: a flat floor."))
     survey_error_m: float = field(default=0.005, metadata=meta(
         "1-sigma error of the walls' and corners' positions as surveyed, metres: a property of this map that every "
         "lidar fix from it carries (the default: corners are accepted within 1 cm of their walls' corner).",

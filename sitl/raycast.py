@@ -9,9 +9,11 @@ The world becomes, once (:meth:`WorldGeometry.from_world`):
   (a door or window is a hole: a beam through it flies on), and every obstacle box adds its
   four sides from the floor to its top;
 - *tops*: horizontal rectangles, the top faces of the obstacle boxes;
-- the floor, the infinite plane z = 0, and a ceiling, the infinite plane at the height of the
-  tallest wall (none without walls). Beyond the walls both planes go on, so a beam leaving
-  through a window hits the floor or ceiling outside unless it is level (then: no hit).
+- the floor, the infinite plane z = 0 or, with the world's ``floor_relief``, the surface at
+  its relief (walls and boxes then reach down to its lowest point), and a ceiling, the infinite
+  plane at the height of the tallest wall (none without walls). Beyond the walls both go on, so
+  a beam leaving through a window hits the floor or ceiling outside unless it is level (then:
+  no hit).
 
 :func:`cast` intersects all rays with all surfaces at once as (rays x surfaces) arrays, with
 no per-beam Python loop. Surfaces are closed (edges count as hits, stretched by
@@ -25,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from companion.world import TOLERANCE_M, Wall, World
+from companion.world import TOLERANCE_M, FloorRelief, Wall, World
 
 # Surfaces are enlarged by 0.1 mm so that seams and corners stay watertight in float32 (whose
 # rounding is ~6e-5 m at 1 km); far below any range sensor's resolution.
@@ -81,6 +83,7 @@ class WorldGeometry:
     top_min: np.ndarray  # (T, 2) x, y minimum corner
     top_max: np.ndarray  # (T, 2) x, y maximum corner
     ceiling_z: float  # NED z of the ceiling plane (-inf: no ceiling)
+    floor: FloorRelief | None = None  # the floor's relief (None: the plane z = 0)
 
     @classmethod
     def from_world(cls, world: World) -> WorldGeometry:
@@ -107,6 +110,9 @@ class WorldGeometry:
         p0 = table[:, 0:2]
         along = table[:, 2:4].astype(np.float32)
         normal = np.column_stack((-along[:, 1], along[:, 0]))
+        relief = world.floor_relief
+        if relief is not None:  # what stands on the floor reaches down to wherever the floor lies
+            table[table[:, 6] == 0.0, 6] = -relief.depth_m
         s0, h0 = table[:, 4] - EDGE_EPS_M, table[:, 6] - EDGE_EPS_M
         s1, h1 = table[:, 5] + EDGE_EPS_M, table[:, 7] + EDGE_EPS_M
         heights = [w.height_m for w in world.walls]
@@ -118,6 +124,7 @@ class WorldGeometry:
             top_min=np.array([o.min for o in world.obstacles], dtype=float).reshape(-1, 2) - EDGE_EPS_M,
             top_max=np.array([o.max for o in world.obstacles], dtype=float).reshape(-1, 2) + EDGE_EPS_M,
             ceiling_z=-max(heights) if heights else -np.inf,
+            floor=relief,
         )
 
 
@@ -155,10 +162,9 @@ def cast(geometry: WorldGeometry, origins: np.ndarray, directions: np.ndarray) -
         hit &= t > 0
         t[~hit] = np.inf
         best = t.min(axis=1, initial=np.inf).astype(float)
-        # Horizontal planes: floor (z = 0), ceiling, obstacle tops (float64: few of them).
+        # Horizontal surfaces: floor, ceiling, obstacle tops (float64: few of them).
         dz = d[:, 2:3]
-        for plane_z in (0.0, g.ceiling_z):
-            t_plane = ((plane_z - oz) / dz)[:, 0]
+        for t_plane in (_floor_distance(g.floor, o, d), ((g.ceiling_z - oz) / dz)[:, 0]):
             best = np.where((t_plane > 0) & (t_plane < best), t_plane, best)
         if len(g.top_z):
             t_top = (g.top_z - oz) / dz  # (N, T)
@@ -168,3 +174,16 @@ def cast(geometry: WorldGeometry, origins: np.ndarray, directions: np.ndarray) -
                        & (y >= g.top_min[:, 1]) & (y <= g.top_max[:, 1]))
             best = np.minimum(best, np.where(hit_top, t_top, np.inf).min(axis=1))
     return best
+
+
+def _floor_distance(relief: FloorRelief | None, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """(N,) distance (m) along each ray (origins ``o`` (1 or N, 3), unit directions ``d`` (N, 3),
+    NED) to the floor, negative or not finite where it never gets there: the plane z = 0, or the
+    relief's surface, found from the plane by three fixed-point steps (each shrinks the error by
+    the relief's slope over the ray's; over a 5 mm relief of 2-8 m waves the hit lies within 0.04
+    mm of the surface for a beam 5 deg below level, within 0.001 mm from 10 deg)."""
+    t = -o[:, 2] / d[:, 2]
+    if relief is not None:
+        for _ in range(3):
+            t = (-relief.height_at(o[:, 0] + t * d[:, 0], o[:, 1] + t * d[:, 1]) - o[:, 2]) / d[:, 2]
+    return t

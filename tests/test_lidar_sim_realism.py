@@ -1,6 +1,7 @@
 """The error sources of a real scanner in the simulated Hokuyo (sitl/lidar_sim.py, sitl/walkers.py):
-mixed pixels at depth edges, a mount error, motion distortion over the sweep and walking people;
-and the realistic world's range noise checked against a real URG-04LX recording.
+mixed pixels at depth edges, a mount error, motion distortion over the sweep, walking people and an
+uneven floor (sitl/raycast.py); and the realistic world's range noise checked against a real
+URG-04LX recording.
 
 The scanner stands 1 m above the floor (NED z = -1) facing north unless a test says otherwise;
 worlds are bare walls (tests/scan_synthesis.py) 3 m high.
@@ -23,7 +24,7 @@ from companion.nav.bench_stages import DEFAULT_WORLD
 from companion.nav.height import HeightParams
 from companion.nav.lines import extract_lines
 from companion.replay import read_log
-from companion.world import Walker, World, load_world
+from companion.world import FloorRelief, Walker, World, load_world
 from drivers.mount import Mount, beam_directions
 from sitl.lidar_sim import MIXED_PIXEL_EDGE_M, SimLidarSettings, SimulatedLidar
 from sitl.raycast import WorldGeometry, cast
@@ -319,6 +320,47 @@ def test_maps_and_the_static_geometry_ignore_walkers() -> None:
     origin, beams = np.array(SCANNER), beam_directions(np.linspace(-2.0, 2.0, 50))
     np.testing.assert_array_equal(cast(WorldGeometry.from_world(peopled), origin, beams),
                                   cast(WorldGeometry.from_world(bare), origin, beams))
+
+
+# -- an uneven floor ---------------------------------------------------------------------------
+
+RELIEF = FloorRelief(rms_m=0.004, wavelength_m=2.0, seed=5)
+
+
+def test_the_floor_relief_has_its_rms_about_the_datum_within_its_depth() -> None:
+    x, y = np.meshgrid(np.linspace(-50.0, 50.0, 401), np.linspace(-50.0, 50.0, 401))
+    height = RELIEF.height_at(x, y)
+    assert height.shape == x.shape
+    assert float(np.sqrt(np.mean(height ** 2))) == pytest.approx(0.004, rel=0.1)
+    assert abs(float(height.mean())) < 0.0005
+    assert float(np.abs(height).max()) <= RELIEF.depth_m
+    np.testing.assert_array_equal(height, FloorRelief(rms_m=0.004, wavelength_m=2.0, seed=5).height_at(x, y))
+    assert not np.allclose(height, replace(RELIEF, seed=6).height_at(x, y), atol=0.001)
+
+
+def test_a_scanner_looking_down_measures_its_height_less_the_floors_relief_there() -> None:
+    flat = walls_world([FAR_WALL])
+    rough = replace(flat, floor_relief=RELIEF)
+    xy = np.random.default_rng(3).uniform(-4.0, 4.0, (200, 2))
+    origins = np.column_stack((xy, np.full(len(xy), -1.0)))
+    down = np.tile([0.0, 0.0, 1.0], (len(xy), 1))
+    np.testing.assert_allclose(cast(WorldGeometry.from_world(rough), origins, down),
+                               1.0 - RELIEF.height_at(xy[:, 0], xy[:, 1]), atol=1e-9)
+    np.testing.assert_array_equal(cast(WorldGeometry.from_world(flat), origins, down), np.ones(len(xy)))
+
+
+@pytest.mark.parametrize("below_level_deg", [5.0, 20.0, 60.0])
+def test_slanted_beams_end_on_the_relief(below_level_deg: float) -> None:
+    """Beams all round, ``below_level_deg`` down from 0.3 m above the floor: all reach the floor."""
+    geometry = WorldGeometry.from_world(replace(walls_world([FAR_WALL]), floor_relief=RELIEF))  # the wall 6 m off
+    turn = np.linspace(0.0, 2.0 * math.pi, 360, endpoint=False)
+    down = math.radians(below_level_deg)
+    beams = np.column_stack((np.cos(turn) * math.cos(down), np.sin(turn) * math.cos(down),
+                             np.full(360, math.sin(down))))
+    origin = np.array([0.7, -0.4, -0.3])
+    hits = origin + cast(geometry, origin, beams)[:, None] * beams
+    np.testing.assert_allclose(-hits[:, 2], RELIEF.height_at(hits[:, 0], hits[:, 1]), atol=4e-5)
+    assert np.ptp(hits[:, 2]) > 0.002  # the floor is not flat there
 
 
 # -- range noise against the real URG-04LX -------------------------------------------------------

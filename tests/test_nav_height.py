@@ -124,15 +124,16 @@ def test_a_table_top_seen_beside_the_floor_stands_in_for_it_with_its_step(geomet
     assert est.update(vertical_scan(geometry, *TABLE_XY, 1.05, rng), expected=(1.35, 0.03)).state == "lost"
 
 
-def profile_scan(surfaces: list[tuple[float, float, float]]) -> np.ndarray:
+def profile_scan(surfaces: list[tuple[float, ...]]) -> np.ndarray:
     """(N, 2) sensor-plane points of a URG-04LX (scan plane = body x-z, level, no noise) over
-    horizontal ``surfaces`` (depth below the scanner m, from u, to u m ahead): each beam's
-    nearest hit, NaN where it hits none."""
+    ``surfaces`` (depth below the scanner m, from u, to u m ahead[, rising ahead by degrees about
+    its middle; level if not given]): each beam's nearest hit, NaN where it hits none."""
     c, s = np.cos(URG04LX_ANGLES), np.sin(URG04LX_ANGLES)  # sensor y = body down
     r = np.full(URG04LX_ANGLES.size, np.inf)
-    for depth, u0, u1 in surfaces:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = depth / s
+    for depth, u0, u1, *rise_deg in surfaces:
+        slope = -math.tan(math.radians(rise_deg[0])) if rise_deg else 0.0  # depth change per metre ahead
+        with np.errstate(divide="ignore", invalid="ignore"):  # v = depth + slope (u - middle) on it
+            t = (depth - slope * (u0 + u1) / 2) / (s - slope * c)
         u = t * c
         hit = (s > 1e-6) & (u >= u0) & (u <= u1)
         r = np.where(hit & (t < r), t, r)
@@ -216,6 +217,27 @@ def test_a_short_floor_line_is_a_fix_like_any_other() -> None:
     fix = HeightEstimator().update(profile_scan([(1.0, 2.0, 2.45), (0.5, -0.5, 0.95)]), expected=(1.0, 0.01))
     assert fix.state == "ok" and fix.height_m == pytest.approx(1.0, abs=0.01)
     assert 0.005 ** 2 <= fix.variance < 0.02 ** 2
+
+
+def test_a_floor_line_on_an_uneven_floor_carried_to_under_the_vehicle_says_how_far_it_may_be_off() -> None:
+    """The floor seen only 1.5-4.0 m ahead, rising 0.3 deg there (a finished floor's 4 mm in 1 m is
+    0.23 deg): its own direction carries it 14 mm off to under the vehicle; with the floor's tilt
+    in the fit's variance the fix leans on the attitude too and says it may be off by that much
+    (the floor taken as flat: 14 mm off at a 5 mm sigma)."""
+    fix = HeightEstimator().update(profile_scan([(1.0, 1.5, 4.0, 0.3)]))
+    assert fix.state == "ok"
+    assert abs(fix.height_m - 1.0) < 1.5 * math.sqrt(fix.variance)
+    flat = HeightEstimator(params=HeightParams(floor_tilt_sd_deg=0.0)).update(profile_scan([(1.0, 1.5, 4.0, 0.3)]))
+    assert abs(flat.height_m - 1.0) > 2.5 * math.sqrt(flat.variance)  # a floor taken as flat: over-confident
+
+
+def test_the_floor_under_the_vehicle_is_taken_over_a_longer_line_further_ahead() -> None:
+    """Level floor under the vehicle (1.2 m of it) and 3.5 m of floor 1-4.5 m ahead rising 0.5 deg,
+    both as far down at their middles: the fix is the one with the least variance, the line under
+    the vehicle (the longest, carried 2.75 m, put it 12 mm off)."""
+    fix = HeightEstimator().update(profile_scan([(1.0, -0.6, 0.6), (1.0, 1.0, 4.5, 0.5)]))
+    assert fix.state == "ok" and fix.floor_lines == 2
+    assert fix.height_m == pytest.approx(1.0, abs=0.002)
 
 
 def test_no_floor_is_lost_without_nan(geometry: WorldGeometry) -> None:

@@ -126,6 +126,11 @@ class LidarPipelineConfig:
     attitude_error_deg: float = field(default=HeightParams.attitude_sd_deg, metadata=meta(
         "1-sigma error of the autopilot's roll and pitch, degrees: the height fix levels each floor line with them "
         "where its own fitted direction is less certain (a far floor line's at grazing angles).", (0.0, 10.0)))
+    floor_tilt_error_deg: float = field(default=HeightParams.floor_tilt_sd_deg, metadata=meta(
+        "1-sigma tilt of the floor under a floor line against the level, degrees (an uneven floor: a 4 mm rise "
+        "over 1 m, what DIN 18202 allows a finished floor, is 0.23 deg): how far a floor line's own direction "
+        "may lead its height off when carried to under the vehicle; 0 only for an exactly flat floor (a simulated "
+        "one).", (0.0, 10.0)))
 
     def sensor_inputs(self) -> dict[str, str]:
         return {"horizontal_sensor": "lidar", "vertical_sensor": "lidar", "imu_sensor": "imu"}
@@ -172,7 +177,7 @@ def height_params(cfg: LidarPipelineConfig) -> HeightParams:
     """The vertical scanner's height fix with the config's noise floors."""
     lines = dataclasses.replace(HeightParams().lines, model_floor_m=cfg.line_model_error_m)
     return HeightParams(lines=lines, variance_floor_m2=cfg.height_model_error_m ** 2,
-                        attitude_sd_deg=cfg.attitude_error_deg)
+                        attitude_sd_deg=cfg.attitude_error_deg, floor_tilt_sd_deg=cfg.floor_tilt_error_deg)
 
 
 def planar_mount(mount: MountConfig) -> Mount2D:
