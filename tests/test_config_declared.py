@@ -11,7 +11,7 @@ from tests.conftest import REPO
 
 DECLARED_KEYS = {"survey_error_m", "accel_noise_density", "fix_time_sd_s", "line_model_error_m",
                  "corner_error_per_m", "heading_error_deg", "height_model_error_m",
-                 "floor_tilt_error_deg"}
+                 "floor_tilt_error_deg", "mixed_pixels"}
 
 
 @pytest.mark.parametrize(("declared", "base"), [("sitl-declared.yaml", "sitl.yaml"),

@@ -1,5 +1,6 @@
 """Occluding line ends: a wall's end where the scan steps back to a surface behind it is an edge;
-an end cut by something nearer, by the field of view or by missing beams is not."""
+an end cut by something nearer, by the field of view or by missing beams is not; a mixed pixel may
+lengthen a wall seen at a slant, and its end's variance says by how much."""
 
 from __future__ import annotations
 
@@ -7,7 +8,9 @@ import math
 
 import numpy as np
 
-from companion.nav.edges import occluding_ends
+import dataclasses
+
+from companion.nav.edges import EdgeParams, occluding_ends
 from companion.nav.lines import LineParams, extract_lines
 
 ANGLES = np.radians(np.arange(-60.0, 60.0 + 1e-9, 0.25))  # beams from +x towards +y
@@ -34,10 +37,10 @@ def _scan(segments: list[tuple[float, float, float, float]], angles: np.ndarray 
     return direction * ranges[:, None], valid, ranges
 
 
-def _edges(segments: list[tuple[float, float, float, float]], **kwargs: object):
+def _edges(segments: list[tuple[float, float, float, float]], params: EdgeParams = EdgeParams(), **kwargs: object):
     points, valid, ranges = _scan(segments, **kwargs)
     lines = extract_lines(points, valid, NOISE, ranges)
-    return lines, occluding_ends(lines, points, valid, ranges, np.zeros(2), NOISE)
+    return lines, occluding_ends(lines, points, valid, ranges, np.zeros(2), NOISE, params)
 
 
 def _line_along(lines, x: float) -> int:
@@ -46,8 +49,9 @@ def _line_along(lines, x: float) -> int:
 
 
 def test_a_wall_ending_in_front_of_a_farther_wall_has_an_edge_at_its_true_end() -> None:
-    # near wall x = 2 from y = -1 to y = 1, the far wall x = 4 seen past its end
-    lines, edges = _edges([(2.0, -1.0, 2.0, 1.0), (4.0, -3.0, 4.0, 5.0)])
+    # near wall x = 2 from y = -1 to y = 1, the far wall x = 4 seen past its end; a scanner without
+    # mixed pixels (with them, the last test: the variance grows by how far one may lengthen the wall)
+    lines, edges = _edges([(2.0, -1.0, 2.0, 1.0), (4.0, -3.0, 4.0, 5.0)], EdgeParams(mixed_pixels=False))
     near = _line_along(lines, 2.0)
     at_end = edges.xy[edges.line == near]
     assert at_end.shape[0] == 2  # both ends step back to the far wall
@@ -78,3 +82,43 @@ def test_an_end_at_missing_beams_is_no_edge() -> None:
     edges = occluding_ends(lines, points, valid, ranges, np.zeros(2), NOISE)
     near = _line_along(lines, 2.0)
     assert np.count_nonzero(edges.line == near) == 1  # the other end still is one
+
+
+# A corridor wall (y = 1.2, from x = 1) with a 1 m recess at x = 7..8 in it, seen from the origin:
+# its end at x = 7 lies 10 deg off the wall's direction, where one beam spans about 0.18 m of it.
+CORRIDOR_WALL = [(1.0, 1.2, 7.0, 1.2), (7.0, 2.2, 8.0, 2.2), (8.0, 1.2, 8.0, 2.2), (8.0, 1.2, 14.0, 1.2)]
+
+
+def _end_with_a_mixed_pixel(mixed_pixels: bool) -> tuple[float, float]:
+    """The wall end's (x error m, 1-sigma m) when the first beam past it returned a mixed pixel 3 cm
+    behind the wall (a range between the wall and the recess behind, within the split threshold)."""
+    points, valid, ranges = _scan(CORRIDOR_WALL)
+    past = int(np.flatnonzero(valid & (np.abs(points[:, 1] - 1.2) > 0.01) & (points[:, 0] > 7.0))[-1])
+    ranges[past] = 1.23 / math.sin(ANGLES[past])  # on its ray, 3 cm beyond the wall's line
+    points[past] = ranges[past] * np.array([math.cos(ANGLES[past]), math.sin(ANGLES[past])])
+    lines = extract_lines(points, valid, NOISE, ranges)
+    edges = occluding_ends(lines, points, valid, ranges, np.zeros(2), NOISE,
+                           dataclasses.replace(EdgeParams(), mixed_pixels=mixed_pixels))
+    near_end_x = np.minimum(lines.start[:, 0], lines.end[:, 0])
+    wall = int(np.flatnonzero((np.abs(lines.d - 1.2) < 0.02) & (near_end_x < 2.0))[0])
+    (k,) = np.flatnonzero(edges.line == wall)
+    return float(edges.xy[k, 0] - 7.0), math.sqrt(float(edges.along_var[k]))
+
+
+def test_a_mixed_pixel_lengthening_a_wall_seen_at_a_slant_is_within_the_ends_variance() -> None:
+    error, sigma = _end_with_a_mixed_pixel(mixed_pixels=True)
+    assert error > 0.2  # the mixed pixel joined the wall: its end looks 0.2 m or more further
+    assert error < 2.0 * sigma
+    error_clean, sigma_clean = _end_with_a_mixed_pixel(mixed_pixels=False)
+    assert error_clean == error and error > 4.0 * sigma_clean  # a scanner declared without them: over-confident
+
+
+def test_an_end_seen_square_on_is_known_as_well_with_mixed_pixels_as_without() -> None:
+    """The near wall's ends of the first test, 27-45 deg off its direction: the reach of a mixed
+    pixel there is a few centimetres, no more than a beam spacing."""
+    points, valid, ranges = _scan([(2.0, -1.0, 2.0, 1.0), (4.0, -3.0, 4.0, 5.0)])
+    lines = extract_lines(points, valid, NOISE, ranges)
+    mixed = occluding_ends(lines, points, valid, ranges, np.zeros(2), NOISE)
+    none = occluding_ends(lines, points, valid, ranges, np.zeros(2), NOISE, EdgeParams(mixed_pixels=False))
+    np.testing.assert_array_equal(mixed.xy, none.xy)
+    assert np.all(np.sqrt(mixed.along_var) < 0.1) and np.all(mixed.along_var > none.along_var)

@@ -691,13 +691,16 @@ def test_the_ends_of_a_corridors_walls_measure_the_along_track_position() -> Non
     end at the recesses: where a wall line is the nearer surface at a range jump its end is a real
     edge (companion/nav/edges.py), and the map wall's end says where it is along the corridor.
     From a prediction drifted 0.2 m along the corridor every fix there measures the position in
-    both directions, within its reported sigma."""
+    both directions, within its reported sigma. The scanner mixes no pixels at depth edges (with
+    mixed pixels an end 8 m ahead seen 9 deg off the wall is known to 0.3 m, and where it is the only
+    one in view the along-track direction is unmeasured: tests/test_nav_edges.py)."""
     corridor = load_world(DEFAULT_WORLD.parent / "corridor.yaml")
     geometry = WorldGeometry.from_world(corridor)
     rng = np.random.default_rng(5)
+    unmixed = PlanarParams(edges=dataclasses.replace(PlanarParams().edges, mixed_pixels=False))
     ended = 0
     for x in np.arange(29.5, 33.6, 0.25):
-        loc = PlanarLocalizer(corridor.corner_array(), corridor.wall_angle_deg, mount=MOUNT,
+        loc = PlanarLocalizer(corridor.corner_array(), corridor.wall_angle_deg, mount=MOUNT, params=unmixed,
                               walls=corridor.segments_at(HEIGHT_M - MOUNT.z_m), initial_pose=(x + 0.2, 1.2, 0.0))
         fix = loc.update(scan_at(geometry, x, 1.2, 0.0, rng))
         assert fix is not None and fix.measured and fix.unmeasured is None, fix.reason

@@ -36,6 +36,7 @@ from companion.frames import planar_increment, wrap_pi
 from companion.health import Health, State
 from companion.messages import Estimate, PoseEstimate, Scan
 from companion.nav.corners import CornerParams
+from companion.nav.edges import EdgeParams
 from companion.nav.fusion import FusedState, FusionConfig, FusionFilter, without_direction
 from companion.nav.fusion_io import FusedOutput, ImuFeed, to_pose_estimate
 from companion.nav.heading import HeadingParams
@@ -126,6 +127,11 @@ class LidarPipelineConfig:
     attitude_error_deg: float = field(default=HeightParams.attitude_sd_deg, metadata=meta(
         "1-sigma error of the autopilot's roll and pitch, degrees: the height fix levels each floor line with them "
         "where its own fitted direction is less certain (a far floor line's at grazing angles).", (0.0, 10.0)))
+    mixed_pixels: bool = field(default=EdgeParams.mixed_pixels, metadata=meta(
+        "Whether the horizontal scanner may return a range between two surfaces at a depth edge (every real "
+        "one does): a wall's end seen at a slant is then known only to within the line extraction's tolerance "
+        "over the tangent of the view's angle (companion/nav/edges.py); false only for a scanner without them "
+        "(a simulated one)."))
     floor_tilt_error_deg: float = field(default=HeightParams.floor_tilt_sd_deg, metadata=meta(
         "1-sigma tilt of the floor under a floor line against the level, degrees (an uneven floor: a 4 mm rise "
         "over 1 m, what DIN 18202 allows a finished floor, is 0.23 deg): how far a floor line's own direction "
@@ -165,10 +171,12 @@ def planar_params(cfg: LidarPipelineConfig, survey_error_m: float = CornerParams
     """The localizer's thresholds and noise floors from the config and the map's survey error (m,
     1-sigma: the floor of every corner's and wall's covariance); the rest keep the defaults of
     companion/nav."""
-    lines = dataclasses.replace(PlanarParams().lines, model_floor_m=cfg.line_model_error_m)
+    defaults = PlanarParams()
+    lines = dataclasses.replace(defaults.lines, model_floor_m=cfg.line_model_error_m)
     return PlanarParams(gate_m=cfg.correspondence_gate_m, reloc_confirm_frames=cfg.relocalization_confirm_scans,
                         corners=CornerParams(floor_m=survey_error_m, floor_per_m=cfg.corner_error_per_m),
                         map_error_m=survey_error_m, lines=lines,
+                        edges=dataclasses.replace(defaults.edges, mixed_pixels=cfg.mixed_pixels),
                         heading=HeadingParams(prediction_sigma_deg=GYRO_PREDICTION_SIGMA_DEG,
                                               variance_floor_rad2=math.radians(cfg.heading_error_deg) ** 2))
 

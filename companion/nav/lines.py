@@ -88,6 +88,10 @@ class LineParams:
         """1-sigma range noise in metres at ``range_m`` metres."""
         return self.noise_m + self.noise_per_m * range_m
 
+    def split_threshold(self, range_m: np.ndarray) -> np.ndarray:
+        """How far (m) a point ``range_m`` metres away may lie off a segment's chord and still not split it."""
+        return self.split_distance_m + self.split_sigmas * self.sigma(range_m)
+
 
 @dataclass(frozen=True)
 class LineSet:
@@ -203,7 +207,7 @@ def _split(pts: np.ndarray, rng: np.ndarray, starts: np.ndarray, ends: np.ndarra
         dmax = np.maximum.reduceat(dist, offsets)
         at_max = np.flatnonzero(dist == np.repeat(dmax, n))
         c = idx[at_max[np.searchsorted(at_max, offsets)]]  # every segment's first point at its maximum
-        ok = dmax <= params.split_distance_m + params.split_sigmas * params.sigma(rng[c])
+        ok = dmax <= params.split_threshold(rng[c])
         done_s.append(s[ok])
         done_e.append(e[ok])
         s = np.concatenate((s[~ok], c[~ok]))
