@@ -69,7 +69,7 @@ def score_estimate(log: dict) -> dict[str, float | None]:
     """Position/yaw/height error of the received vision estimates against truth."""
     vp = log["vision_position"]
     empty = dict.fromkeys(("position_rms_m", "position_max_m", "yaw_rms_deg", "attitude_rms_deg", "height_rms_m",
-                           "fix_rate_hz", "lost_seconds", "nees_mean", "nees_band", "cross_track_max_m",
+                           "fix_rate_hz", "lost_seconds", "nees_mean", "nees_band", "nees_max", "cross_track_max_m",
                            "wrong_resets"))
     if not vp["usec"]:
         return empty
@@ -99,6 +99,7 @@ def score_estimate(log: dict) -> dict[str, float | None]:
         "lost_seconds": float(np.sum(gaps[gaps > LOST_GAP_S])),
         "nees_mean": mean_or_none(nees_values),
         "nees_band": None if band is None else list(band),
+        "nees_max": float(nees_values.max()) if nees_values.size else None,
         "cross_track_max_m": cross_track_max(est[:, :2] - true_pos[:, :2], triangles),
         "wrong_resets": wrong_resets(np.asarray(vp["reset_counter"])[inside], est, true_pos),
         "horizontal_rms_m": _rms(horizontal),

@@ -136,14 +136,17 @@ def test_the_corridor_slows_down_while_no_corner_is_in_view_and_never_flies_on_a
 
 def test_the_realistic_corridor_keeps_its_cross_track_position_and_is_never_over_confident(tmp_path: Path) -> None:
     """config/sitl-corridor-realistic.yaml: the corridor as built (walls 1-3 cm off the map, things
-    on the walls, a person walking) localized in the surveyed map (2 cm survey error, a recess's
-    back corner missing), with the realistic scanners' errors. The recess's back corners lie 20 cm
-    from its mouth's: paired by distance alone, the flight locked 21 cm off across the corridor
-    (NEES 4.45) until only corners whose walls run the same ways were paired."""
+    on the walls, a person walking, an uneven floor) localized in the surveyed map (2 cm survey
+    error, a recess's back corner missing), with the realistic scanners' errors. The recess's back
+    corners lie 20 cm from its mouth's: paired by distance alone, the flight locked 21 cm off across
+    the corridor (NEES 4.45) until only corners whose walls run the same ways were paired. No single
+    estimate is confidently wrong: a recess edge 7 m ahead seen through mixed pixels put seed 2's
+    0.23 m off along the corridor at a 2.6 cm sigma (NEES 79) until its end's variance said so."""
     r = fly(tmp_path, "corridor", None, config="sitl-corridor-realistic.yaml")
     est, control = r["estimate"], r["control"]
     assert control["mission_completed"] and control["failsafes_triggered"] == []
     assert est["cross_track_max_m"] <= 0.05 and est["wrong_resets"] == 0 and est["lost_seconds"] == 0.0
     assert est["position_rms_m"] <= 0.05 and est["position_max_m"] <= 0.2
     low, high = est["nees_band"]
-    assert est["nees_mean"] <= high, est  # never over-confident
+    assert low <= est["nees_mean"] <= high, est
+    assert est["nees_max"] < 25.0, est  # 14-15 for seeds 1-3 on 2026-12-06; 3 dof: 25 is passed once in 60,000

@@ -28,7 +28,7 @@ from tests.sitl_helpers import write_config, write_sitl_config
 SCHEMA_1 = {
     "schema": None, "mission": None, "seconds": None, "lockstep": None, "seed": None,
     "estimate": {"position_rms_m", "position_max_m", "yaw_rms_deg", "attitude_rms_deg", "height_rms_m", "fix_rate_hz", "lost_seconds",
-                 "nees_mean", "nees_band", "cross_track_max_m", "wrong_resets"},
+                 "nees_mean", "nees_band", "nees_max", "cross_track_max_m", "wrong_resets"},
     "autopilot": {"origin_confirmed", "external_nav_in_use", "vision_position_estimate_hz",
                   "vision_speed_estimate_hz", "setpoint_hz", "nonfinite_dropped", "firmware", "internal_errors"},
     "control": {"law", "mission_completed", "tracking_rms_m", "tracking_max_m", "failsafes_triggered", "degraded_slowdowns"},
