@@ -5,8 +5,8 @@ Steps: split-and-merge lines on its scan (lines.py, in the sensor frame); keep t
 direction is floor-like once roll and pitch are compensated; sort them by how far below the
 scanner they lie; keep the furthest ones (within ``furthest_tolerance_m``) and among them the
 one whose height has the least variance (below): the floor (the paper: the longest; on an uneven
-floor a long line far ahead is worse than a shorter one under the vehicle). Surfaces above the floor (a table top) are floor-like but nearer,
-so the floor wins as long as some beams reach it.
+floor a long line far ahead is worse than a shorter one under the vehicle). Surfaces above the
+floor (a table top) are floor-like but nearer, so the floor wins as long as some beams reach it.
 
 Attitude compensation, exact for any mount: let ``G = L(roll, pitch) M`` map sensor axes to
 the levelled frame (``M`` the mount rotation, ``L`` the attitude without yaw). A sensor-plane
