@@ -8,8 +8,6 @@ import math
 
 import numpy as np
 
-import dataclasses
-
 from companion.nav.edges import EdgeParams, occluding_ends
 from companion.nav.lines import LineParams, extract_lines
 
@@ -98,7 +96,7 @@ def _end_with_a_mixed_pixel(mixed_pixels: bool) -> tuple[float, float]:
     points[past] = ranges[past] * np.array([math.cos(ANGLES[past]), math.sin(ANGLES[past])])
     lines = extract_lines(points, valid, NOISE, ranges)
     edges = occluding_ends(lines, points, valid, ranges, np.zeros(2), NOISE,
-                           dataclasses.replace(EdgeParams(), mixed_pixels=mixed_pixels))
+                           EdgeParams(mixed_pixels=mixed_pixels))
     near_end_x = np.minimum(lines.start[:, 0], lines.end[:, 0])
     wall = int(np.flatnonzero((np.abs(lines.d - 1.2) < 0.02) & (near_end_x < 2.0))[0])
     (k,) = np.flatnonzero(edges.line == wall)
