@@ -167,6 +167,19 @@ def test_unsure_of_its_height_a_remembered_table_alone_is_no_floor_but_the_floor
     assert est.update(by_a_wall, expected=(0.0, 1000.0)).state == "lost"
 
 
+def test_unsure_of_its_height_the_floor_in_two_pieces_is_as_long_as_its_longest() -> None:
+    """A table (0.75 m above the floor, 1 m of it seen) remembered; the fused height unsure (sigma
+    0.3 m). The floor in view as 0.8 m under the vehicle and 3 m further ahead: the piece under the
+    vehicle is the fix (the least variance), but that the surface is longer than the table ever
+    was, the evidence that it is the floor, is the longer piece's."""
+    est = HeightEstimator()
+    for _ in range(3):
+        assert est.update(profile_scan([(0.25, 1.0, 2.0), (1.0, -0.5, 4.0)]), expected=(1.0, 0.01)).state != "lost"
+    fix = est.update(profile_scan([(1.0, -0.4, 0.4), (1.0, 1.0, 4.0)]), expected=(1.0, 0.3))
+    assert fix.state != "lost", fix.reason
+    assert fix.height_m == pytest.approx(1.0, abs=0.005)
+
+
 def test_a_hidden_floor_stands_in_with_the_remembered_step_at_that_place() -> None:
     """Two tables at about the same height in two places (0.75 m above the floor here, 0.70 m ten
     metres east) are two steps; the floor hidden at the first, its step alone stands in, the other

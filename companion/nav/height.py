@@ -216,7 +216,9 @@ class HeightEstimator:
             where = self._where(lines.centroid[floor], level, pose)
             lengths = lines.length[floor].tolist()
             above = expected[0] - height
-            candidate = _Surface(above, variance + expected[1] ** 2, lengths[k], where[k] if where else None)
+            # The furthest lines are one surface: as long as its longest piece, the fix its surest one.
+            longest = max(lengths[j] for j in furthest.tolist())
+            candidate = _Surface(above, variance + expected[1] ** 2, longest, where[k] if where else None)
             if above > max(p.jump_m, 3.0 * math.sqrt(candidate.variance)):
                 return self._stand_in(height, variance, candidate, int(floor.size))
             # The lines above the candidate (by more than jump_m): steps, if the candidate is the floor.
