@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import re
 import tracemalloc
 
 import numpy as np
@@ -453,6 +455,51 @@ def test_symmetric_room_has_no_clear_winner() -> None:
     assert "no clear winner" in loc.last_reason
 
 
+def test_a_search_without_a_clear_winner_shows_its_best_look_alike_hypotheses_first(
+        arena: World, geometry: WorldGeometry) -> None:
+    """The arena tiled 3 x 3 (9 look-alike rooms), no pose held: the global search weighs many poses
+    and has no clear winner. Its hypotheses (for telemetry) are the best ``reloc_hypotheses_reported``
+    of them, best first: as many corners each, the wall fractions not rising, every one at the truth
+    moved by whole rooms (10 m)."""
+    corners, walls = tiled_map(arena, 3, HEIGHT_M - MOUNT.z_m)
+    loc = PlanarLocalizer(corners, arena.wall_angle_deg, mount=MOUNT, walls=walls)
+    truth = (2.0, 2.0, math.radians(30))
+    assert loc.update(scan_at(geometry, *truth, np.random.default_rng(18))) is None
+    weighed = re.fullmatch(r"(\d+) candidate poses, no clear winner", loc.reloc_outcome)
+    assert weighed is not None, loc.reloc_outcome
+    hypotheses = loc.hypotheses
+    assert len(hypotheses) == loc.params.reloc_hypotheses_reported < int(weighed.group(1))
+    assert all(h.source == "corners" and not h.local for h in hypotheses)
+    assert {h.corners for h in hypotheses} == {hypotheses[0].corners} and hypotheses[0].corners >= 3
+    fractions = [h.wall_fraction for h in hypotheses]
+    assert None not in fractions and fractions == sorted(fractions, reverse=True)
+    for h in hypotheses:
+        rooms = np.array([h.x - truth[0], h.y - truth[1]]) / 10.0
+        assert np.abs(rooms - np.round(rooms)).max() < 0.005 and yaw_error(h.yaw, truth[2]) < math.radians(0.5)
+
+
+def test_a_clear_winner_is_the_first_hypothesis_and_the_candidate_and_tracking_empties_the_list(
+        arena: World, geometry: WorldGeometry) -> None:
+    """No pose held, one room: the search's winner is the first hypothesis, where the candidate is;
+    the others match fewer corners (their wall fractions not computed). Once the candidate is
+    confirmed and tracking runs, the list and the outcome are empty."""
+    loc = localizer(arena, geometry, None)
+    rng = np.random.default_rng(10)
+    truth = (2.0, 2.0, math.radians(30))
+    assert loc.update(scan_at(geometry, *truth, rng)) is None
+    c = loc.candidate
+    assert c is not None and loc.reloc_outcome == ""
+    best, *others = loc.hypotheses
+    assert (best.x, best.y, best.yaw, best.corners, best.local) == (c.x, c.y, c.yaw, c.matched, c.local)
+    assert best.source == "corners" and best.wall_fraction is not None
+    assert best.wall_fraction >= loc.params.reloc_min_wall_fraction
+    assert others and all(h.corners < best.corners and h.wall_fraction is None for h in others)
+    for _ in range(loc.params.reloc_confirm_frames):
+        fix = loc.update(scan_at(geometry, *truth, rng))
+    assert fix is not None and fix.measured and fix.state == "tracking"
+    assert loc.hypotheses == () and loc.reloc_outcome == ""
+
+
 def test_featureless_views_become_lost_without_nan(arena: World) -> None:
     wall = WorldGeometry.from_world(walls_world([(3.0, -50.0, 3.0, 50.0)]))
     straight = scan_at(wall, 1.0, 0.0, 0.3, np.random.default_rng(13))
@@ -644,6 +691,26 @@ def test_the_configured_noise_floors_reach_the_localizer_the_height_fix_and_the_
     assert pipeline.height.params.lines.noise_m == HeightParams().lines.noise_m
 
 
+def test_the_pipelines_snapshot_shows_the_relocalization_hypotheses_as_json(
+        arena: World, geometry: WorldGeometry) -> None:
+    """``system.pipelines.lidar``: the hypotheses of the newest relocalization (the winner first,
+    where the candidate is) and its outcome, in plain JSON; empty lists before any search."""
+    cfg = LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v")
+    pipeline = LidarPipeline(cfg, arena, MountConfig(), MountConfig(rpy_deg=(90.0, 0.0, 0.0)), Health(lambda: 0.0))
+    before = pipeline.snapshot()
+    assert before["relocalization_hypotheses"] == [] and before["relocalization_outcome"] == ""
+    scan = scan_at(geometry, 2.0, 2.0, math.radians(30), np.random.default_rng(10), mount=Mount2D())
+    assert pipeline.localizer.update(scan) is None
+    snapshot = json.loads(json.dumps(pipeline.snapshot(), allow_nan=False))
+    candidate, hypotheses = snapshot["relocalization_candidate"], snapshot["relocalization_hypotheses"]
+    assert len(hypotheses) > 1 and snapshot["relocalization_outcome"] == ""
+    best = hypotheses[0]
+    assert set(best) == {"position_ned_m", "yaw_rad", "source", "corners", "wall_fraction", "local"}
+    assert best["position_ned_m"] == list(candidate["position_ned_m"]) and best["yaw_rad"] == candidate["yaw_rad"]
+    assert best["source"] == "corners" and best["corners"] == candidate["matched"] and best["local"] is False
+    assert 0.0 < best["wall_fraction"] <= 1.0 and hypotheses[1]["wall_fraction"] is None
+
+
 def test_the_maps_survey_error_widens_every_fix_from_it(arena: World, geometry: WorldGeometry) -> None:
     """World.survey_error_m is the floor of every matched corner's covariance (and of every wall's)."""
     cfg = LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v")
@@ -759,6 +826,27 @@ def test_walls_that_fit_as_well_elsewhere_within_the_drift_do_not_resume_trackin
             assert fixes[-1].measured and math.hypot(fixes[-1].x - truth[0], fixes[-1].y - truth[1]) < 0.02
         else:
             assert all(not f.measured and "no clear winner" in f.reason for f in fixes), [f.reason for f in fixes]
+
+
+def test_the_wall_search_shows_the_look_alike_positions_it_weighed() -> None:
+    """Lost in a room without mapped corners whose walls the map also holds 1 m further east: the
+    wall search near the held pose weighs both positions, as good as each other, and shows them
+    (source walls, no corners, local) best first, the truth among them."""
+    geometry, walls = _room_without_corners()
+    truth = (1.6, 2.3, math.radians(20))
+    look_alike = walls + np.array([0.0, 1.0, 0.0, 1.0])
+    loc = PlanarLocalizer(np.zeros((0, 2)), 90, mount=MOUNT, walls=np.vstack((walls, look_alike)),
+                          initial_pose=(truth[0] + 0.3, truth[1] + 0.5, truth[2]))
+    rng = np.random.default_rng(32)
+    _lost_for(loc, scan_at(geometry, *truth, rng), 20)
+    fix = loc.update(scan_at(geometry, *truth, rng))
+    assert not fix.measured and "by walls:" in loc.reloc_outcome and "no clear winner" in loc.reloc_outcome
+    hypotheses = loc.hypotheses
+    assert len(hypotheses) >= 2 and all(h.source == "walls" and h.corners == 0 and h.local for h in hypotheses)
+    fractions = [h.wall_fraction for h in hypotheses]
+    assert None not in fractions and fractions == sorted(fractions, reverse=True)
+    assert fractions[0] - fractions[1] < loc.params.reloc_wall_margin
+    assert min(math.hypot(h.x - truth[0], h.y - truth[1]) for h in hypotheses[:2]) < 0.05
 
 
 def test_a_lost_corridor_is_not_resumed_by_its_parallel_walls() -> None:

@@ -390,14 +390,20 @@ class LidarPipeline:
         return dataclasses.replace(state, position_covariance=cov)
 
     def snapshot(self) -> dict:
-        """Telemetry: counters, the fix rate and the relocalization candidate waiting for confirmation."""
-        c = self.localizer.candidate
+        """Telemetry: counters, the fix rate, the relocalization candidate waiting for confirmation
+        and the newest relocalization's hypotheses with their scores and outcome (empty while tracking;
+        positions m LOCAL_NED north, east; yaw rad)."""
+        loc = self.localizer
+        c = loc.candidate
         candidate = None if c is None else {
             "position_ned_m": (c.x, c.y), "yaw_rad": c.yaw, "matched": c.matched, "walls": c.walls, "local": c.local,
-            "frames": c.frames, "frames_needed": self.localizer.params.reloc_confirm_frames}
+            "frames": c.frames, "frames_needed": loc.params.reloc_confirm_frames}
+        hypotheses = [{"position_ned_m": [h.x, h.y], "yaw_rad": h.yaw, "source": h.source, "corners": h.corners,
+                       "wall_fraction": h.wall_fraction, "local": h.local} for h in loc.hypotheses]
         return {**{k: v for k, v in vars(self.stats).items()}, "fix_rate_hz": self.stats.fix_rate_hz(),
                 "fusion": {"gated": dict(self.fusion.stats.fixes_gated), "stale": self.fusion.stats.fixes_stale},
-                "relocalization_candidate": candidate}
+                "relocalization_candidate": candidate, "relocalization_hypotheses": hypotheses,
+                "relocalization_outcome": loc.reloc_outcome}
 
     def telemetry(self, static_due: bool) -> dict[str, dict[str, Any]]:
         """The newest processed scan's scan, lines and corners (once per scan); the map when due."""

@@ -94,7 +94,12 @@ and turned by the gyro's yaw change within ``reloc_confirm_gate_rad``. A scan th
 nothing (too few corners, no clear winner) carries the candidate along with that motion, up to
 ``reloc_confirm_frames`` such scans in a row; a scan finding another pose starts over. Meanwhile
 the fix stays lost (None without a pose), never a confident wrong pose. The confirming fix has
-``relocalized`` True, so the daemon increments ``reset_counter``.
+``relocalized`` True, so the daemon increments ``reset_counter``. For telemetry the localizer keeps
+the hypotheses the newest relocalization weighed with their scores (:attr:`PlanarLocalizer.hypotheses`,
+reloc_candidate.py RelocHypothesis: the best ``reloc_hypotheses_reported`` of the corner search that
+decided, the local one when it had a clear winner, else the global one; then those of the wall
+search, if it ran) and why it found no pose (:attr:`PlanarLocalizer.reloc_outcome`); both are
+emptied once a pose is measured or set again, so they are empty while tracking.
 """
 
 from __future__ import annotations
@@ -115,7 +120,7 @@ from companion.nav.edges import EdgeParams, Edges, occluding_ends
 from companion.nav.heading import (UNMEASURED_VARIANCE_RAD2, HeadingParams, HeadingResult,
                                    heading_hypotheses, track_heading)
 from companion.nav.lines import LineParams, LineSet, extract_lines
-from companion.nav.reloc_candidate import RelocCandidate, carried, found_again
+from companion.nav.reloc_candidate import RelocCandidate, RelocHypothesis, carried, found_again, ranked_hypotheses
 from companion.nav.corner_hypotheses import distinct_poses, pose_hypotheses
 from companion.nav.wall_fix import WallMap, wall_fix
 from companion.nav.wall_hypotheses import MapWalls, wall_hypotheses
@@ -185,6 +190,7 @@ class PlanarParams:
     reloc_confirm_frames: int = 3  # scans that must find a jump (none finding another) before it becomes the pose
     reloc_confirm_gate_m: float = 0.3  # ... each within this of the previous one, metres
     reloc_confirm_gate_rad: float = math.radians(5.0)  # ... and turned by the gyro's change within this
+    reloc_hypotheses_reported: int = 5  # hypotheses of each search kept for telemetry (best first)
 
 
 @dataclass(frozen=True)
@@ -281,6 +287,10 @@ class PlanarLocalizer:
         self._cov = np.diag([params.lost_variance_m2, params.lost_variance_m2, UNMEASURED_VARIANCE_RAD2])
         self._misses = 0
         self.candidate: RelocCandidate | None = None  # an unconfirmed relocalization jump
+        # The newest relocalization's hypotheses, best first, and why it found no pose (module
+        # docstring); empty once a pose is measured or set again.
+        self.hypotheses: tuple[RelocHypothesis, ...] = ()
+        self.reloc_outcome = ""
         self._yaw_delta = 0.0  # the gyro's yaw change given with the scan being processed, rad
         self._moved: tuple[float, float] = (0.0, 0.0)  # the body displacement given with it (forward, right), m
         self._angles: np.ndarray | None = None
@@ -294,11 +304,18 @@ class PlanarLocalizer:
         """Set the pose (metres, radians), e.g. a known take-off pose."""
         self._pose = (x, y, wrap_pi(yaw))
         self._misses = 0
+        self._clear_search()
 
     def forget(self) -> None:
-        """Drop the pose (and any relocalization candidate): the next update relocalizes afresh."""
+        """Drop the pose (and any relocalization candidate and hypotheses): the next update relocalizes afresh."""
         self._pose = None
         self.candidate = None
+        self._clear_search()
+
+    def _clear_search(self) -> None:
+        """Drop the newest relocalization's hypotheses and outcome (a pose is measured or set)."""
+        self.hypotheses = ()
+        self.reloc_outcome = ""
 
     @property
     def pose(self) -> tuple[float, float, float] | None:
@@ -511,6 +528,7 @@ class PlanarLocalizer:
         self._pose = (fix.x, fix.y, fix.yaw)
         self._cov = fix.covariance.copy()
         self._misses = 0
+        self._clear_search()
 
     def _wall_solution(self, lines: LineSet, edges: Edges | None, xy: np.ndarray, heading: HeadingResult, why: str,
                        timing: dict[str, float], t0: float) -> PlanarFix | None:
@@ -530,6 +548,7 @@ class PlanarLocalizer:
                 timing: dict[str, float], t0: float) -> PlanarFix:
         self._pose = (float(m.xy[0]), float(m.xy[1]), yaw)
         self.candidate = None
+        self._clear_search()
         self._cov = m.covariance
         self._misses = 0
         state: PlanarState = "tracking"
@@ -571,14 +590,17 @@ class PlanarLocalizer:
         """Search (see the module docstring): by corners, then, with a pose held and the heading
         measured, by the walls near it. A pose within ``jump_m`` / ``jump_rad`` of the held one
         resumes tracking; a jump becomes the pose only after ``reloc_confirm_frames`` scans found it
-        (module docstring); until then a lost fix (or None without a pose) names the candidate."""
+        (module docstring); until then a lost fix (or None without a pose) names the candidate. The
+        searches' hypotheses replace :attr:`hypotheses`, and why they found no pose :attr:`reloc_outcome`."""
         t = time.perf_counter()
-        found, detail = self._search(lines, corners, points)
+        found, detail, self.hypotheses = self._search(lines, corners, points)
         on_walls: PlanarFix | None = None
         if found is None and heading is not None and heading.measured and edges is not None:
-            on_walls, walls_detail = self._wall_search(lines, edges, points, heading, why, timing, t0)
+            on_walls, walls_detail, by_walls = self._wall_search(lines, edges, points, heading, why, timing, t0)
+            self.hypotheses += by_walls
             detail = f"{detail}; by walls: {walls_detail}" if on_walls is None else detail
         timing["relocalize"] = (time.perf_counter() - t) * 1e3
+        self.reloc_outcome = detail if found is None and on_walls is None else ""
         if found is None and on_walls is None:
             self.candidate = carried(self.candidate, self._moved, self._yaw_delta, self.params.reloc_confirm_frames)
         else:
@@ -612,13 +634,15 @@ class PlanarLocalizer:
                          "" if heading is None else heading.status, timing)
 
     def _wall_search(self, lines: LineSet, edges: Edges, points: np.ndarray, heading: HeadingResult, why: str,
-                     timing: dict[str, float], t0: float) -> tuple[PlanarFix | None, str]:
+                     timing: dict[str, float],
+                     t0: float) -> tuple[PlanarFix | None, str, tuple[RelocHypothesis, ...]]:
         """Lost with a pose held: the position near it (within ``reloc_local_m``, or the drift since
         the last fix if more) where the observed lines of two wall directions lie on map walls
         (wall_hypotheses.py), scored by the fraction of the scan ``points`` (levelled body frame)
         then on walls; only a clear winner (every position more than ``reloc_distinct_m`` from it at
         least ``reloc_wall_margin`` behind) whose walls fix the position in both directions. Returns that
-        fix (the pose held is not changed) or None and why not."""
+        fix (the pose held is not changed) or None and why not, and the positions weighed (best first,
+        none when there were too many to weigh)."""
         p = self.params
         assert self._pose is not None and self._wall_map is not None
         held = np.array(self._pose[:2])
@@ -627,22 +651,25 @@ class PlanarLocalizer:
                                 max(p.reloc_local_m, self._drift_radius()), p.wall_angle_tolerance_deg,
                                 p.reloc_wall_tolerance_m)
         if poses.shape[0] == 0:
-            return None, "no lines of two wall directions on map walls near the held pose"
+            return None, "no lines of two wall directions on map walls near the held pose", ()
         if poses.shape[0] > p.reloc_wall_positions_max:
-            return None, f"{poses.shape[0]} positions near the held pose put lines on walls: too many look-alikes"
+            return None, f"{poses.shape[0]} positions near the held pose put lines on walls: too many look-alikes", ()
         fraction = self._wall_fractions(points, poses, heading.yaw)
+        n = poses.shape[0]
+        weighed = ranked_hypotheses("walls", poses, np.full(n, heading.yaw), np.zeros(n, dtype=int), fraction, True,
+                                    p.reloc_hypotheses_reported)
         best = int(np.argmax(fraction))
         if fraction[best] < p.reloc_min_wall_fraction:
-            return None, f"the best pose puts only {fraction[best]:.0%} of the points on walls"
+            return None, f"the best pose puts only {fraction[best]:.0%} of the points on walls", weighed
         rivals = ((np.hypot(*(poses - poses[best]).T) > p.reloc_distinct_m)
                   & (fraction > fraction[best] - p.reloc_wall_margin))
         if rivals.any():
             return None, (f"{int(rivals.sum()) + 1} poses put {fraction[best]:.0%} of the points on walls, "
-                          "no clear winner")
+                          "no clear winner"), weighed
         fix = self._wall_solution(lines, edges, poses[best], heading, why, timing, t0)
         if fix is None or fix.unmeasured is not None:
-            return None, "the walls at the best pose do not fix the position in both directions"
-        return fix, ""
+            return None, "the walls at the best pose do not fix the position in both directions", weighed
+        return fix, "", weighed
 
     def _confirmed(self, xy: np.ndarray, yaw: float, matched: int, walls: int, local: bool) -> bool:
         """Count this scan for the candidate jump it found (reloc_candidate.py); True once enough
@@ -652,18 +679,19 @@ class PlanarLocalizer:
                                      p.reloc_confirm_gate_m, p.reloc_confirm_gate_rad)
         return self.candidate.frames >= p.reloc_confirm_frames
 
-    def _search(self, lines: LineSet, corners: Corners,
-                points: np.ndarray) -> tuple[tuple[Match, HeadingResult, bool] | None, str]:
-        """The relocalized pose (match, heading, whether it was found near the held pose) or why none.
-        With a pose held, the hypotheses within ``reloc_local_m`` of it (or the drift since it was
-        measured, if more) and at the heading nearest its yaw are tried first; the global search
-        only when they give no clear winner."""
+    def _search(self, lines: LineSet, corners: Corners, points: np.ndarray
+                ) -> tuple[tuple[Match, HeadingResult, bool] | None, str, tuple[RelocHypothesis, ...]]:
+        """The relocalized pose (match, heading, whether it was found near the held pose) or why none,
+        and the hypotheses of the search that decided (:meth:`_clear_winner`). With a pose held, the
+        hypotheses within ``reloc_local_m`` of it (or the drift since it was measured, if more) and at
+        the heading nearest its yaw are tried first; the global search only when they give no clear
+        winner."""
         p = self.params
         yaws, base = heading_hypotheses(lines, self.wall_angle, p.heading, self.wall_offset)
         if yaws.size == 0:
-            return None, base.reason
+            return None, base.reason, ()
         if corners.count < p.reloc_min_inliers:
-            return None, f"{corners.count} corners visible, at least {p.reloc_min_inliers} needed"
+            return None, f"{corners.count} corners visible, at least {p.reloc_min_inliers} needed", ()
         spread = corners.cov[:, 0, 0] + corners.cov[:, 1, 1]
         corners = corners.subset(np.argsort(spread)[:p.reloc_max_corners])
         poses = pose_hypotheses(corners.xy, self.map, yaws, p.reloc_tolerance_m, p.reloc_min_inliers,
@@ -672,15 +700,17 @@ class PlanarLocalizer:
             hx, hy, hyaw = self._pose
             near = ((np.hypot(poses[:, 2] - hx, poses[:, 3] - hy) <= max(p.reloc_local_m, self._drift_radius()))
                     & (np.abs(wrap_pi(poses[:, 1] - hyaw)) <= 0.5 * self.wall_angle))
-            found, _ = self._clear_winner(poses[near], lines, corners, points, base)
+            found, _, weighed = self._clear_winner(poses[near], lines, corners, points, base, True)
             if found is not None:
-                return (*found, True), ""
-        found, detail = self._clear_winner(poses, lines, corners, points, base)
-        return (None, detail) if found is None else ((*found, False), "")
+                return (*found, True), "", weighed
+        found, detail, weighed = self._clear_winner(poses, lines, corners, points, base, False)
+        return (None, detail, weighed) if found is None else ((*found, False), "", weighed)
 
     def _clear_winner(self, poses: np.ndarray, lines: LineSet, corners: Corners, points: np.ndarray,
-                      base: HeadingResult) -> tuple[tuple[Match, HeadingResult] | None, str]:
-        """Refine the best distinct pose rows (score, yaw, x, y) and keep a clear winner, if any."""
+                      base: HeadingResult, local: bool
+                      ) -> tuple[tuple[Match, HeadingResult] | None, str, tuple[RelocHypothesis, ...]]:
+        """Refine the best distinct pose rows (score, yaw, x, y) and keep a clear winner, if any; also
+        the refined poses as hypotheses (best first; ``local``: the search near the held pose)."""
         p = self.params
         if poses.shape[0]:
             poses = poses[poses[:, 0] >= poses[0, 0] - 1]
@@ -693,15 +723,20 @@ class PlanarLocalizer:
         scored = [(m.matched, self._wall_fraction(points, m.xy, heading.yaw) if m.matched == most else 0.0, m, heading)
                   for m, heading in matched]
         scored.sort(key=lambda s: (s[0], s[1]), reverse=True)
+        weighed = ranked_hypotheses(
+            "corners", np.array([m.xy for _, _, m, _ in scored]).reshape(-1, 2),
+            np.array([heading.yaw for *_, heading in scored]), np.array([s[0] for s in scored], dtype=int),
+            np.array([f if self.walls is not None and n == most else math.nan for n, f, _, _ in scored]), local,
+            p.reloc_hypotheses_reported)
         if not scored or scored[0][0] < p.reloc_min_inliers:
-            return None, f"no pose matches {p.reloc_min_inliers} corners"
+            return None, f"no pose matches {p.reloc_min_inliers} corners", weighed
         best = scored[0]
         if self.walls is not None and best[1] < p.reloc_min_wall_fraction:
-            return None, f"best pose puts only {best[1]:.0%} of the points on walls"
+            return None, f"best pose puts only {best[1]:.0%} of the points on walls", weighed
         for other in scored[1:]:
             if other[0] == best[0] and (self.walls is None or best[1] - other[1] < p.reloc_wall_margin):
-                return None, f"{len(scored)} candidate poses, no clear winner"
-        return (best[2], best[3]), ""
+                return None, f"{len(scored)} candidate poses, no clear winner", weighed
+        return (best[2], best[3]), "", weighed
 
     def _wall_fraction(self, points: np.ndarray, xy: np.ndarray, yaw: float) -> float:
         """Fraction of (every 4th) levelled-body point within the tolerance of a map wall."""

@@ -7,6 +7,9 @@ fused IMU, in the body frame of the previous scan; ``yaw_delta``: the gyro's yaw
 that can test nothing carries the candidate along with that motion, up to ``needed`` such scans
 in a row; a scan finding another pose starts over with it.
 
+The poses a search weighed are kept for telemetry as :class:`RelocHypothesis` records, best first
+(:func:`ranked_hypotheses`).
+
 Frames and units: positions are LOCAL_NED (x north, y east) in metres, yaw in radians from north
 towards east; the motion is (forward, right) metres in the body frame.
 """
@@ -15,6 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
+from typing import Literal
 
 import numpy as np
 
@@ -46,6 +50,39 @@ class RelocCandidate:
         """Where the candidate pose (x, y m, yaw rad) is after the body moved ``moved_m`` (forward,
         right m) and turned ``yaw_delta`` (rad)."""
         return planar_moved((self.x, self.y, self.yaw), *moved_m, yaw_delta)
+
+
+@dataclass(frozen=True)
+class RelocHypothesis:
+    """A pose a relocalization search weighed, with its scores (planar.py, "Relocalization").
+
+    ``x``, ``y``: the body's position, m (LOCAL_NED north, east); ``yaw``: rad from north towards
+    east. ``source``: ``"corners"`` (a corner correspondence, refined by the corners' update) or
+    ``"walls"`` (observed lines of two wall directions on map walls near the held pose; the position
+    weighed, before the wall fix refines the winner). ``corners``: observed corners matched there (0
+    for a wall hypothesis). ``wall_fraction``: fraction (0-1) of the scan's points (every 4th) within
+    ``reloc_wall_tolerance_m`` of a map wall there; None when not computed (no map walls, or a corner
+    hypothesis matching fewer corners than the best one, which cannot win). ``local``: weighed by the
+    search near the held pose (False: by the global one)."""
+
+    x: float
+    y: float
+    yaw: float
+    source: Literal["corners", "walls"]
+    corners: int
+    wall_fraction: float | None
+    local: bool
+
+
+def ranked_hypotheses(source: Literal["corners", "walls"], xy: np.ndarray, yaw: np.ndarray, corners: np.ndarray,
+                      wall_fraction: np.ndarray, local: bool, limit: int) -> tuple[RelocHypothesis, ...]:
+    """The best ``limit`` of H weighed poses as hypotheses, best first: most ``corners`` (H,), then
+    the highest ``wall_fraction`` (H,; NaN: not computed, behind every computed one); equal scores
+    keep their order. ``xy``: (H, 2) positions, m (north, east); ``yaw``: (H,) rad."""
+    computed = ~np.isnan(wall_fraction)
+    order = np.lexsort((-np.where(computed, wall_fraction, -np.inf), -corners))[:limit]
+    return tuple(RelocHypothesis(float(xy[i, 0]), float(xy[i, 1]), float(yaw[i]), source, int(corners[i]),
+                                 float(wall_fraction[i]) if computed[i] else None, local) for i in order)
 
 
 def carried(c: RelocCandidate | None, moved_m: tuple[float, float], yaw_delta: float,
