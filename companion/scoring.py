@@ -7,6 +7,8 @@ what NEES checks.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 WRONG_RESET_M = 0.5  # a relocalization (reset) landing farther than this from the reference is a wrong one
@@ -24,6 +26,15 @@ def nees(errors: np.ndarray, covariances: np.ndarray) -> np.ndarray:
     good = np.linalg.cond(covariances) < 1e12
     solved = np.linalg.solve(covariances[good], errors[good][..., None])[..., 0]
     return np.einsum("ij,ij->i", errors[good], solved)
+
+
+def heading_nees(errors_rad: np.ndarray, variances_rad2: Sequence[float | None] | np.ndarray) -> np.ndarray:
+    """NEES of each heading error (rad, wrapped to [-pi, pi)) with the variance (rad^2) its estimate
+    claimed: 1 is consistent. Estimates without a positive variance (None, zero) are left out."""
+    variances = np.array([np.nan if v is None else v for v in variances_rad2], dtype=float)
+    errors = np.asarray(errors_rad, dtype=float)
+    good = np.isfinite(variances) & (variances > 0.0) & np.isfinite(errors)
+    return errors[good] ** 2 / variances[good]
 
 
 def effective_samples(values: np.ndarray) -> float:

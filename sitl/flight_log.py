@@ -18,6 +18,7 @@ SCHEMA = 1
 # Indices of xx, xy, xz, yy, yz, zz in VISION_POSITION_ESTIMATE's row-major upper triangle of the
 # 6x6 (x, y, z, roll, pitch, yaw) covariance.
 POSITION_TRIANGLE = (0, 1, 2, 6, 7, 11)
+YAW_VARIANCE = 20  # ... and of yaw-yaw, the triangle's last
 
 
 def _num(value: float) -> float | None:
@@ -44,6 +45,7 @@ class FlightLog:
         self.vision_position: dict[str, list] = {
             "t_rx": [], "usec": [], "pos_ned": [], "euler_rad": [], "reset_counter": [],
             "position_covariance": [],  # rows [xx, xy, xz, yy, yz, zz], m^2 (NaN where not sent)
+            "yaw_variance": [],  # rad^2 (None where not sent)
         }
         self.vision_speed: dict[str, list] = {"t_rx": [], "usec": [], "vel_ned": []}
         self.distance_sensor: dict[str, list] = {
@@ -98,6 +100,7 @@ class FlightLog:
         rec["euler_rad"].append(_vec(euler_rad))
         rec["reset_counter"].append(int(reset_counter))
         rec["position_covariance"].append(_vec([covariance[i] for i in POSITION_TRIANGLE]))
+        rec["yaw_variance"].append(_num(covariance[YAW_VARIANCE]) if math.isfinite(covariance[0]) else None)
 
     def add_vision_speed(self, t_rx: float, usec: int, vel_ned: Sequence[float]) -> None:
         """A VISION_SPEED_ESTIMATE as received."""

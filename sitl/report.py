@@ -19,7 +19,7 @@ import numpy as np
 
 from companion.frames import quat_from_euler, wrap_pi
 from companion.mavlink.distance import ORIENTATION
-from companion.scoring import WRONG_RESET_M, mean_or_none, nees, nees_band
+from companion.scoring import WRONG_RESET_M, heading_nees, mean_or_none, nees, nees_band
 
 SCHEMA = 1
 ORIGIN_MATCH_M = 0.5
@@ -69,8 +69,8 @@ def score_estimate(log: dict) -> dict[str, float | None]:
     """Position/yaw/height error of the received vision estimates against truth."""
     vp = log["vision_position"]
     empty = dict.fromkeys(("position_rms_m", "position_max_m", "yaw_rms_deg", "attitude_rms_deg", "height_rms_m",
-                           "fix_rate_hz", "lost_seconds", "nees_mean", "nees_band", "nees_max", "cross_track_max_m",
-                           "wrong_resets"))
+                           "fix_rate_hz", "lost_seconds", "nees_mean", "nees_band", "nees_max", "yaw_nees_mean",
+                           "yaw_nees_band", "cross_track_max_m", "wrong_resets"))
     if not vp["usec"]:
         return empty
     truth = log["truth"]
@@ -89,6 +89,8 @@ def score_estimate(log: dict) -> dict[str, float | None]:
     triangles = [vp["position_covariance"][i] for i in np.flatnonzero(inside)]
     nees_values = position_nees(est - true_pos, triangles)
     band = nees_band(nees_values, 3)
+    yaw_nees = heading_nees(yaw_err, [vp["yaw_variance"][i] for i in np.flatnonzero(inside)])
+    yaw_band = nees_band(yaw_nees, 1)
     return {
         "position_rms_m": _rms(np.linalg.norm(est - true_pos, axis=1)),
         "position_max_m": float(np.max(np.linalg.norm(est - true_pos, axis=1))),
@@ -100,6 +102,8 @@ def score_estimate(log: dict) -> dict[str, float | None]:
         "nees_mean": mean_or_none(nees_values),
         "nees_band": None if band is None else list(band),
         "nees_max": float(nees_values.max()) if nees_values.size else None,
+        "yaw_nees_mean": mean_or_none(yaw_nees),
+        "yaw_nees_band": None if yaw_band is None else list(yaw_band),
         "cross_track_max_m": cross_track_max(est[:, :2] - true_pos[:, :2], triangles),
         "wrong_resets": wrong_resets(np.asarray(vp["reset_counter"])[inside], est, true_pos),
         "horizontal_rms_m": _rms(horizontal),

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.scoring import effective_samples, nees_band
+from companion.scoring import effective_samples, heading_nees, nees_band
 from sitl.harness import cpu_jiffies, steal_percent
 from sitl.report import attitude_errors, cross_track_max, position_nees, wrong_resets
 from tests.conftest import REPO, free_port
@@ -28,7 +28,8 @@ from tests.sitl_helpers import write_config, write_sitl_config
 SCHEMA_1 = {
     "schema": None, "mission": None, "seconds": None, "lockstep": None, "seed": None,
     "estimate": {"position_rms_m", "position_max_m", "yaw_rms_deg", "attitude_rms_deg", "height_rms_m", "fix_rate_hz", "lost_seconds",
-                 "nees_mean", "nees_band", "nees_max", "cross_track_max_m", "wrong_resets"},
+                 "nees_mean", "nees_band", "nees_max", "yaw_nees_mean", "yaw_nees_band", "cross_track_max_m",
+                 "wrong_resets"},
     "autopilot": {"origin_confirmed", "external_nav_in_use", "vision_position_estimate_hz",
                   "vision_speed_estimate_hz", "setpoint_hz", "nonfinite_dropped", "firmware", "internal_errors"},
     "control": {"law", "mission_completed", "tracking_rms_m", "tracking_max_m", "failsafes_triggered", "degraded_slowdowns"},
@@ -160,6 +161,14 @@ def test_nees_is_3_for_errors_drawn_from_the_sent_covariance_and_scales_with_it(
     assert np.mean(position_nees(errors, [triangle] * len(errors))) == pytest.approx(3.0, abs=0.1)
     assert np.mean(position_nees(errors, [[4 * v for v in triangle]] * len(errors))) == pytest.approx(0.75, abs=0.03)
     assert position_nees(errors[:2], [[None] * 6, [None] * 6]).size == 0
+
+
+def test_the_yaw_nees_is_1_for_errors_drawn_from_the_sent_variance_and_skips_estimates_without_one() -> None:
+    rng = np.random.default_rng(3)
+    errors = rng.normal(0.0, 0.01, 20000)
+    assert np.mean(heading_nees(errors, [1e-4] * len(errors))) == pytest.approx(1.0, abs=0.05)
+    assert np.mean(heading_nees(errors, [4e-4] * len(errors))) == pytest.approx(0.25, abs=0.02)
+    assert heading_nees(errors[:3], [None, 0.0, float("nan")]).size == 0
 
 
 def test_the_nees_band_counts_correlated_estimates_as_the_independent_ones_they_are_worth() -> None:
