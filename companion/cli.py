@@ -148,8 +148,9 @@ def _cmd_map_build(args: argparse.Namespace) -> int:
         print(f"companion map build: {exc}", file=sys.stderr)
         return EXIT_CONFIG_ERROR
     print(f"{args.out}: {len(built.walls)} walls, {len(built.corners)} corners, walls at "
-          f"{built.wall_offset_deg:+.2f} deg + n x {built.wall_angle_deg} deg, survey error {built.survey_error_m * 100:.1f} cm; "
-          f"scans placed by {poses}")
+          f"{built.wall_offset_deg:+.2f} deg + n x {built.wall_angle_deg} deg, "
+          f"survey error {built.survey_error_m * 100:.1f} cm, "
+          f"wall directions {built.wall_direction_error_deg:.2f} deg; scans placed by {poses}")
     return 0
 
 
@@ -193,7 +194,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
         world_map = load_world(args.map)
         report = replay_report(args.log, args.format, world_map, args.map, laser=args.laser,
                                scan_topic=args.scan_topic, pose_topic=args.pose_topic,
-                               odometry=args.odometry, start=args.start, seed=args.seed)
+                               odometry=args.odometry, start=args.start, seed=args.seed,
+                               reference_heading_sd_deg=args.reference_heading_sd_deg)
     except (OSError, ValueError, SchemaError) as exc:
         print(f"companion replay: {exc}", file=sys.stderr)
         return EXIT_CONFIG_ERROR
@@ -384,6 +386,9 @@ def build_parser() -> argparse.ArgumentParser:
                         help="start at the log's first reference pose (default), relocalize from nothing, or at the "
                              "map's start (map build sets it to the first scan's pose: the walk it was built from)")
     replay.add_argument("--seed", type=int, default=0, help="seed of the simulated wheel-odometry errors")
+    replay.add_argument("--reference-heading-sd-deg", type=float, default=0.0, metavar="DEG",
+                        help="scanner log: the reference poses' own 1-sigma heading error, degrees, counted in "
+                             "heading_nees_mean (default 0: the reference taken as exact)")
     replay.set_defaults(func=_cmd_replay)
 
     experiment = sub.add_parser("experiment", help="experiments against the SITL that print figures")

@@ -70,6 +70,7 @@ def write_world(built: BuiltMap, path: str | Path, source: str, start: tuple[flo
         "wall_angle_deg": built.wall_angle_deg,
         "wall_offset_deg": round(built.wall_offset_deg, 4),
         "survey_error_m": round(built.survey_error_m, 4),
+        "wall_direction_error_deg": round(built.wall_direction_error_deg, 3),
         "bounds": {"min": point(lo), "max": point(hi)},
         "start": [round(float(v), 4) for v in start],
         "walls": [{"start": point(w[0:2]), "end": point(w[2:4])} for w in built.walls],
@@ -79,5 +80,6 @@ def write_world(built: BuiltMap, path: str | Path, source: str, start: tuple[flo
               f"{int(built.observations.min())} scan lines), {len(built.corners)} corners; scans placed by {poses}.\n"
               "# Frame: the log's map frame as NED (x north, y east, metres; directions from north towards east).\n"
               "# survey_error_m is the spread of the scan lines about their walls (scan noise and pose error\n"
-              "# included). Check the map on the dashboard before flying on it.\n")
+              "# included), wall_direction_error_deg the spread of the walls' directions about the wall angle.\n"
+              "# Check the map on the dashboard before flying on it.\n")
     Path(path).write_text(header + yaml.safe_dump(world, sort_keys=False, default_flow_style=None))

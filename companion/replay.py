@@ -32,6 +32,8 @@ the log has none:
   walls leave unmeasured;
 - ``nees_mean``: 2-D position NEES of the measured fixes with their covariance (2 is consistent),
   and ``nees_band``, its 95 % band for the independent samples the fixes are worth;
+  ``heading_nees_mean`` and ``heading_nees_band``: the same of their heading (1 is consistent),
+  counting the reference's own heading error if given (``--reference-heading-sd-deg``);
 - ``lost_fraction``: scans without a measured fix;
 - ``relocalizations``, ``wrong_resets``: relocalization jumps, and those landing more than
   :data:`~companion.scoring.WRONG_RESET_M` from the reference;
@@ -51,7 +53,7 @@ import numpy as np
 from companion.frames import planar_increment, planar_moved, wrap_pi
 from companion.nav.lidar_pipeline import LidarPipelineConfig, planar_localizer, planar_params
 from companion.nav.planar import Mount2D, PlanarFix, PlanarParams
-from companion.scoring import WRONG_RESET_M, mean_or_none, nees, nees_band
+from companion.scoring import WRONG_RESET_M, heading_nees, mean_or_none, nees, nees_band
 from companion.world import World
 
 Pose = tuple[float, float, float]  # x north, y east (m), yaw (rad) in the log's map frame as NED
@@ -173,11 +175,12 @@ def with_wheel_error(step: Pose, rng: np.random.Generator) -> Pose:
             turn + rng.normal(0.0, WHEEL_ERROR_FRACTION * abs(turn) + math.radians(WHEEL_ERROR_DEG_PER_M) * length))
 
 
-def replay_params(odometry: Odometry, survey_error_m: float) -> PlanarParams:
-    """The ``lidar`` pipeline's localizer thresholds (its defaults, the map's survey error in m);
-    without motion between scans the heading has no prediction to weigh wall families by."""
+def replay_params(odometry: Odometry, world_map: World) -> PlanarParams:
+    """The ``lidar`` pipeline's localizer thresholds (its defaults, the map's survey error and wall
+    direction error); without motion between scans the heading has no prediction to weigh wall
+    families by."""
     params = planar_params(LidarPipelineConfig(horizontal_sensor="horizontal", vertical_sensor="vertical"),
-                           survey_error_m)
+                           world_map.survey_error_m, world_map.wall_direction_error_deg)
     if odometry == "none":
         params = replace(params, heading=replace(params.heading, prediction_sigma_deg=math.inf))
     return params
@@ -186,7 +189,7 @@ def replay_params(odometry: Odometry, survey_error_m: float) -> PlanarParams:
 def replay(scans: list[LogScan], world_map: World, odometry: Odometry, start: Pose | None,
            seed: int = 0) -> list[ReplayStep]:
     """Every scan through the localizer, in order (``odometry``: already resolved, not ``auto``)."""
-    localizer = planar_localizer(replay_params(odometry, world_map.survey_error_m), world_map, Mount2D(), start)
+    localizer = planar_localizer(replay_params(odometry, world_map), world_map, Mount2D(), start)
     rng = np.random.default_rng(seed)
     steps = []
     previous: LogScan | None = None
@@ -207,8 +210,10 @@ def replay(scans: list[LogScan], world_map: World, odometry: Odometry, start: Po
     return steps
 
 
-def score(steps: list[ReplayStep]) -> dict[str, float | int | None]:
-    """The contract's fields (module docstring) of a replay."""
+def score(steps: list[ReplayStep], reference_heading_sd_deg: float = 0.0) -> dict[str, float | int | None]:
+    """The contract's fields (module docstring) of a replay; ``reference_heading_sd_deg``: the
+    reference's own 1-sigma heading error (deg), added to each fix's heading variance for the
+    heading NEES."""
     measured = [s for s in steps if s.fix is not None and s.fix.measured]
     scored = [s for s in measured if s.scan.reference is not None]
     referenced = any(s.scan.reference is not None for s in steps)
@@ -216,6 +221,7 @@ def score(steps: list[ReplayStep]) -> dict[str, float | int | None]:
     out: dict[str, float | int | None] = {
         "scans": len(steps),
         "heading_rms_deg": None, "position_median_m": None, "position_p95_m": None, "nees_mean": None, "nees_band": None,
+        "heading_nees_mean": None, "heading_nees_band": None,
         "lost_fraction": 1.0 - len(measured) / len(steps) if steps else None,
         "relocalizations": len(resets),
         "wrong_resets": sum(math.dist((s.fix.x, s.fix.y), s.scan.reference[:2]) > WRONG_RESET_M  # type: ignore[union-attr]
@@ -230,12 +236,18 @@ def score(steps: list[ReplayStep]) -> dict[str, float | int | None]:
         distance = np.hypot(error[:, 0], error[:, 1])
         values = nees(error, np.array([f.covariance[:2, :2] for f in fixes]))  # type: ignore[union-attr]
         band = nees_band(values, 2)
+        reference_var = math.radians(reference_heading_sd_deg) ** 2
+        variances = [f.covariance[2, 2] + reference_var for f in fixes]  # type: ignore[union-attr]
+        heading_values = heading_nees(heading, variances)
+        heading_band = nees_band(heading_values, 1)
         out.update({
             "heading_rms_deg": math.degrees(math.sqrt(float(np.mean(heading ** 2)))),
             "position_median_m": float(np.median(distance)),
             "position_p95_m": float(np.percentile(distance, 95)),
             "nees_mean": mean_or_none(values),
             "nees_band": None if band is None else list(band),
+            "heading_nees_mean": mean_or_none(heading_values),
+            "heading_nees_band": None if heading_band is None else list(heading_band),
         })
     return out
 
@@ -243,9 +255,10 @@ def score(steps: list[ReplayStep]) -> dict[str, float | int | None]:
 def replay_report(log: str | Path, log_format: str, world_map: World, map_path: str | Path, *,
                   laser: str = "front", scan_topic: str | None = None, pose_topic: str | None = None,
                   odometry: Odometry = "auto", start: Literal["reference", "relocalize", "map"] = "reference",
-                  seed: int = 0) -> dict:
+                  seed: int = 0, reference_heading_sd_deg: float = 0.0) -> dict:
     """The replay report of ``log`` on ``world_map``: the contract's fields and what the replay used.
-    ``start``: the log's first reference pose, none (relocalize), or the map's ``start`` pose."""
+    ``start``: the log's first reference pose, none (relocalize), or the map's ``start`` pose;
+    ``reference_heading_sd_deg``: the reference's own heading error (:func:`score`)."""
     scans = read_log(log, log_format, laser, scan_topic, pose_topic)
     if not scans:
         raise ValueError(f"{log}: no scan to replay")
@@ -257,7 +270,10 @@ def replay_report(log: str | Path, log_format: str, world_map: World, map_path: 
     if start == "map":
         x, y, yaw_deg = world_map.start
         initial = (x, y, math.radians(yaw_deg))
-    report = score(replay(scans, world_map, mode, initial, seed))
+    if not (reference_heading_sd_deg >= 0.0 and math.isfinite(reference_heading_sd_deg)):
+        raise ValueError(f"--reference-heading-sd-deg must be a finite value >= 0, got {reference_heading_sd_deg}")
+    report = score(replay(scans, world_map, mode, initial, seed), reference_heading_sd_deg)
     return {**report, "log": str(log), "format": log_format, "map": str(map_path),
             "odometry": {"mode": mode, "why": why, "seed": seed if mode == "noisy" else None},
-            "start": start, "reference": "the log's own poses" if scans[0].reference is not None else None}
+            "start": start, "reference": "the log's own poses" if scans[0].reference is not None else None,
+            "reference_heading_sd_deg": reference_heading_sd_deg}

@@ -316,6 +316,10 @@ class World:
         "1-sigma error of the walls' and corners' positions as surveyed, metres: a property of this map that every "
         "lidar fix from it carries (the default: corners are accepted within 1 cm of their walls' corner).",
         (0.0, 1.0)))
+    wall_direction_error_deg: float = field(default=0.0, metadata=meta(
+        "1-sigma of how far the building's walls run from this map's wall directions (wall_offset_deg plus "
+        "multiples of wall_angle_deg), degrees: a property of this map that every lidar heading from it carries "
+        "(`companion map build` measures it; 0: the walls run exactly as drawn).", (0.0, 10.0)))
 
     def segments(self) -> np.ndarray:
         """Walls as an (N, 4) float array of rows [x0, y0, x1, y1], metres (NED north, east)."""

@@ -678,14 +678,15 @@ def test_the_configured_correspondence_gate_reaches_the_localizer() -> None:
 
 def test_the_configured_noise_floors_reach_the_localizer_the_height_fix_and_the_fusion(arena: World) -> None:
     cfg = LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v", accel_noise_density=0.0015,
-                              line_model_error_m=0.0, corner_error_per_m=0.0, heading_error_deg=0.0,
-                              height_model_error_m=0.001)
+                              yaw_rate_noise_density=0.0002, line_model_error_m=0.0, corner_error_per_m=0.0,
+                              heading_error_deg=0.0, height_model_error_m=0.001)
     params = planar_params(cfg)
     assert params.lines.model_floor_m == 0.0 and params.corners.floor_per_m == 0.0
     assert params.heading.variance_floor_rad2 == 0.0
     assert params.lines.max_missing_beams == PlanarParams().lines.max_missing_beams  # the rest as they were
     pipeline = LidarPipeline(cfg, arena, MountConfig(), MountConfig(rpy_deg=(90.0, 0.0, 0.0)), Health(lambda: 0.0))
     assert pipeline.fusion.config.accel_noise_density == 0.0015
+    assert pipeline.fusion.config.yaw_rate_noise_density == 0.0002
     assert pipeline.height.params.variance_floor_m2 == pytest.approx(0.001 ** 2)
     assert pipeline.height.params.lines.model_floor_m == 0.0
     assert pipeline.height.params.lines.noise_m == HeightParams().lines.noise_m
@@ -725,6 +726,41 @@ def test_the_maps_survey_error_widens_every_fix_from_it(arena: World, geometry: 
         assert fix.state == "tracking"
         variances.append(np.trace(fix.covariance[:2, :2]))
     assert variances[1] > 4 * variances[0]
+
+
+def test_the_maps_wall_direction_error_widens_every_fixs_heading_and_not_its_position(
+        arena: World, geometry: WorldGeometry) -> None:
+    """World.wall_direction_error_deg: the map's walls may run that far off the directions the
+    heading is measured against. Every fix's yaw variance carries it; the position block and the
+    position-yaw terms stay the lines' own (README, "Real buildings")."""
+    cfg = LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v")
+    scan = scan_at(geometry, 2.0, 2.0, 0.5, np.random.default_rng(23))
+    fixes = []
+    for error_deg in (0.0, 0.5):
+        params = planar_params(cfg, arena.survey_error_m, error_deg)
+        assert params.map_heading_error_rad == pytest.approx(math.radians(error_deg))
+        loc = PlanarLocalizer(arena.corner_array(), arena.wall_angle_deg, mount=MOUNT, params=params,
+                              initial_pose=(2.0, 2.0, 0.5))
+        fixes.append(loc.update(scan))
+    exact, turned = (f.covariance for f in fixes)
+    assert fixes[1].state == "tracking" and fixes[1].yaw == fixes[0].yaw
+    assert turned[2, 2] - exact[2, 2] == pytest.approx(math.radians(0.5) ** 2)
+    assert np.array_equal(turned[:2, :], exact[:2, :]) and np.array_equal(turned[:2, 2], exact[:2, 2])
+
+
+def test_the_yaw_sent_claims_no_less_than_the_maps_wall_direction_error(arena: World) -> None:
+    """Successive fixes share the map's walls, so averaging them does not shrink that error: the
+    pipeline's estimate floors its yaw variance at it (and leaves a larger one alone)."""
+    turned = dataclasses.replace(arena, wall_direction_error_deg=0.5)
+    floor = math.radians(0.5) ** 2
+    for world, expected in ((arena, 1e-8), (turned, floor)):
+        pipeline = LidarPipeline(LidarPipelineConfig(horizontal_sensor="h", vertical_sensor="v"), world,
+                                 MountConfig(), MountConfig(rpy_deg=(90.0, 0.0, 0.0)), Health(lambda: 0.0))
+        state = pipeline.fusion.state(0.0)
+        sure = dataclasses.replace(state, yaw_variance=1e-8)
+        assert pipeline._with_shared_errors(sure).yaw_variance == pytest.approx(expected)
+        unsure = dataclasses.replace(state, yaw_variance=4 * floor)
+        assert pipeline._with_shared_errors(unsure).yaw_variance == 4 * floor
 
 
 def test_a_wall_fix_carries_the_headings_uncertainty_into_its_position() -> None:

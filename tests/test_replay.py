@@ -131,6 +131,23 @@ def test_nees_is_the_dimension_for_errors_drawn_from_the_covariance() -> None:
     assert np.mean(nees(errors, np.broadcast_to(4 * cov, (len(errors), 2, 2)))) == pytest.approx(0.5, abs=0.02)
 
 
+def test_the_heading_nees_is_one_for_headings_drawn_from_their_variance_and_counts_the_references_error() -> None:
+    """Each fix's heading error against the reference, over the yaw variance it claimed: 1 when
+    consistent; a reference with its own heading error (--reference-heading-sd-deg) as large as
+    the fixes' halves it."""
+    rng = np.random.default_rng(8)
+    sd = math.radians(0.3)
+    steps = []
+    for error in rng.normal(0.0, sd, 4000):
+        scan = LogScan(0.0, np.zeros(1), np.zeros(1), np.zeros(1, bool), (0.0, 0.0, 3.1), None)
+        fix = PlanarFix(0.0, 0.0, 3.1 + error, np.diag([0.01, 0.01, sd ** 2]), 3, "tracking", "", False, "ok")
+        steps.append(ReplayStep(scan, fix, 1.0))
+    assert score(steps)["heading_nees_mean"] == pytest.approx(1.0, abs=0.06)
+    assert score(steps, reference_heading_sd_deg=0.3)["heading_nees_mean"] == pytest.approx(0.5, abs=0.03)
+    lo, hi = score(steps)["heading_nees_band"]
+    assert lo < 1.0 < hi
+
+
 def test_a_log_without_reference_scores_nothing_it_cannot(tmp_path: Path) -> None:
     from companion.messages import Scan
     from drivers.lidar_replay import record_npz
@@ -140,6 +157,7 @@ def test_a_log_without_reference_scores_nothing_it_cannot(tmp_path: Path) -> Non
     report = score([ReplayStep(s, None, 1.0) for s in read_log(tmp_path / "s.npz", "npz")])
     assert report["scans"] == 3 and report["lost_fraction"] == 1.0
     assert report["position_median_m"] is None and report["nees_mean"] is None and report["wrong_resets"] is None
+    assert report["heading_nees_mean"] is None and report["heading_nees_band"] is None
 
 
 def test_the_command_line_offers_every_log_format_replay_reads() -> None:
@@ -162,19 +180,23 @@ def test_real_logs_replay_on_their_own_maps_without_a_wrong_reset(log: str, odom
     """The real CARMEN logs (SICK, 1 deg beams, a scan every ~1 m or 20 deg) on maps built from them;
     their odometry is their reference, so the replay adds wheel-odometry errors (``auto``), or
     takes it as it is (``log``). Figures in the README ("Real buildings"); here: no wrong reset, a
-    heading within a degree, centimetre median, NEES inside its 95 % band, and lost on under a
-    quarter of the scans (the walls near the dead-reckoned pose resume tracking after a loss)."""
+    heading within a degree, centimetre median, NEES inside its 95 % band, lost on under a quarter
+    of the scans (the walls near the dead-reckoned pose resume tracking after a loss), and a heading
+    that, counting the reference's own half a degree, is not over-confident (its NEES was 40 and 10
+    before the map carried its walls' direction error) nor grossly cautious."""
     path = CARMEN_DIR / f"{log}-corrected.log.gz"
     if not path.exists():
         pytest.skip(f"CARMEN log not found at {path}")
     world = tmp_path / "map.yaml"
     assert main(["map", "build", str(path), "--format", "carmen", "--out", str(world)]) == 0
     report_path = tmp_path / "r.json"
+    assert 0.2 < load_world(world).wall_direction_error_deg < 1.0
     assert main(["replay", str(path), "--format", "carmen", "--map", str(world), "--report", str(report_path),
-                 "--odometry", odometry]) == 0
+                 "--odometry", odometry, "--reference-heading-sd-deg", "0.5"]) == 0
     report = json.loads(report_path.read_text())
     assert report["odometry"]["mode"] == ("noisy" if odometry == "auto" else "log") and report["wrong_resets"] == 0
     assert report["heading_rms_deg"] < 1.0 and report["position_median_m"] < 0.1
     low, high = report["nees_band"]
     assert low <= report["nees_mean"] <= high
     assert report["lost_fraction"] < 0.25
+    assert 0.5 < report["heading_nees_mean"] <= report["heading_nees_band"][1]

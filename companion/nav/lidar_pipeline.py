@@ -108,6 +108,9 @@ class LidarPipelineConfig:
         "White acceleration noise of the fusion's IMU prediction, m/s^2/sqrt(Hz): the IMU's own plus the autopilot's "
         "tilt error seen through gravity, vibration, impacts (the part ArduPilot's EK3_ACC_P_NSE plays).",
         (1e-5, 1.0)))
+    yaw_rate_noise_density: float = field(default=FusionConfig.yaw_rate_noise_density, metadata=meta(
+        "White noise of the fusion's yaw prediction from the gyro, rad/sqrt(s): the gyro's noise and the bias its "
+        "calibration leaves, over the interval between heading fixes.", (1e-6, 0.1)))
     fix_time_sd_s: float = field(default=FusionConfig.fix_time_sd_s, metadata=meta(
         "1-sigma error of a scan's capture time on the autopilot IMU's time line, s (the scanner's and the "
         "autopilot's clocks each mapped onto the daemon's, the autopilot's accelerometer filter): each fix's "
@@ -120,7 +123,8 @@ class LidarPipelineConfig:
     corner_error_per_m: float = field(default=CornerParams.floor_per_m, metadata=meta(
         "1-sigma error of every corner per metre of range (beam width, rounded corners), m/m.", (0.0, 0.05)))
     heading_error_deg: float = field(default=math.degrees(math.sqrt(HeadingParams.variance_floor_rad2)), metadata=meta(
-        "1-sigma floor of the lidar heading (walls a little off the map's wall angle), degrees.", (0.0, 5.0)))
+        "1-sigma floor of the heading the lines measure (the scanner's alignment, walls a little off the map's wall "
+        "angle), degrees; the map's own `wall_direction_error_deg` is added to each fix's heading.", (0.0, 5.0)))
     height_model_error_m: float = field(default=math.sqrt(HeightParams.variance_floor_m2), metadata=meta(
         "1-sigma error of every height fix beyond its floor line's fit (an uneven floor), m; 0 only for an exactly "
         "flat floor (a simulated one).", (0.0, 0.5)))
@@ -167,10 +171,11 @@ def wall_ends_floor(fix: PlanarFix, kept: tuple[np.ndarray, float] | None) -> tu
     return None
 
 
-def planar_params(cfg: LidarPipelineConfig, survey_error_m: float = CornerParams.floor_m) -> PlanarParams:
+def planar_params(cfg: LidarPipelineConfig, survey_error_m: float = CornerParams.floor_m,
+                  wall_direction_error_deg: float = 0.0) -> PlanarParams:
     """The localizer's thresholds and noise floors from the config and the map's survey error (m,
-    1-sigma: the floor of every corner's and wall's covariance); the rest keep the defaults of
-    companion/nav."""
+    1-sigma: the floor of every corner's and wall's covariance) and wall direction error (deg,
+    1-sigma: added to every heading's variance); the rest keep the defaults of companion/nav."""
     defaults = PlanarParams()
     lines = dataclasses.replace(defaults.lines, model_floor_m=cfg.line_model_error_m)
     return PlanarParams(gate_m=cfg.correspondence_gate_m, reloc_confirm_frames=cfg.relocalization_confirm_scans,
@@ -178,7 +183,8 @@ def planar_params(cfg: LidarPipelineConfig, survey_error_m: float = CornerParams
                         map_error_m=survey_error_m, lines=lines,
                         edges=dataclasses.replace(defaults.edges, mixed_pixels=cfg.mixed_pixels),
                         heading=HeadingParams(prediction_sigma_deg=GYRO_PREDICTION_SIGMA_DEG,
-                                              variance_floor_rad2=math.radians(cfg.heading_error_deg) ** 2))
+                                              variance_floor_rad2=math.radians(cfg.heading_error_deg) ** 2),
+                        map_heading_error_rad=math.radians(wall_direction_error_deg))
 
 
 def height_params(cfg: LidarPipelineConfig) -> HeightParams:
@@ -225,11 +231,13 @@ class LidarPipeline:
         if cfg.initial_pose is not None:
             x, y, yaw_deg = cfg.initial_pose
             initial = (x, y, math.radians(yaw_deg))
-        self.localizer = planar_localizer(planar_params(cfg, self.survey_error_m), world_map,
+        self.localizer = planar_localizer(planar_params(cfg, self.survey_error_m, world_map.wall_direction_error_deg),
+                                          world_map,
                                           planar_mount(horizontal), initial)
         self.height = HeightEstimator(tuple(vertical.position_m), tuple(math.radians(a) for a in vertical.rpy_deg),
                                       height_params(cfg))
         self.fusion = FusionFilter(FusionConfig(accel_noise_density=cfg.accel_noise_density,
+                                                yaw_rate_noise_density=cfg.yaw_rate_noise_density,
                                                 fix_time_sd_s=cfg.fix_time_sd_s))
         self.output = FusedOutput(self.fusion, health, "nav:fusion")
         self.stats = LidarPipelineStats()
@@ -371,7 +379,9 @@ class LidarPipeline:
         the filter's covariance (of the position in the map) shrinks below them while the error
         against the building does not:
 
-        - the map's: its survey error (m, 1-sigma) over the corners or walls the newest fix matched;
+        - the map's: its survey error (m, 1-sigma) over the corners or walls the newest fix matched,
+          and its wall direction error (deg, 1-sigma), which the yaw variance does not go below (the
+          heading is measured against the map's walls, the same ones from scan to scan);
         - the wall ends': where the newest fix measured a direction by wall ends alone (a
           corridor's axis), the variance along it is at least that fix's (where between two beams
           a wall ends stays the same while the vehicle moves less than a beam spacing: hovering
@@ -387,7 +397,8 @@ class LidarPipeline:
             short = least - float(u @ cov[:2, :2] @ u)
             if short > 0.0:
                 cov[:2, :2] += short * np.outer(u, u)
-        return dataclasses.replace(state, position_covariance=cov)
+        yaw_variance = max(state.yaw_variance, math.radians(self.world_map.wall_direction_error_deg) ** 2)
+        return dataclasses.replace(state, position_covariance=cov, yaw_variance=yaw_variance)
 
     def snapshot(self) -> dict:
         """Telemetry: counters, the fix rate, the relocalization candidate waiting for confirmation

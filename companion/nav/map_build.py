@@ -22,7 +22,11 @@ Steps (plain numpy, no I/O):
    of one of them and on (or within reach of) the other; the ends within reach are moved onto
    the intersection, so each corner is a wall end lying on another wall, as a world requires;
 5. the survey error: the length-weighted RMS of the segments' offsets about their wall's (scan
-   noise and pose error included: an upper bound of the map's own error).
+   noise and pose error included: an upper bound of the map's own error); the wall direction
+   error: the wall-length-weighted RMS of each wall's mean direction (its segments' length-weighted
+   mean) about its family's, i.e. how far the building's walls run from the map's exact directions
+   (what every heading measured on them carries; the poses' heading error, averaged over each
+   wall's segments, included).
 """
 
 from __future__ import annotations
@@ -62,6 +66,7 @@ class BuiltMap:
     observations: np.ndarray  # (K,) segments merged into each wall
     corners: np.ndarray
     survey_error_m: float  # 1-sigma, metres (an upper bound: scan noise and pose error included)
+    wall_direction_error_deg: float  # 1-sigma, degrees: the walls' directions about their family's
 
 
 def build_map(scans: Iterable[tuple[np.ndarray, np.ndarray, tuple[float, float, float]]],
@@ -79,7 +84,7 @@ def build_map(scans: Iterable[tuple[np.ndarray, np.ndarray, tuple[float, float, 
     residual = direction - offset - family * angle
     family = np.mod(family, int(round(math.pi / angle)))  # directions modulo 180 degrees
     keep = np.abs(residual) <= math.radians(params.angle_tolerance_deg)
-    walls, counts, rho_resid, resid_len = [], [], [], []
+    walls, counts, rho_resid, resid_len, wall_turn, wall_len = [], [], [], [], [], []
     for f in np.unique(family[keep]):
         phi = offset + f * angle
         t, n = np.array([math.cos(phi), math.sin(phi)]), np.array([-math.sin(phi), math.cos(phi)])
@@ -96,13 +101,17 @@ def build_map(scans: Iterable[tuple[np.ndarray, np.ndarray, tuple[float, float, 
             counts.append(members.size)
             rho_resid.append(rho[members] - wall_rho)
             resid_len.append(w)
+            wall_turn.append(float(w @ residual[sel][members] / w.sum()))
+            wall_len.append(b - a)
     if not walls:
         raise ValueError("no wall seen often enough: check the poses and the wall angle")
     wall_array = np.array(walls)
     corners = _corners(wall_array, params.corner_reach_m)
     r, w = np.concatenate(rho_resid), np.concatenate(resid_len)
+    turn, span = np.array(wall_turn), np.array(wall_len)
     return BuiltMap(params.wall_angle_deg, math.degrees(offset), wall_array, np.array(counts), corners,
-                    float(math.sqrt(w @ r ** 2 / w.sum())))
+                    float(math.sqrt(w @ r ** 2 / w.sum())),
+                    math.degrees(math.sqrt(float(span @ turn ** 2 / span.sum()))))
 
 
 def _segments(scans: Iterable[tuple[np.ndarray, np.ndarray, tuple[float, float, float]]],

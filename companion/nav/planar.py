@@ -183,6 +183,9 @@ class PlanarParams:
     edge_gate_m: float = 0.5  # an occluding line end this near its map wall's end measures along it, metres ...
     edge_corner_m: float = 0.1  # ... if a map corner lies within this of that end, metres
     map_error_m: float = 0.005  # 1-sigma of a map wall's position (World.survey_error_m), metres
+    # 1-sigma of the map's wall directions (World.wall_direction_error_deg), rad: added to every fix's
+    # heading variance (update()), not through the lever arm to its position (see update()).
+    map_heading_error_rad: float = 0.0
     floor_clearance_m: float = 0.15  # with the height known, hits this close to the floor or ceiling are dropped, metres
     jump_m: float = 0.3  # a relocalization moving the pose more than this is a reset
     jump_rad: float = math.radians(10.0)  # ... or turning it more than this
@@ -336,7 +339,26 @@ class PlanarLocalizer:
         displacement since the previous scan (forward, right, metres, in the body frame of the
         previous scan; odometry or the fused IMU), which moves a relocalization candidate before
         this scan is checked against it. ``height_m``: the body's height
-        above the floor (m) when known, to drop floor hits of a tilted scanner."""
+        above the floor (m) when known, to drop floor hits of a tilted scanner.
+
+        The fix's heading variance includes the map's wall direction error
+        (``map_heading_error_rad``): its walls may run that far off the directions the heading is
+        measured against. The yaw's variance only: the position's covariance carries the heading
+        the lines measured through the lever arm, and a built map's wall direction error is an
+        upper bound holding its reference poses' own heading error (through the lever arm it put
+        the real logs' position NEES below its band: README, "Real buildings")."""
+        fix = self._update(scan, prior, roll, pitch, yaw_delta, moved_m, valid, height_m)
+        extra = self.params.map_heading_error_rad ** 2
+        if fix is None or extra == 0.0:
+            return fix
+        cov = fix.covariance.copy()
+        cov[2, 2] += extra
+        return replace(fix, covariance=cov)
+
+    def _update(self, scan: Scan | np.ndarray, prior: tuple[float, float, float] | None, roll: float, pitch: float,
+                yaw_delta: float, moved_m: tuple[float, float], valid: np.ndarray | None,
+                height_m: float | None) -> PlanarFix | None:
+        """:meth:`update` without the map's wall direction error."""
         t0 = time.perf_counter()
         self._yaw_delta, self._moved = yaw_delta, moved_m
         points, ok, ranges = self.level_points(scan, roll, pitch, valid, height_m)
