@@ -128,13 +128,14 @@ def _row(name: str, median: float, p99: float) -> None:
 
 def run_bench(repeat: int) -> int:
     """Print every stage's median and p99 in ms: link, telemetry, SITL, the event loop's cost per
-    wake-up, lidar pipeline, laser-dot
+    wake-up, lidar pipeline (and how it holds with beams dropped and a tilted scanner), laser-dot
     pipeline (and its accuracy beside the markers-alone pose), EKF-SLAM, GNSS + optic flow (and the
     flow's accuracy), fusion, control;
     then the dashboard's publish-to-browser latency and CPU."""
     from companion.control.bench_control import control_figures, run_control_bench
     from companion.dashboard.bench import print_dashboard_figures
     from companion.nav.bench_fusion import run_fusion_bench
+    from companion.nav.bench_robustness import robustness_figures
     from companion.nav.bench_stages import run_stage_bench
     from companion.nav.ekf_slam.bench_slam import run_slam_bench
     from companion.nav.gnss_flow.bench_flow import run_flow_bench
@@ -150,6 +151,8 @@ def run_bench(repeat: int) -> int:
     print("lidar pipeline (a 1081-beam UTM-30LX scan / 682-beam URG-04LX scan of the default arena):")
     for name, (median, p99) in run_stage_bench(repeat).items():
         _row(name, median, p99)
+    for name, text in robustness_figures().items():
+        print(f"  {name}: {text}")
     print("laser-dot pipeline (640x480 frames of the simulated downward camera, config/sitl-laser-dots.yaml):")
     _stages_and_accuracy(*run_dots_bench(repeat))
     print("EKF-SLAM (a map of 100 landmarks, 303 states; issue 14: update <= 2 ms median):")

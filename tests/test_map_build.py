@@ -17,7 +17,7 @@ from drivers.lidar_models import UTM_30LX
 from drivers.lidar_replay import carmen_valid, read_carmen
 from sitl.raycast import WorldGeometry
 from tests.scan_synthesis import walls_world
-from tests.test_nav_planar import arena_path
+from companion.nav.bench_robustness import arena_path
 
 CARMEN_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "carmen"
 

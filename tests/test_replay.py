@@ -19,7 +19,7 @@ from companion.scoring import nees
 from drivers.mount import beam_directions
 from sitl.raycast import WorldGeometry, cast
 from companion.world import load_world
-from tests.test_nav_planar import arena_path
+from companion.nav.bench_robustness import arena_path
 
 CARMEN_DIR = Path(__file__).resolve().parents[2] / "shared" / "data" / "real" / "carmen"
 BEAMS = 180  # a SICK LMS as in the Radish logs: 180 beams over 180 deg

@@ -24,7 +24,7 @@ from companion.world import load_world
 from drivers.lidar_replay import read_ros_bag
 from drivers.mount import beam_directions
 from sitl.raycast import WorldGeometry, cast
-from tests.test_nav_planar import arena_path
+from companion.nav.bench_robustness import arena_path
 
 SCAN, ODOMETRY, POSE = "sensor_msgs/msg/LaserScan", "nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped"
 BEAMS = 271  # a UTM-30LX as its ROS driver publishes it: 1 deg steps over 270 deg, from the right

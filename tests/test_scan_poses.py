@@ -24,7 +24,7 @@ from drivers.lidar_models import UTM_30LX
 from drivers.lidar_replay import breezyslam_angles, breezyslam_valid, read_breezyslam, record_npz
 from sitl.raycast import WorldGeometry
 from tests.test_flight_recorder import recorder
-from tests.test_nav_planar import arena_path
+from companion.nav.bench_robustness import arena_path
 from tests.test_real_corridor import CALIBRATED_SCALE, CORRIDOR, odometry_heading
 
 
