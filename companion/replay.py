@@ -62,8 +62,6 @@ FORMATS = ("carmen", "ros", "breezyslam", "npz", "companion")
 WHEEL_ERROR_FRACTION = 0.05  # simulated wheel odometry: 1-sigma error, fraction of each step's length and turn
 WHEEL_ERROR_DEG_PER_M = 1.0  # ... and 1-sigma heading error per metre driven, deg
 SAME_POSE_M = 1e-6  # odometry this close to the reference everywhere is the reference
-CONTRACT_FIELDS = {"scans", "heading_rms_deg", "position_median_m", "position_p95_m", "nees_mean", "lost_fraction",
-                   "relocalizations", "wrong_resets", "ms_per_scan_p50"}
 
 
 @dataclass(frozen=True)
