@@ -102,7 +102,8 @@ def test_the_realistic_arena_patrol_meets_the_localization_targets(tmp_path: Pat
     furniture, two people walking) localized in the surveyed map (2 cm survey error, a corner
     missing), scanners with mixed pixels, a 1 deg mounting error, motion distortion and dropouts.
     The localization issue's targets: position RMS <= 5 cm, max <= 20 cm, yaw RMS <= 1 deg, no
-    wrong reset, NEES inside its 95 % band."""
+    wrong reset, NEES inside its 95 % band, the yaw's too (0.46 in 0.34-1.66 on 2026-12-06; 0.15,
+    cautious, with the fusion's yaw process noise at 0.005 rad/sqrt(s))."""
     r = fly(tmp_path, "patrol", None, config="sitl-realistic.yaml")
     est = r["estimate"]
     assert r["control"]["mission_completed"] and r["control"]["failsafes_triggered"] == []
@@ -110,6 +111,8 @@ def test_the_realistic_arena_patrol_meets_the_localization_targets(tmp_path: Pat
     assert est["yaw_rms_deg"] <= 1.0 and est["wrong_resets"] == 0
     low, high = est["nees_band"]
     assert low <= est["nees_mean"] <= high, est
+    low, high = est["yaw_nees_band"]
+    assert low <= est["yaw_nees_mean"] <= high, est
 
 
 def test_the_corridor_slows_down_while_no_corner_is_in_view_and_never_flies_on_a_confident_wrong_pose(
@@ -149,4 +152,5 @@ def test_the_realistic_corridor_keeps_its_cross_track_position_and_is_never_over
     assert est["position_rms_m"] <= 0.05 and est["position_max_m"] <= 0.2
     low, high = est["nees_band"]
     assert low <= est["nees_mean"] <= high, est
-    assert est["nees_max"] < 25.0, est  # 14-15 for seeds 1-3 on 2026-12-06; 3 dof: 25 is passed once in 60,000
+    assert est["nees_max"] < 25.0, est  # 15-18 for seeds 1-3 on 2026-12-06; 3 dof: 25 is passed once in 60,000
+    assert est["yaw_nees_mean"] <= est["yaw_nees_band"][1], est  # 1.3-1.7 for seeds 1-3, bands up to 2.0-2.1
