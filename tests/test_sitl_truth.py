@@ -9,6 +9,7 @@ import asyncio
 import numpy as np
 
 from companion import clock
+from companion.clock import LockstepEventLoop
 from companion.config import MavlinkConfig, OriginConfig, VehicleConfig
 from companion.frames import euler_from_quat, geodetic_from_ned, quat_from_euler
 from companion.health import Health
@@ -28,8 +29,12 @@ def from_autopilot(msg: mavlink.MAVLink_message) -> mavlink.MAVLink_message:
 
 def test_simstate_velocity_is_the_vehicles_speed_when_its_messages_arrive_in_bursts() -> None:
     """Differencing two positions over their arrival times (microseconds apart in a burst) gave
-    thousands of m/s; the fitted slope stays within a few percent of the true 5 m/s."""
+    thousands of m/s; the fitted slope stays within a few percent of the true 5 m/s. The daemon's
+    clock is a lockstep one, stepped between bursts, so the arrival times are exactly a burst's
+    (with real sleeps a loaded machine's late wake-ups spread them and slowed the truth's speed)."""
     async def main() -> list[np.ndarray]:
+        loop = asyncio.get_running_loop()
+        assert isinstance(loop, LockstepEventLoop)
         link = MavlinkLink(MavlinkConfig(), VehicleConfig(), "udpout:127.0.0.1:9", Health(clock.now))
         truth = TruthSource(link, ORIGIN)
         link._dispatch(from_autopilot(mavlink.MAVLink_scaled_pressure_message(0, 955.0, 0.0, 2500)))
@@ -42,10 +47,14 @@ def test_simstate_velocity_is_the_vehicles_speed_when_its_messages_arrive_in_bur
             if truth.latest is not None:
                 velocities.append(truth.latest.velocity_ned)
             if i % BURST == BURST - 1:
-                await asyncio.sleep(BURST / RATE_HZ)
+                loop.advance(loop.time() + BURST / RATE_HZ)
         return velocities
 
-    velocities = np.array(asyncio.run(main()))
+    loop = LockstepEventLoop()
+    try:
+        velocities = np.array(loop.run_until_complete(main()))
+    finally:
+        loop.close()
     settled = velocities[RATE_HZ:]  # after the first second
     assert np.all(np.abs(settled[:, 1] - SPEED_EAST_MPS) < 0.1 * SPEED_EAST_MPS)
     assert np.all(np.abs(settled[:, 0]) < 0.2)
