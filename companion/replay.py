@@ -257,6 +257,8 @@ def replay_report(log: str | Path, log_format: str, world_map: World, map_path: 
     """The replay report of ``log`` on ``world_map``: the contract's fields and what the replay used.
     ``start``: the log's first reference pose, none (relocalize), or the map's ``start`` pose;
     ``reference_heading_sd_deg``: the reference's own heading error (:func:`score`)."""
+    if not (reference_heading_sd_deg >= 0.0 and math.isfinite(reference_heading_sd_deg)):
+        raise ValueError(f"--reference-heading-sd-deg must be a finite value >= 0, got {reference_heading_sd_deg}")
     scans = read_log(log, log_format, laser, scan_topic, pose_topic)
     if not scans:
         raise ValueError(f"{log}: no scan to replay")
@@ -268,8 +270,6 @@ def replay_report(log: str | Path, log_format: str, world_map: World, map_path: 
     if start == "map":
         x, y, yaw_deg = world_map.start
         initial = (x, y, math.radians(yaw_deg))
-    if not (reference_heading_sd_deg >= 0.0 and math.isfinite(reference_heading_sd_deg)):
-        raise ValueError(f"--reference-heading-sd-deg must be a finite value >= 0, got {reference_heading_sd_deg}")
     report = score(replay(scans, world_map, mode, initial, seed), reference_heading_sd_deg)
     return {**report, "log": str(log), "format": log_format, "map": str(map_path),
             "odometry": {"mode": mode, "why": why, "seed": seed if mode == "noisy" else None},

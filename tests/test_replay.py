@@ -176,6 +176,15 @@ def test_an_unreadable_log_is_refused_with_exit_2_naming_it(tmp_path: Path, caps
     assert "walk.bag" in capsys.readouterr().err
 
 
+def test_a_reference_heading_error_that_is_no_number_is_refused_before_the_log_is_read(
+        tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    missing = tmp_path / "walk.bag"  # never read: the argument is refused first
+    for bad in ("nan", "-0.5"):
+        assert main(["replay", str(missing), "--format", "ros", "--map", str(DEFAULT_WORLD),
+                     "--reference-heading-sd-deg", bad]) == 2
+        assert "--reference-heading-sd-deg must be a finite value >= 0" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("odometry", ["auto", "log"])
 @pytest.mark.parametrize("log", ["intel", "aces"])
 def test_real_logs_replay_on_their_own_maps_without_a_wrong_reset(log: str, odometry: str, tmp_path: Path) -> None:
